@@ -1,0 +1,124 @@
+"""The ``tofjax`` command. Thin: parse, call the library, print.
+
+User errors (bad scene, bad capture, bad arguments) end in one line on
+stderr and exit code 2, never in a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .capture import CaptureError
+from .config import ConfigError
+
+
+def _cmd_simulate(a) -> int:
+    from .capture import write_capture
+    from .model import ModelOptions
+    from .scene import load_scene
+    from .simulate import simulate
+
+    scene = load_scene(a.scene)
+    if a.frames < 1:
+        raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
+    cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
+    write_capture(a.out, cap)
+    print(f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}'")
+    return 0
+
+
+def _cmd_plot(a) -> int:
+    from .capture import read_capture
+    from .plot import plot_capture, plot_scene
+
+    cap = read_capture(a.capture)
+    base = read_capture(a.baseline) if a.baseline else None
+    if base is not None and base.scene.shape != cap.scene.shape:
+        raise CaptureError(
+            f"{a.baseline}: baseline shape {base.scene.shape} does not match the capture's {cap.scene.shape}"
+        )
+    paths = plot_capture(cap, a.out, baseline=base, log=not a.linear)
+    paths.append(plot_scene(cap.scene, Path(a.out) / "scene.png"))
+    print(f"wrote {len(paths)} figures to {a.out}/")
+    return 0
+
+
+def _cmd_demo(a) -> int:
+    from .demo import run_demo
+    from .scene import load_scene
+
+    run_demo(a.out, load_scene(a.scene) if a.scene else None, frames=a.frames, seed=a.seed)
+    return 0
+
+
+def _cmd_scene(a) -> int:
+    from .scene import load_scene
+
+    scene = load_scene(a.scene)
+    if a.toml:
+        print(scene.to_toml(), end="")
+        return 0
+    S, Z, B = scene.shape
+    print(f"{a.scene}: ok: '{scene.name}', {S} sensors x {Z} zones x {B} bins, {len(scene.touches)} touches")
+    print(f"components: {', '.join(scene.components())}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tofjax",
+        description="Time-of-flight FTIR tactile sensors: simulate, plot, calibrate and invert.",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    s = sub.add_parser("simulate", help="simulate a capture (with ground truth) from a scene file")
+    s.add_argument("scene", help="scene TOML file, or a built-in name (optoskin, softskin, ...)")
+    s.add_argument("--frames", type=int, default=10, help="frames to simulate (default 10)")
+    s.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    s.add_argument("--out", required=True, help="output capture (.h5)")
+    s.add_argument("--quadrature", type=int, default=2, help="time nodes per bin (fidelity, default 2)")
+    s.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+    s.set_defaults(func=_cmd_simulate)
+
+    s = sub.add_parser("plot", help="plot a capture's histograms per sensor and zone")
+    s.add_argument("capture", help="capture file (.h5)")
+    s.add_argument("--baseline", help="baseline capture to compare with (touch vs baseline)")
+    s.add_argument("--out", required=True, help="output folder for PNGs")
+    s.add_argument("--linear", action="store_true", help="linear count axis (default log)")
+    s.set_defaults(func=_cmd_plot)
+
+    s = sub.add_parser("demo", help="the main job on the built-in default scene (what `make demo` runs)")
+    s.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    s.add_argument("--scene", help="baseline scene instead of the built-in OptoSkin")
+    s.add_argument("--frames", type=int, default=20, help="baseline frames (default 20)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser("scene", help="validate a scene file and show what the model will include")
+    s.add_argument("scene", help="scene TOML file, or a built-in name")
+    s.add_argument("--toml", action="store_true", help="print the scene with every default filled in")
+    s.set_defaults(func=_cmd_scene)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # Fitting and gradients need float64; set it here, at the entry point, never on import.
+    from . import enable_x64
+
+    enable_x64()
+    try:
+        return args.func(args)
+    except (ConfigError, CaptureError) as e:
+        print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"tofjax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

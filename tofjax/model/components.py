@@ -1,0 +1,229 @@
+"""The physics of Eq. 2-5 (seed 000), one function per component.
+
+``P_r(t) = Q_int + Q_vol + Q_touch + N_ms + N_a``, each backscatter term
+``Q_i = K G(r) beta_i T(r)`` written in terms of the one-way range
+``r = c1 (t - t_e) / 2`` inside the waveguide (``c1 = c / n1``, ``t_e`` the
+emission time):
+
+* ``G(r) = 1 / (r^2 + r0^2)``: the slab spreads light in two dimensions, so
+  intensity falls as ``1/r`` each way, ``1/r^2`` round trip (Eq. 4). ``r0``
+  (the near field, default the slab thickness) keeps it finite where the slab
+  is not thin compared with the range.
+* ``T(r) = exp(-2 mu_t r)``, ``mu_t = mu_s + mu_a`` (Eq. 5).
+
+Each function returns *masses at time nodes* (counts deposited at node times,
+before the pulse is applied), shape ``(S, Z, K)``; the forward model then
+applies the instrument response and integrates over bins in one matrix
+product. Distributed terms (interface, volume, multiple scattering) use the
+midpoint rule on the nodes; point-like terms (crosstalk, the far edge,
+contacts) are deposited on the two nearest nodes with weights that conserve
+their mass and mean time. See ``docs/physics.md`` for the derivations.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from .geometry import Geometry
+from .params import Params
+
+SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
+
+__all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "make_nodes", "falloff", "transmittance"]
+
+
+class Nodes(NamedTuple):
+    """The time grid shared by every component (``q`` nodes per bin)."""
+
+    t: jax.Array  # (K,) node times, s
+    h: jax.Array  # node spacing, s
+    r: jax.Array  # (K,) one-way range at each node, m (negative before emission)
+    dr: jax.Array  # range per node, m
+    c1: jax.Array  # speed of light in the waveguide, m/s
+
+
+def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes:
+    dtype = params.n1.dtype
+    h = jnp.asarray(bin_width_s / q, dtype)
+    t = (jnp.arange(n_bins * q, dtype=dtype) + 0.5) * h
+    c1 = SPEED_OF_LIGHT_M_PER_S / params.n1
+    return Nodes(t=t, h=h, r=0.5 * c1 * (t - params.emission_time_s), dr=0.5 * c1 * h, c1=c1)
+
+
+def falloff(r, near_field):
+    """Geometric factor G (Eq. 4) with the near field regularised: finite at r = 0."""
+    return 1.0 / (r**2 + near_field**2)
+
+
+def transmittance(r, mu_t):
+    """Round-trip transmittance T (Eq. 5) to range ``r``; underflows to 0, never overflows."""
+    return jnp.exp(-2.0 * mu_t * jnp.maximum(r, 0.0))
+
+
+def deposit(times, masses, nodes: Nodes):
+    """Put point masses at ``times`` (S, Z, E) onto the nodes: (S, Z, K).
+
+    Linear ("cloud in cell") weights on the two nearest nodes: mass and mean
+    time are conserved for an event between two nodes, the result is
+    differentiable in the times, and the cost is a scatter of 2E values.
+    Events outside the histogram are dropped.
+    """
+    S, Z, E = times.shape
+    K = nodes.t.shape[0]
+    u = times / nodes.h - 0.5  # position in node units
+    i = jnp.floor(u)
+    frac = u - i
+    i = i.astype(jnp.int32)
+    s_idx = jnp.broadcast_to(jnp.arange(S)[:, None, None], (S, Z, E))
+    z_idx = jnp.broadcast_to(jnp.arange(Z)[None, :, None], (S, Z, E))
+    out = jnp.zeros((S, Z, K), masses.dtype)
+    out = out.at[s_idx, z_idx, i].add(masses * (1.0 - frac), mode="drop")
+    return out.at[s_idx, z_idx, i + 1].add(masses * frac, mode="drop")
+
+
+def alive_fraction(geom: Geometry, nodes: Nodes, ends):
+    """Fraction of a zone's rays still inside the waveguide at each node: (S, Z, K).
+
+    ``ends`` is :func:`deposit` of unit masses (1/A per ray) at each ray's
+    far-edge time; its running sum counts rays that have ended. Half of the
+    current node's share is counted as ended, which makes the truncation
+    piecewise linear, hence differentiable in n1 and t_e.
+    """
+    return jnp.clip(1.0 - (jnp.cumsum(ends, axis=-1) - 0.5 * ends), 0.0, 1.0)
+
+
+# ---- contacts -------------------------------------------------------------------------
+
+
+class ContactGeometry(NamedTuple):
+    distance: jax.Array  # (S, N) sensor-to-centre distance, m
+    fraction: jax.Array  # (S, Z, N) fraction of the contact's angular width inside each zone
+    zone_cover: jax.Array  # (S, Z, N) fraction of each zone's angular width the contact covers
+
+
+def contact_geometry(geom: Geometry, params: Params) -> ContactGeometry:
+    d = params.touch_xy_m[None, :, :] - geom.sensor_xy[:, None, :]  # (S, N, 2)
+    c, s = jnp.cos(geom.sensor_dir)[:, None], jnp.sin(geom.sensor_dir)[:, None]
+    u = d[..., 0] * c + d[..., 1] * s  # along the optical axis
+    v = -d[..., 0] * s + d[..., 1] * c
+    # A contact on top of the sensor has no direction: the double-where keeps atan2's gradient finite.
+    at_sensor = u**2 + v**2 < 1e-18
+    rel = jnp.arctan2(jnp.where(at_sensor, 0.0, v), jnp.where(at_sensor, 1.0, u))
+    dist = jnp.sqrt(u**2 + v**2 + 1e-12)
+    half = jnp.arctan(params.touch_radius_m[None, :] / dist)  # angular half-width, < pi/2
+    lo = jnp.maximum(geom.zone_lo[None, :, None], (rel - half)[:, None, :])
+    hi = jnp.minimum(geom.zone_hi[None, :, None], (rel + half)[:, None, :])
+    overlap = jnp.maximum(hi - lo, 0.0)  # (S, Z, N)
+    zone_width = (geom.zone_hi - geom.zone_lo)[None, :, None]
+    return ContactGeometry(dist, overlap / (2.0 * half[:, None, :]), overlap / zone_width)
+
+
+def shadow(r, cg: ContactGeometry, params: Params, exclude_self: bool = False):
+    """Fraction of light that gets to range ``r`` and back past the contacts in the zone.
+
+    ``r`` has shape (S, Z, ...). Contact ``i`` removes a fraction
+    ``opacity * zone_cover_i`` of the zone's light beyond its range, switched
+    on smoothly over its radius; squared for the round trip. With
+    ``exclude_self`` the last axis of ``r`` indexes contacts (S, Z, N, M) and
+    a contact does not shadow itself.
+    """
+    o = params.shadow_opacity * cg.zone_cover  # (S, Z, N)
+    rad = params.touch_radius_m
+    if exclude_self:
+        # r: (S, Z, N_target, M); blockers on a new last axis.
+        step = jax.nn.sigmoid((r[..., None] - cg.distance[:, None, None, None, :]) / rad)  # (S,Z,Nt,M,Nb)
+        n = rad.shape[0]
+        mask = 1.0 - jnp.eye(n, dtype=r.dtype)[None, None, :, None, :]
+        block = o[:, :, None, None, :] * step * mask
+    else:
+        step = jax.nn.sigmoid((r[..., None] - cg.distance[:, None, None, :]) / rad)  # (S, Z, R, N)
+        block = o[:, :, None, :] * step
+    return jnp.prod((1.0 - block) ** 2, axis=-1)
+
+
+def _chord_samples(m: int):
+    """Range offsets (in radii) and weights of a disk seen from afar: semicircle density."""
+    k = jnp.arange(1, m + 1)
+    theta = k * math.pi / (m + 1)
+    w = jnp.sin(theta) ** 2
+    return jnp.cos(theta), w / jnp.sum(w)
+
+
+# ---- the components ---------------------------------------------------------------------
+
+
+def crosstalk(ctx) -> jax.Array:
+    """Light-entry peak: light reaching the detector at emission, before entering the guide."""
+    p, nodes = ctx.params, ctx.nodes
+    t = jnp.broadcast_to(p.emission_time_s, p.crosstalk_counts.shape)[..., None]
+    return deposit(t, p.crosstalk_counts[..., None], nodes)
+
+
+def interface(ctx) -> jax.Array:
+    """Q_int density per unit range: roughness backscatter beta_int (per metre) times G T."""
+    p = ctx.params
+    return p.interface_backscatter_per_m * ctx.falloff * ctx.transmittance
+
+
+def volume(ctx) -> jax.Array:
+    """Q_vol density: single backscatter from the medium, beta_vol = f_back mu_s (proportional to mu_s)."""
+    p = ctx.params
+    return p.volume_backscatter_fraction * p.mu_s_per_m * ctx.falloff * ctx.transmittance
+
+
+def multiple_scattering(ctx) -> jax.Array:
+    """N_ms density: light scattered out of the beam and back again.
+
+    Scattered light stays in the guide, so only absorption removes it
+    (``exp(-2 mu_a r)``), and it builds up as ``1 - exp(-2 mu_s r)``: zero
+    without scattering, saturating once most light has scattered.
+    """
+    p = ctx.params
+    r = ctx.range
+    build_up = -jnp.expm1(-2.0 * p.mu_s_per_m * r)
+    return p.multiple_scattering * p.mu_s_per_m * build_up * ctx.falloff * transmittance(r, p.mu_a_per_m)
+
+
+def end(ctx) -> jax.Array:
+    """The far-edge reflection along each of a zone's rays, averaged over the zone."""
+    p, nodes, geom = ctx.params, ctx.nodes, ctx.geom
+    length = geom.ray_length  # (S, Z, A)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    amp = p.end_reflectance * falloff(length, p.near_field_m) * transmittance(length, mu_t)
+    amp = jnp.where(length > 0, amp, 0.0) / length.shape[-1]  # rays pointing out see no edge
+    if ctx.contacts is not None:
+        amp = amp * shadow(length, ctx.contacts, p)
+    return p.gain[:, None, None] * deposit(ctx.end_times, amp, nodes)
+
+
+def touch(ctx) -> jax.Array:
+    """Q_touch: each contact seen by every zone whose angular window overlaps it.
+
+    ``beta_touch`` of contact ``j`` in a zone is its strength times the
+    fraction of its angular width inside the zone, so over the zones that see
+    all of it the decay-corrected signal sums to its strength, at any
+    distance. Its range spread is that of a disk (a semicircle around ``D``).
+    """
+    p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
+    u, w = _chord_samples(ctx.touch_samples)
+    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
+    r = jnp.maximum(cg.distance[..., None] + p.touch_radius_m[:, None] * u, 0.0)  # (S, N, M)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    beta = p.touch_strength * cg.fraction  # (S, Z, N)
+    amp = beta[..., None] * (w * falloff(r, p.near_field_m) * transmittance(r, mu_t))[:, None]  # (S,Z,N,M)
+    if ctx.shadowing:
+        amp = amp * shadow(jnp.broadcast_to(r[:, None], amp.shape), cg, p, exclude_self=True)
+    t = p.emission_time_s + 2.0 * r / nodes.c1  # (S, N, M)
+    S, Z = amp.shape[:2]
+    t = jnp.broadcast_to(t[:, None], amp.shape).reshape(S, Z, -1)
+    return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
+
+
+#: Backscatter spread along the range: densities per metre of range, shape (K,).
+DISTRIBUTED = {"interface": interface, "volume": volume, "multiple_scattering": multiple_scattering}
+#: Point-like components: node masses, shape (S, Z, K).
+POINT = {"crosstalk": crosstalk, "end": end, "touch": touch}

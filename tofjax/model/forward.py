@@ -1,0 +1,205 @@
+"""The forward model: scene -> expected histograms, composed from what the scene needs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..config import ConfigError
+from ..scene import COMPONENTS, Scene
+from . import components as C
+from .geometry import Geometry
+from .params import Params
+from .pulse import apply_kernels, bin_kernels
+
+__all__ = ["ForwardModel", "ModelOptions", "build_model", "pile_up"]
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """Fidelity settings: accuracy against speed. Defaults are the benchmarked sweet spot.
+
+    **Arguments:**
+
+    - ``quadrature``: time nodes per bin (the bin-integration order). Errors fall
+      as ``1/quadrature^2``.
+    - ``angles_per_zone``: rays per zone for the far-edge distance and range truncation.
+    - ``touch_samples``: range samples across each contact disk.
+    - ``dtype``: ``"float64"`` (needs ``jax_enable_x64``, see :func:`tofjax.enable_x64`) or ``"float32"``.
+    """
+
+    quadrature: int = 2
+    angles_per_zone: int = 8
+    touch_samples: int = 5
+    dtype: str = "float64"
+
+    def __post_init__(self):
+        for k in ("quadrature", "angles_per_zone", "touch_samples"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"{k}: must be >= 1, got {getattr(self, k)!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
+
+    @property
+    def jnp_dtype(self):
+        if self.dtype == "float64" and not jax.config.jax_enable_x64:
+            raise ConfigError(
+                "dtype: float64 requested but JAX runs in 32-bit mode; call tofjax.enable_x64() "
+                "at your entry point or use ModelOptions(dtype='float32')"
+            )
+        return jnp.float64 if self.dtype == "float64" else jnp.float32
+
+
+class _Context(NamedTuple):
+    params: Params
+    geom: Geometry
+    nodes: C.Nodes
+    range: Any  # (K,) one-way range at the nodes, clipped at 0
+    falloff: Any  # (K,) G(r)
+    transmittance: Any  # (K,) T(r)
+    end_times: Any  # (S, Z, A) arrival time of each ray's far-edge reflection
+    contacts: Any  # ContactGeometry or None
+    shadowing: bool
+    touch_samples: int
+
+
+def pile_up(expected, iterations):
+    """SPAD pile-up (Coates): a detector that fired is blind for the rest of that laser pulse.
+
+    With ``mu_b = expected_b / iterations`` photons per pulse in bin ``b``, the
+    observed mean is ``iterations exp(-sum_{j<b} mu_j) (1 - exp(-mu_b))``:
+    identical at low rates, compressed and skewed early at high rates.
+    """
+    mu = expected / iterations
+    before = jnp.cumsum(mu, axis=-1) - mu
+    return iterations * jnp.exp(-before) * -jnp.expm1(-mu)
+
+
+class ForwardModel(eqx.Module):
+    """``model(params) -> (sensors, zones, bins)`` expected counts for one scene.
+
+    Only the components named in ``components`` are traced: a component the
+    scene does not need costs nothing. Build it with :func:`build_model`.
+    """
+
+    geometry: Geometry
+    components: tuple[str, ...] = eqx.field(static=True)
+    options: ModelOptions = eqx.field(static=True)
+    bin_width_s: float = eqx.field(static=True)
+    n_bins: int = eqx.field(static=True)
+    iterations: int = eqx.field(static=True)
+    pile_up: bool = eqx.field(static=True)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        S, Z, _ = self.geometry.ray_length.shape
+        return (S, Z, self.n_bins)
+
+    def _context(self, params: Params) -> _Context:
+        nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
+        r = jnp.maximum(nodes.r, 0.0)
+        wants_contacts = ("touch" in self.components or "shadowing" in self.components) and params.n_touches
+        return _Context(
+            params=params,
+            geom=self.geometry,
+            nodes=nodes,
+            range=r,
+            falloff=C.falloff(r, params.near_field_m),
+            transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
+            end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
+            contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
+            shadowing="shadowing" in self.components,
+            touch_samples=self.options.touch_samples,
+        )
+
+    def _node_masses(self, params: Params, separate: bool = False) -> dict[str, jax.Array]:
+        """Counts at the time nodes, before the pulse: summed, or per component with ``separate``."""
+        ctx = self._context(params)
+        # Shadowing acts on what lies behind a contact; without it contacts only add light.
+        shadow_ctx = ctx if ctx.shadowing else ctx._replace(contacts=None)
+        out = {}
+        dist = [n for n in self.components if n in C.DISTRIBUTED]
+        if dist:
+            nodes, geom = ctx.nodes, ctx.geom
+            A = geom.ray_length.shape[-1]
+            ends = C.deposit(ctx.end_times, jnp.full(geom.ray_length.shape, 1.0 / A, params.n1.dtype), nodes)
+            started = jnp.clip(nodes.r / nodes.dr + 0.5, 0.0, 1.0)  # the node straddling emission
+            coverage = params.gain[:, None, None] * nodes.dr * started * C.alive_fraction(geom, nodes, ends)
+            if shadow_ctx.contacts is not None:
+                coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
+            densities = {n: C.DISTRIBUTED[n](ctx) for n in dist}
+            if separate:
+                out.update({n: coverage * d for n, d in densities.items()})
+            else:
+                out["distributed"] = coverage * sum(densities.values())
+        for name in self.components:
+            if name == "touch" and params.n_touches:
+                out[name] = C.touch(ctx)
+            elif name in ("crosstalk", "end"):
+                out[name] = C.POINT[name](shadow_ctx)
+        return out
+
+    def _apply_pulse(self, masses, params: Params):
+        q = self.options.quadrature
+        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, params.pulse_sigma_s, params.pulse_tail_s, params.n1.dtype)
+        return apply_kernels(masses, kernels, self.n_bins, q)
+
+    def _finish(self, binned, params: Params):
+        if "ambient" in self.components:
+            binned = binned + params.ambient_counts[..., None]
+        if self.pile_up:
+            binned = pile_up(binned, self.iterations)
+        return binned
+
+    def __call__(self, params: Params) -> jax.Array:
+        masses = self._node_masses(params)
+        S, Z, B = self.shape
+        total = sum(masses.values()) if masses else jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
+        return self._finish(self._apply_pulse(total, params), params)
+
+    def breakdown(self, params: Params) -> dict[str, jax.Array]:
+        """Each component's contribution in counts per bin (before pile-up), for plots and pruning."""
+        out = {k: self._apply_pulse(v, params) for k, v in self._node_masses(params, separate=True).items()}
+        if "ambient" in self.components:
+            out["ambient"] = jnp.broadcast_to(params.ambient_counts[..., None], self.shape)
+        return out
+
+
+def build_model(
+    scene: Scene,
+    options: ModelOptions = ModelOptions(),
+    components: tuple[str, ...] | None = None,
+) -> ForwardModel:
+    """The forward model of ``scene`` at the fidelity ``options``.
+
+    **Arguments:**
+
+    - ``scene``: the scene (geometry, sensor, which components it requires).
+    - ``options``: fidelity (see :class:`ModelOptions`).
+    - ``components``: override the scene's component list (e.g. a pruned model).
+
+    **Returns:** a :class:`ForwardModel`; call it on :class:`Params` (``Params.from_scene(scene)``).
+    """
+    comps = scene.components() if components is None else tuple(components)
+    for c in comps:
+        if c not in COMPONENTS:
+            raise ConfigError(f"components: unknown component {c!r}; known: {', '.join(COMPONENTS)}")
+    dtype = options.jnp_dtype
+    return ForwardModel(
+        geometry=Geometry.from_scene(scene, options.angles_per_zone, dtype),
+        components=tuple(c for c in COMPONENTS if c in comps),
+        options=options,
+        bin_width_s=float(scene.sensor.bin_width_s),
+        n_bins=int(scene.sensor.n_bins),
+        iterations=int(scene.sensor.iterations),
+        pile_up=bool(scene.noise.pile_up),
+    )
+
+
+def as_numpy(x) -> np.ndarray:
+    return np.asarray(jax.device_get(x))
