@@ -60,7 +60,7 @@ class _Context(NamedTuple):
     geom: Geometry
     nodes: C.Nodes
     range: Any  # (K,) one-way range at the nodes, clipped at 0
-    falloff: Any  # (K,) G(r)
+    falloff: Any  # (K,) G integrated over each node's range
     transmittance: Any  # (K,) T(r)
     end_times: Any  # (S, Z, A) arrival time of each ray's far-edge reflection
     contacts: Any  # ContactGeometry or None
@@ -109,7 +109,7 @@ class ForwardModel(eqx.Module):
             geom=self.geometry,
             nodes=nodes,
             range=r,
-            falloff=C.falloff(r, params.near_field_m),
+            falloff=C.node_falloff(nodes, params.near_field_m),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
             end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
@@ -126,17 +126,18 @@ class ForwardModel(eqx.Module):
         dist = [n for n in self.components if n in C.DISTRIBUTED]
         if dist:
             nodes, geom = ctx.nodes, ctx.geom
-            A = geom.ray_length.shape[-1]
-            ends = C.deposit(ctx.end_times, jnp.full(geom.ray_length.shape, 1.0 / A, params.n1.dtype), nodes)
-            started = jnp.clip(nodes.r / nodes.dr + 0.5, 0.0, 1.0)  # the node straddling emission
-            coverage = params.gain[:, None, None] * nodes.dr * started * C.alive_fraction(geom, nodes, ends)
+            # Range inside the waveguide within each node: from emission to each ray's far edge.
+            S, Z, _ = geom.ray_length.shape
+            emitted = C.step_on(jnp.broadcast_to(params.emission_time_s, (S, Z, 1)), nodes)
+            ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
+            coverage = params.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
             densities = {n: C.DISTRIBUTED[n](ctx) for n in dist}
             if separate:
-                out.update({n: coverage * d for n, d in densities.items()})
+                out.update({n: C.smooth_like_deposit(coverage * d) for n, d in densities.items()})
             else:
-                out["distributed"] = coverage * sum(densities.values())
+                out["distributed"] = C.smooth_like_deposit(coverage * sum(densities.values()))
         for name in self.components:
             if name == "touch" and params.n_touches:
                 out[name] = C.touch(ctx)

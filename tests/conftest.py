@@ -1,0 +1,22 @@
+"""Test set-up: float64 for gradients and fits, set here (never on import of tofjax)."""
+
+import os
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+# Every example compiles or runs a model: few examples, no deadline (CI machines are slow and shared).
+settings.register_profile("tofjax", max_examples=15, deadline=None, derandomize=True)
+settings.load_profile("tofjax")
+
+
+@pytest.fixture(scope="session")
+def optoskin():
+    from tofjax import load_scene
+
+    return load_scene("optoskin")

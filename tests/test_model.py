@@ -1,0 +1,300 @@
+"""The forward model as physics: closed forms, limits, conservation, gradients, extremes."""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from tofjax import ConfigError, ModelOptions, Params, build_model
+from tofjax.model import SPEED_OF_LIGHT_M_PER_S as C
+from tofjax.model import pile_up, sample_counts
+from tofjax.scene import SensorModel, SensorPlacement, Touch
+
+
+def strip_scene(base, *, size=(0.3, 0.3), n1=1.4, mu_s=0.6, mu_a=0.14, fov=1.0, zones=1, n_bins=128, **sensor):
+    """One sensor at the middle of the bottom edge looking straight across (+y)."""
+    wg = dataclasses.replace(base.waveguide, size_m=size, n1=n1, mu_s_per_m=mu_s, mu_a_per_m=mu_a)
+    sm = SensorModel(bin_width_s=1e-10, n_bins=n_bins, zones=zones, fov_deg=fov, **sensor)
+    return base.replace(
+        waveguide=wg,
+        sensor=sm,
+        sensors=(SensorPlacement(position_m=(size[0] / 2, 0.0), direction_deg=90.0),),
+        touches=(),
+    )
+
+
+def run(scene, opts=ModelOptions(), params=None, components=None):
+    model = build_model(scene, opts, components)
+    params = Params.from_scene(scene, opts.jnp_dtype) if params is None else params
+    return model, params
+
+
+def mean_bin_time(counts, width=1e-10):
+    t = (np.arange(counts.shape[-1]) + 0.5) * width
+    return float((counts * t).sum() / counts.sum())
+
+
+# ---- closed forms --------------------------------------------------------------------------
+
+
+@given(n1=st.floats(1.2, 2.5), length=st.floats(0.08, 0.4))
+def test_end_peak_at_two_d_n1_over_c(optoskin, n1, length):
+    """The far-edge reflection arrives at t_e + 2 d n1 / c (plus the pulse's mean delay, tau)."""
+    scene = strip_scene(optoskin, size=(0.3, length), n1=n1)
+    model, p = run(scene, components=("end",))
+    counts = np.asarray(model.breakdown(p)["end"])[0, 0]
+    expected = scene.sensor.emission_time + 2 * length * n1 / C + scene.sensor.pulse_tail_s
+    assert mean_bin_time(counts) == pytest.approx(expected, abs=0.02e-10)
+    # With a pulse much narrower than a bin, the peak bin is the one holding 2 d n1 / c.
+    sharp = strip_scene(optoskin, size=(0.3, length), n1=n1, pulse_sigma_s=1e-13, pulse_tail_s=1e-13)
+    m2, p2 = run(sharp, components=("end",))
+    t = sharp.sensor.emission_time + 2 * length * n1 / C
+    if abs(t / 1e-10 - round(t / 1e-10)) > 0.05:  # not on a bin edge
+        assert int(np.argmax(np.asarray(m2(p2))[0, 0])) == int(t // 1e-10)
+
+
+@given(mu_t=st.floats(0.0, 30.0), d=st.floats(0.03, 0.25))
+def test_beer_lambert_touch(optoskin, mu_t, d):
+    """A contact's signal falls as exp(-2 mu_t d) (Eq. 5), all else equal."""
+    scene = strip_scene(optoskin, mu_s=0.0, mu_a=0.0, fov=20.0)
+    scene = scene.replace(touches=(Touch(position_m=(0.15, d), radius_m=0.002, strength=1.0),))
+    model, p0 = run(scene, components=("touch",))
+    f = jax.jit(lambda p: model(p).sum())
+    clear = float(f(p0))
+    lossy = float(f(p0.replace(mu_a_per_m=mu_t)))
+    # the disk spans d +- r, so compare with the chord-averaged transmittance
+    r = 0.002
+    u = np.cos(np.arange(1, 6) * np.pi / 6)
+    w = np.sin(np.arange(1, 6) * np.pi / 6) ** 2
+    g = 1 / ((d + r * u) ** 2 + 0.005**2)
+    expected = (w * g * np.exp(-2 * mu_t * (d + r * u))).sum() / (w * g).sum()
+    assert lossy / clear == pytest.approx(expected, rel=1e-9)
+    assert lossy / clear == pytest.approx(math.exp(-2 * mu_t * d), rel=0.02)
+
+
+def test_decay_corrected_touch_sums_to_strength(optoskin):
+    """Over the zones that see all of it, a contact's counts / (K G T) equal its strength, at any distance."""
+    for d in (0.05, 0.12, 0.25):
+        scene = strip_scene(optoskin, fov=29.0, zones=7).replace(
+            touches=(Touch(position_m=(0.153, d), radius_m=0.004, strength=0.7),)
+        )
+        model, p = run(scene, components=("touch",))
+        total = float(model(p).sum())
+        K = float(p.gain[0])
+        dist = math.hypot(0.003, d)
+        decay = K / (dist**2 + 0.005**2) * math.exp(-2 * (0.6 + 0.14) * dist)
+        assert total / decay == pytest.approx(0.7, rel=0.01)
+
+
+def test_touch_split_between_zones(optoskin):
+    """A contact on a zone boundary appears in both zones, and only there."""
+    scene = strip_scene(optoskin, fov=20.0, zones=2)  # boundary straight ahead
+    scene = scene.replace(touches=(Touch(position_m=(0.15, 0.15), radius_m=0.01, strength=1.0),))
+    model, p = run(scene, components=("touch",))
+    per_zone = np.asarray(model(p)).sum(-1)[0]
+    assert per_zone[0] == pytest.approx(per_zone[1], rel=1e-9) and per_zone[0] > 0
+    off = scene.replace(touches=(Touch(position_m=(0.17, 0.15), radius_m=0.005, strength=1.0),))
+    m2, p2 = run(off, components=("touch",))
+    z = np.asarray(m2(p2)).sum(-1)[0]
+    assert z[0] > 0 and z[1] == 0.0  # 7.6 deg clockwise of the axis: zone 0 only
+
+
+def test_volume_term_is_proportional_to_mu_s(optoskin):
+    scene = strip_scene(optoskin, mu_s=0.5, mu_a=0.1)
+    model, p = run(scene, components=("volume",))
+    # hold mu_t fixed so only beta_vol changes
+    a = np.asarray(model(p))
+    b = np.asarray(model(p.replace(mu_s_per_m=0.25, mu_a_per_m=0.35)))
+    np.testing.assert_allclose(b, 0.5 * a, rtol=1e-12, atol=1e-12)
+
+
+def test_crosstalk_and_ambient_conserve_counts(optoskin):
+    scene = strip_scene(optoskin)
+    model, p = run(scene, components=("crosstalk", "ambient"))
+    y = np.asarray(model(p))[0, 0]
+    sm = scene.sensor
+    assert y.sum() == pytest.approx(sm.crosstalk_counts + sm.ambient_counts * sm.n_bins, rel=1e-9)
+    assert int(np.argmax(y)) in (14, 15, 16)  # the crosstalk peak near bin 14-15, as on real parts
+
+
+def test_shadowing_dims_what_lies_behind(optoskin):
+    near = Touch(position_m=(0.15, 0.08), radius_m=0.01, strength=1.0)
+    far = Touch(position_m=(0.15, 0.2), radius_m=0.01, strength=1.0)
+    scene = strip_scene(optoskin, fov=10.0).replace(touches=(near, far))
+    with_shadow, p = run(scene, components=("touch", "shadowing", "end"))
+    without, _ = run(scene, components=("touch", "end"))
+    a, b = with_shadow.breakdown(p), without.breakdown(p)
+    bins = np.arange(128)
+    t_far = (scene.sensor.emission_time + 2 * 0.2 * 1.4 / C) / 1e-10
+    late = bins > t_far - 3
+    early = bins < (scene.sensor.emission_time + 2 * 0.08 * 1.4 / C) / 1e-10 + 3
+    assert np.asarray(a["touch"])[0, 0, late].sum() < 0.9 * np.asarray(b["touch"])[0, 0, late].sum()
+    np.testing.assert_allclose(np.asarray(a["touch"])[0, 0, early], np.asarray(b["touch"])[0, 0, early], rtol=0.02)
+    assert np.asarray(a["end"]).sum() < np.asarray(b["end"]).sum()
+
+
+def test_quadrature_converges(optoskin):
+    """Bin-integration error falls at least quadratically with nodes per bin."""
+    scene = load_touch_scene(optoskin)
+    ref_m, ref_p = run(scene, ModelOptions(quadrature=16))
+    ref = np.asarray(ref_m(ref_p))
+    errs = []
+    for q in (1, 2, 4):
+        m, p = run(scene, ModelOptions(quadrature=q))
+        errs.append(np.linalg.norm(np.asarray(m(p)) - ref) / np.linalg.norm(ref))
+    assert errs[0] > errs[1] > errs[2]
+    assert errs[1] < errs[0] / 3 and errs[2] < errs[1] / 3
+    assert errs[1] < 0.03
+
+
+def load_touch_scene(optoskin):
+    return optoskin.replace(
+        touches=(
+            Touch(position_m=(0.1, 0.2), radius_m=0.01, strength=1.0),
+            Touch(position_m=(0.2, 0.12), radius_m=0.006, strength=0.5),
+        )
+    )
+
+
+def test_left_out_components_are_not_traced(optoskin):
+    base = build_model(optoskin)
+    assert "touch" not in base.components and "shadowing" not in base.components
+    p = Params.from_scene(optoskin)
+    jaxpr_full = jax.make_jaxpr(lambda p: base(p))(p)
+    only_end = build_model(optoskin, components=("end",))
+    jaxpr_end = jax.make_jaxpr(lambda p: only_end(p))(p)
+    assert len(jaxpr_end.eqns) < 0.6 * len(jaxpr_full.eqns)
+    # expm1 appears only in the multiple-scattering term: absent when that term is left out
+    assert "expm1" in str(jaxpr_full) and "expm1" not in str(jaxpr_end)
+    with pytest.raises(ConfigError, match="unknown component"):
+        build_model(optoskin, components=("nope",))
+
+
+def test_float32_close_to_float64(optoskin):
+    scene = load_touch_scene(optoskin)
+    m64, p64 = run(scene)
+    m32, p32 = run(scene, ModelOptions(dtype="float32"))
+    y64, y32 = np.asarray(m64(p64)), np.asarray(m32(p32))
+    assert y32.dtype == np.float32
+    assert np.linalg.norm(y32 - y64) / np.linalg.norm(y64) < 1e-5
+
+
+# ---- gradients ---------------------------------------------------------------------------
+
+
+def test_gradients_match_central_differences(optoskin):
+    """jax.jvp against central differences along a random direction in every parameter (float64)."""
+    scene = load_touch_scene(optoskin).replace(noise=optoskin.noise.__class__(pile_up=True))
+    model, p = run(scene)
+    assert {"touch", "shadowing", "volume", "multiple_scattering"} <= set(model.components)
+    weights = jax.random.uniform(jax.random.key(1), model.shape, jnp.float64)
+
+    def loss(params):
+        return jnp.sum(weights * model(params))
+
+    loss = jax.jit(loss)
+    rng = np.random.default_rng(0)
+    names = [f.name for f in dataclasses.fields(p)]
+    checked = 0
+    for name in names:
+        value = np.asarray(getattr(p, name))
+        # relative perturbations; near_field and positions get absolute ones in metres
+        direction = rng.normal(size=value.shape) * np.where(value != 0, np.abs(value), 1e-3)
+        tangent = jax.tree_util.tree_map(jnp.zeros_like, p)
+        tangent = eqx.tree_at(lambda t: getattr(t, name), tangent, jnp.asarray(direction))
+        _, jvp = jax.jvp(loss, (p,), (tangent,))
+        eps = 1e-6
+        plus = float(loss(p.replace(**{name: value + eps * direction})))
+        minus = float(loss(p.replace(**{name: value - eps * direction})))
+        fd = (plus - minus) / (2 * eps)
+        assert float(jvp) == pytest.approx(fd, rel=2e-4, abs=1e-6 * abs(float(loss(p)))), name
+        checked += 1
+    assert checked == len(names) >= 18
+
+
+# ---- extremes ----------------------------------------------------------------------------
+
+GRID = [(mu_s, mu_a, n1) for mu_s in (0.0, 1e-3, 1e3) for mu_a in (0.0, 1e-3, 1e3) for n1 in (1.0001, 1.4, 3.5)]
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_no_nan_or_inf_at_the_extremes(optoskin, dtype):
+    """Value and gradient stay finite over mu_s, mu_a in {0, 1e-3, 1e3} /m, n1 in {1.0001, 1.4, 3.5},
+    counts up to 1e9, emission at bin 0, tiny and huge pulses, contacts at a sensor and at the far edge."""
+    s0 = optoskin.sensors[0].position_m
+    scene = optoskin.replace(
+        touches=(
+            Touch(position_m=s0, radius_m=0.005, strength=1.0),  # on top of sensor 0
+            Touch(position_m=(0.3, 0.3), radius_m=0.01, strength=1.0),  # the far corner
+            Touch(position_m=(0.15, 0.15), radius_m=0.01, strength=1.0),
+        ),
+        noise=optoskin.noise.__class__(pile_up=True),
+    )
+    opts = ModelOptions(dtype=dtype)
+    model = build_model(scene, opts)
+    base = Params.from_scene(scene, opts.jnp_dtype)
+
+    @jax.jit
+    def value_and_grad(p):
+        return jax.value_and_grad(lambda q: jnp.sum(jnp.log1p(model(q))))(p)
+
+    def finite(tree):
+        return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
+
+    variants = [base.replace(mu_s_per_m=a, mu_a_per_m=b, n1=c) for a, b, c in GRID]
+    variants += [
+        base.replace(gain=np.full(6, 1e9 * 0.01), crosstalk_counts=np.full((6, 7), 1e9)),  # ~1e9 counts
+        base.replace(emission_time_s=0.0),  # light enters in bin 0
+        base.replace(pulse_sigma_s=1e-16, pulse_tail_s=1e-16),
+        base.replace(pulse_sigma_s=1e-8, pulse_tail_s=1e-8),
+        base.replace(gain=np.zeros(6), crosstalk_counts=np.zeros((6, 7)), ambient_counts=np.zeros((6, 7))),
+        base.replace(shadow_opacity=1.0, touch_radius_m=np.full(3, 0.3)),
+    ]
+    for i, v in enumerate(variants):
+        val, grad = value_and_grad(v)
+        assert finite(val) and finite(grad), f"variant {i}: {GRID[i] if i < len(GRID) else ''}"
+        y = np.asarray(model(v))
+        assert np.isfinite(y).all() and (y >= -1e-3 * max(1.0, np.abs(y).max())).all()
+
+
+def test_printed_paper_attenuation_survives():
+    from tofjax import load_scene
+
+    scene = load_scene("optoskin-paper").replace(touches=(Touch(position_m=(0.15, 0.15), radius_m=0.01, strength=1),))
+    model, p = run(scene)
+    y = np.asarray(model(p))
+    assert np.isfinite(y).all()
+    g = jax.grad(lambda q: jnp.sum(model(q)))(p)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(g))
+
+
+# ---- noise -------------------------------------------------------------------------------
+
+
+def test_poisson_noise_is_reproducible_and_unbiased():
+    lam = jnp.array([0.0, 0.5, 10.0, 1e3, 1e5, 1e9])
+    a = sample_counts(jax.random.key(3), jnp.broadcast_to(lam, (4000, 6)))
+    b = sample_counts(jax.random.key(3), jnp.broadcast_to(lam, (4000, 6)))
+    np.testing.assert_array_equal(a, b)
+    mean = np.asarray(a).mean(0)
+    stderr = np.sqrt(np.asarray(lam) / 4000)
+    assert (np.abs(mean - np.asarray(lam)) <= 4 * stderr + 1e-12).all()
+    assert mean[0] == 0 and np.isfinite(np.asarray(a)).all()
+    var = np.asarray(a).var(0)
+    np.testing.assert_allclose(var[2:5], np.asarray(lam)[2:5], rtol=0.1)
+    assert float(sample_counts(jax.random.key(0), jnp.array([1e9]), saturation=2**24 - 1)[0]) == 2**24 - 1
+
+
+def test_pile_up_limits():
+    low = jnp.full((64,), 1.0)
+    np.testing.assert_allclose(pile_up(low, 250_000), low, rtol=1e-3)
+    high = jnp.full((64,), 1e5)
+    out = np.asarray(pile_up(high, 250_000))
+    assert out.sum() < 250_000  # at most one detection per laser pulse
+    assert out[0] > out[-1]  # early bins steal the detections of late ones
