@@ -107,16 +107,26 @@ def deposit(times, masses, nodes: Nodes):
     return out
 
 
-def step_on(events, nodes: Nodes):
-    """Smooth step at each node: the fraction of a unit event at ``events`` (S, Z, E) that lies
-    before the node's centre, averaged over events: (S, Z, K).
+def deposit_weights(times, nodes: Nodes):
+    """The weights :func:`deposit` uses, as a dense array (..., K).
 
-    The running sum of :func:`deposit`, counting half of the node's own share:
-    a discretised step that is continuously differentiable in the event times.
+    For many events sharing few nodes (the rays of every zone) a dense
+    evaluation is cheaper than a scatter, and one set of weights serves both
+    the far-edge peak and the truncation of distributed backscatter.
     """
-    E = events.shape[-1]
-    d = deposit(events, jnp.full(events.shape, 1.0 / E, nodes.t.dtype), nodes)
-    return jnp.cumsum(d, axis=-1) - 0.5 * d
+    d = jnp.abs(nodes.t / nodes.h - (times[..., None] / nodes.h))  # distance in nodes
+    inner = 0.75 - d**2
+    outer = 0.5 * jnp.maximum(1.5 - d, 0.0) ** 2
+    return jnp.where(d < 0.5, inner, outer)
+
+
+def step_from_weights(weights):
+    """Smooth step at each node: the share of the deposited events before the node's centre.
+
+    The running sum of the deposit weights, counting half of the node's own
+    share: a discretised step, continuously differentiable in the event times.
+    """
+    return jnp.cumsum(weights, axis=-1) - 0.5 * weights
 
 
 # ---- contacts -------------------------------------------------------------------------
@@ -213,14 +223,14 @@ def multiple_scattering(ctx) -> jax.Array:
 
 def end(ctx) -> jax.Array:
     """The far-edge reflection along each of a zone's rays, averaged over the zone."""
-    p, nodes, geom = ctx.params, ctx.nodes, ctx.geom
+    p, geom = ctx.params, ctx.geom
     length = geom.ray_length  # (S, Z, A)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     amp = p.end_reflectance * falloff(length, p.near_field_m) * transmittance(length, mu_t)
     amp = jnp.where(length > 0, amp, 0.0) / length.shape[-1]  # rays pointing out see no edge
     if ctx.contacts is not None:
         amp = amp * shadow(length, ctx.contacts, p)
-    return p.gain[:, None, None] * deposit(ctx.end_times, amp, nodes)
+    return p.gain[:, None, None] * jnp.einsum("sza,szak->szk", amp, ctx.end_weights)
 
 
 def touch(ctx) -> jax.Array:

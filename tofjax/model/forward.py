@@ -62,7 +62,7 @@ class _Context(NamedTuple):
     range: Any  # (K,) one-way range at the nodes, clipped at 0
     falloff: Any  # (K,) G integrated over each node's range
     transmittance: Any  # (K,) T(r)
-    end_times: Any  # (S, Z, A) arrival time of each ray's far-edge reflection
+    end_weights: Any  # (S, Z, A, K) node weights of each ray's far-edge arrival, or None
     contacts: Any  # ContactGeometry or None
     shadowing: bool
     touch_samples: int
@@ -103,6 +103,7 @@ class ForwardModel(eqx.Module):
     def _context(self, params: Params) -> _Context:
         nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
         r = jnp.maximum(nodes.r, 0.0)
+        needs_ends = "end" in self.components or any(c in C.DISTRIBUTED for c in self.components)
         wants_contacts = ("touch" in self.components or "shadowing" in self.components) and params.n_touches
         return _Context(
             params=params,
@@ -111,7 +112,9 @@ class ForwardModel(eqx.Module):
             range=r,
             falloff=C.node_falloff(nodes, params.near_field_m),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
-            end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
+            end_weights=C.deposit_weights(params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1, nodes)
+            if needs_ends
+            else None,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
             shadowing="shadowing" in self.components,
             touch_samples=self.options.touch_samples,
@@ -125,11 +128,10 @@ class ForwardModel(eqx.Module):
         out = {}
         dist = [n for n in self.components if n in C.DISTRIBUTED]
         if dist:
-            nodes, geom = ctx.nodes, ctx.geom
+            nodes = ctx.nodes
             # Range inside the waveguide within each node: from emission to each ray's far edge.
-            S, Z, _ = geom.ray_length.shape
-            emitted = C.step_on(jnp.broadcast_to(params.emission_time_s, (S, Z, 1)), nodes)
-            ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
+            emitted = C.step_from_weights(C.deposit_weights(params.emission_time_s, nodes))  # (K,)
+            ended = C.step_from_weights(jnp.mean(ctx.end_weights, axis=2))  # rays past their far edge
             coverage = params.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
