@@ -1,0 +1,155 @@
+"""Benchmark: forward model speed and accuracy per fidelity setting and dtype.
+
+For the OptoSkin scene (6 sensors x 7 zones x 128 bins) this measures, side by
+side in one run:
+
+* compile time (trace + XLA compile of the forward and of value-and-gradient),
+* warm forward time and warm value-and-gradient time (medians over repeats),
+* relative L2 error against a high-fidelity reference (quadrature 16, 32 rays
+  per zone, float64),
+
+for each fidelity setting and dtype, and the cost of each component (the model
+with one component left out), to show that a left-out component costs nothing.
+
+Writes ``forward.json`` and ``forward.md`` to ``--out``. Targets (2-core CPU):
+forward <= 200 us, value and gradient <= 1 ms, compile <= 5 s.
+
+    python experiments/bench_forward.py --out out/bench [--repeats 200] [--scene touch-six]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import tofjax
+from tofjax import ModelOptions, Params, build_model, load_scene
+
+TARGETS_US = {"forward": 200.0, "value_and_grad": 1000.0, "compile_s": 5.0}
+
+
+def timed(f, arg, repeats):
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(f(arg))
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def measure(scene, opts, repeats, reference=None, components=None):
+    model = build_model(scene, opts, components)
+    params = Params.from_scene(scene, opts.jnp_dtype)
+    fwd = jax.jit(lambda p: model(p))
+    vg = jax.jit(jax.value_and_grad(lambda p: jnp.sum(model(p) ** 2)))
+    t = time.perf_counter()
+    y = jax.block_until_ready(fwd(params))
+    compile_fwd = time.perf_counter() - t
+    t = time.perf_counter()
+    jax.block_until_ready(vg(params))
+    compile_vg = time.perf_counter() - t
+    row = {
+        "quadrature": opts.quadrature,
+        "angles_per_zone": opts.angles_per_zone,
+        "dtype": opts.dtype,
+        "components": list(model.components),
+        "compile_forward_s": compile_fwd,
+        "compile_value_and_grad_s": compile_vg,
+        "forward_us": 1e6 * timed(fwd, params, repeats),
+        "value_and_grad_us": 1e6 * timed(vg, params, max(repeats // 4, 10)),
+    }
+    if reference is not None:
+        y = np.asarray(y, np.float64)
+        row["rel_l2_error"] = float(np.linalg.norm(y - reference) / np.linalg.norm(reference))
+    return row
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/bench")
+    ap.add_argument("--scene", default="optoskin", help="scene file or built-in name (default optoskin)")
+    ap.add_argument("--repeats", type=int, default=200)
+    args = ap.parse_args(argv)
+    tofjax.enable_x64()
+    scene = load_scene(args.scene)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    ref_opts = ModelOptions(quadrature=16, angles_per_zone=32)
+    reference = np.asarray(build_model(scene, ref_opts)(Params.from_scene(scene)))
+
+    settings = [
+        ModelOptions(quadrature=q, angles_per_zone=a, dtype=d)
+        for d in ("float32", "float64")
+        for q, a in ((1, 4), (1, 8), (2, 4), (2, 8), (4, 8), (8, 16))
+    ]
+    rows = []
+    for opts in settings:
+        row = measure(scene, opts, args.repeats, reference)
+        rows.append(row)
+        print(
+            f"{opts.dtype} q={opts.quadrature} A={opts.angles_per_zone}: forward {row['forward_us']:7.0f} us, "
+            f"value+grad {row['value_and_grad_us']:7.0f} us, compile {row['compile_forward_s']:.2f} s, "
+            f"error {row['rel_l2_error']:.2e}",
+            flush=True,
+        )
+
+    # What each component costs: the default model with one component left out.
+    default = ModelOptions()
+    full = measure(scene, default, args.repeats)
+    ablation = []
+    for c in full["components"]:
+        rest = tuple(x for x in full["components"] if x != c)
+        r = measure(scene, default, args.repeats, components=rest)
+        ablation.append({"left_out": c, "forward_us": r["forward_us"], "ratio_to_full": r["forward_us"] / full["forward_us"]})
+        print(f"without {c:20s}: forward {r['forward_us']:7.0f} us ({r['forward_us'] / full['forward_us']:.2f} x full)")
+
+    result = {
+        "benchmark": "forward model",
+        "scene": scene.name,
+        "shape": list(scene.shape),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "jax": jax.__version__,
+            "backend": jax.default_backend(),
+        },
+        "repeats": args.repeats,
+        "reference": {"quadrature": 16, "angles_per_zone": 32, "dtype": "float64"},
+        "targets": TARGETS_US,
+        "settings": rows,
+        "default": full,
+        "component_ablation": ablation,
+    }
+    (out / "forward.json").write_text(json.dumps(result, indent=2))
+    lines = [
+        f"# Forward model benchmark: {scene.name} {tuple(scene.shape)}",
+        "",
+        f"Machine: {result['machine']['platform']}, {result['machine']['cpu_count']} CPUs, jax {jax.__version__} "
+        f"({jax.default_backend()}). Medians of {args.repeats} calls (value and gradient: {max(args.repeats // 4, 10)}).",
+        "",
+        "| dtype | quadrature | rays/zone | forward (us) | value+grad (us) | compile (s) | rel. L2 error |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['dtype']} | {r['quadrature']} | {r['angles_per_zone']} | {r['forward_us']:.0f} | "
+            f"{r['value_and_grad_us']:.0f} | {r['compile_forward_s']:.2f} | {r['rel_l2_error']:.1e} |"
+        )
+    lines += ["", "| left out | forward (us) | x full |", "|---|---|---|"]
+    lines += [f"| {a['left_out']} | {a['forward_us']:.0f} | {a['ratio_to_full']:.2f} |" for a in ablation]
+    (out / "forward.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'forward.json'} and {out / 'forward.md'}")
+
+
+if __name__ == "__main__":
+    main()
