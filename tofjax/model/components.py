@@ -14,9 +14,10 @@ emission time):
 Each function returns *masses at time nodes* (counts deposited at node times,
 before the pulse is applied), shape ``(S, Z, K)``; the forward model then
 applies the instrument response and integrates over bins in one matrix
-product. Distributed terms (interface, volume, multiple scattering) use the
-midpoint rule on the nodes; point-like terms (crosstalk, the far edge,
-contacts) are deposited on the two nearest nodes with weights that conserve
+product. Distributed terms (interface, volume, multiple scattering) integrate
+G over each node's range in closed form and sample the slowly varying rest at
+the node; point-like terms (crosstalk, the far edge,
+contacts) are deposited on the three nearest nodes with weights that conserve
 their mass and mean time. See ``docs/physics.md`` for the derivations.
 """
 
@@ -107,26 +108,15 @@ def deposit(times, masses, nodes: Nodes):
     return out
 
 
-def deposit_weights(times, nodes: Nodes):
-    """The weights :func:`deposit` uses, as a dense array (..., K).
+def step_on(times, nodes: Nodes):
+    """Smooth step at each node: the share of events at ``times`` (S, Z, E) before the node's centre.
 
-    For many events sharing few nodes (the rays of every zone) a dense
-    evaluation is cheaper than a scatter, and one set of weights serves both
-    the far-edge peak and the truncation of distributed backscatter.
+    The running sum of :func:`deposit` (unit mass shared by the events),
+    counting half of the node's own share: a discretised step that is
+    continuously differentiable in the event times.
     """
-    d = jnp.abs(nodes.t / nodes.h - (times[..., None] / nodes.h))  # distance in nodes
-    inner = 0.75 - d**2
-    outer = 0.5 * jnp.maximum(1.5 - d, 0.0) ** 2
-    return jnp.where(d < 0.5, inner, outer)
-
-
-def step_from_weights(weights):
-    """Smooth step at each node: the share of the deposited events before the node's centre.
-
-    The running sum of the deposit weights, counting half of the node's own
-    share: a discretised step, continuously differentiable in the event times.
-    """
-    return jnp.cumsum(weights, axis=-1) - 0.5 * weights
+    w = deposit(times, jnp.full(times.shape, 1.0 / times.shape[-1], nodes.t.dtype), nodes)
+    return jnp.cumsum(w, axis=-1) - 0.5 * w
 
 
 # ---- contacts -------------------------------------------------------------------------
@@ -230,7 +220,7 @@ def end(ctx) -> jax.Array:
     amp = jnp.where(length > 0, amp, 0.0) / length.shape[-1]  # rays pointing out see no edge
     if ctx.contacts is not None:
         amp = amp * shadow(length, ctx.contacts, p)
-    return p.gain[:, None, None] * jnp.einsum("sza,szak->szk", amp, ctx.end_weights)
+    return p.gain[:, None, None] * deposit(ctx.end_times, amp, ctx.nodes)
 
 
 def touch(ctx) -> jax.Array:

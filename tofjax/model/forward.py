@@ -62,7 +62,7 @@ class _Context(NamedTuple):
     range: Any  # (K,) one-way range at the nodes, clipped at 0
     falloff: Any  # (K,) G integrated over each node's range
     transmittance: Any  # (K,) T(r)
-    end_weights: Any  # (S, Z, A, K) node weights of each ray's far-edge arrival, or None
+    end_times: Any  # (S, Z, A) arrival time of each ray's far-edge reflection
     contacts: Any  # ContactGeometry or None
     shadowing: bool
     touch_samples: int
@@ -103,7 +103,6 @@ class ForwardModel(eqx.Module):
     def _context(self, params: Params) -> _Context:
         nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
         r = jnp.maximum(nodes.r, 0.0)
-        needs_ends = "end" in self.components or any(c in C.DISTRIBUTED for c in self.components)
         wants_contacts = ("touch" in self.components or "shadowing" in self.components) and params.n_touches
         return _Context(
             params=params,
@@ -112,9 +111,7 @@ class ForwardModel(eqx.Module):
             range=r,
             falloff=C.node_falloff(nodes, params.near_field_m),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
-            end_weights=C.deposit_weights(params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1, nodes)
-            if needs_ends
-            else None,
+            end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
             shadowing="shadowing" in self.components,
             touch_samples=self.options.touch_samples,
@@ -130,8 +127,8 @@ class ForwardModel(eqx.Module):
         if dist:
             nodes = ctx.nodes
             # Range inside the waveguide within each node: from emission to each ray's far edge.
-            emitted = C.step_from_weights(C.deposit_weights(params.emission_time_s, nodes))  # (K,)
-            ended = C.step_from_weights(jnp.mean(ctx.end_weights, axis=2))  # rays past their far edge
+            emitted = C.step_on(jnp.reshape(params.emission_time_s, (1, 1, 1)), nodes)
+            ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
             coverage = params.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
