@@ -34,17 +34,13 @@ import numpy as np
 
 import tofjax
 from tofjax import ModelOptions, Params, build_model, load_scene
+from tofjax.timing import median_seconds
 
 TARGETS_US = {"forward": 200.0, "value_and_grad": 1000.0, "compile_s": 5.0}
 
 
 def timed(f, arg, repeats):
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(f(arg))
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+    return median_seconds(f, arg, repeats, warm=False)
 
 
 def looped(model, params, n=100):

@@ -6,7 +6,6 @@ line, then writes captures, plots and a short text summary.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import jax
@@ -17,6 +16,7 @@ from .model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
 from .plot import plot_capture, plot_components, plot_scene
 from .scene import Scene, Touch, default_scene
 from .simulate import simulate
+from .timing import median_seconds
 
 __all__ = ["run_demo", "three_touch_scene"]
 
@@ -26,16 +26,6 @@ def three_touch_scene(scene: Scene) -> Scene:
     lx, ly = scene.waveguide.size_m
     touches = tuple(Touch(position_m=(f * lx, 0.5 * ly), radius_m=0.006, strength=1.0) for f in (0.27, 0.5, 0.73))
     return scene.replace(touches=touches, name=f"{scene.name}+3 touches")
-
-
-def _time_call(f, arg, repeats: int = 50) -> float:
-    jax.block_until_ready(f(arg))
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(f(arg))
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
 
 
 def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, frames: int = 20, seed: int = 0) -> Path:
@@ -106,7 +96,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     print("[4/4] timing the forward model ...", flush=True)
     f = jax.jit(lambda p: build_model(base_scene, opts)(p))
     p0 = Params.from_scene(base_scene, opts.jnp_dtype)
-    dt = _time_call(f, p0)
+    dt = median_seconds(f, p0)
     lines += [
         f"forward model, baseline scene, {opts.dtype}, quadrature {opts.quadrature}: "
         f"{dt * 1e6:.0f} us per evaluation (median of 50, this machine)",

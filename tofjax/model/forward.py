@@ -8,7 +8,6 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..config import ConfigError
 from ..scene import COMPONENTS, Scene
@@ -199,7 +198,3 @@ def build_model(
         iterations=int(scene.sensor.iterations),
         pile_up=bool(scene.noise.pile_up),
     )
-
-
-def as_numpy(x) -> np.ndarray:
-    return np.asarray(jax.device_get(x))

@@ -8,7 +8,6 @@ bins are integrated exactly instead of sampled at their centres.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jax.scipy.special import erfc, erfcx
 
