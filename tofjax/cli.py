@@ -66,6 +66,54 @@ def _cmd_scene(a) -> int:
     return 0
 
 
+def _cmd_calibrate(a) -> int:
+    import json
+
+    import numpy as np
+
+    from .capture import read_capture
+    from .fit.calibrate import CalibrationError, FitConfig, calibrate, fit_report, load_fit_config
+    from .scene import load_scene
+
+    cap = read_capture(a.baseline)
+    scene = load_scene(a.scene) if a.scene else None
+    if scene is not None and scene.shape != cap.scene.shape:
+        raise CalibrationError(
+            f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
+        )
+    config = load_fit_config(a.config) if a.config else FitConfig()
+    result = calibrate(cap, config, scene=scene)
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result.to_json(), indent=2))
+    print(fit_report(result))
+    if a.plots:
+        from .model import build_model
+        from .plot import plot_fit, plot_loss
+
+        used = (scene or cap.scene).without_touches()
+        model = np.asarray(build_model(used)(result.params))
+        data = cap.mean()
+        sigma = np.sqrt(np.maximum(data, 1.0) / cap.n_frames)
+        paths = plot_fit(data, model, sigma, used, a.plots)
+        paths.append(plot_loss(result.loss_history, Path(a.plots) / "loss.png"))
+        print(f"wrote {len(paths)} figures to {a.plots}/")
+    print(f"wrote {out}")
+    if not result.converged and not a.allow_unconverged:
+        print(
+            f"tofjax calibrate: error: the fit did not converge ({result.result}); the parameters in {out} are "
+            "not a fit. Raise max_steps or loosen rtol/atol in a --config, or pass --allow-unconverged",
+            file=sys.stderr,
+        )
+        return 3
+    if result.converged and result.reduced_chi2 > config.max_reduced_chi2:
+        raise CalibrationError(
+            f"reduced chi-square {result.reduced_chi2:.1f} > {config.max_reduced_chi2:g}: the model does not describe "
+            "this capture; is it really a no-touch baseline of this scene?"
+        )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tofjax",
@@ -97,6 +145,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=_cmd_demo)
 
+    s = sub.add_parser("calibrate", help="fit n1, mu_s, mu_a and nuisance parameters to a baseline capture")
+    s.add_argument("baseline", help="baseline capture (.h5), no touch")
+    s.add_argument("--scene", help="scene to start from (default: the capture's own)")
+    s.add_argument("--config", help="fit config TOML (solver, tolerances, free parameters)")
+    s.add_argument("--out", required=True, help="output JSON")
+    s.add_argument("--plots", help="folder for fit and loss plots")
+    s.add_argument("--allow-unconverged", action="store_true", help="exit 0 even if the fit did not converge")
+    s.set_defaults(func=_cmd_calibrate)
+
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")
     s.add_argument("scene", help="scene TOML file, or a built-in name")
     s.add_argument("--toml", action="store_true", help="print the scene with every default filled in")
@@ -108,11 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # Fitting and gradients need float64; set it here, at the entry point, never on import.
     from . import enable_x64
+    from .fit.calibrate import CalibrationError
 
     enable_x64()
     try:
         return args.func(args)
-    except (ConfigError, CaptureError) as e:
+    except (ConfigError, CaptureError, CalibrationError) as e:
         print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -20,7 +20,7 @@ from .capture import Capture  # noqa: E402
 from .model.geometry import zone_edges  # noqa: E402
 from .scene import Scene  # noqa: E402
 
-__all__ = ["plot_scene", "plot_capture", "plot_components"]
+__all__ = ["plot_capture", "plot_components", "plot_fit", "plot_loss", "plot_scene"]
 
 
 def _sensor_label(scene: Scene, i: int) -> str:
@@ -131,3 +131,42 @@ def _save(fig, path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_fit(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scene: Scene, out_dir: str | Path) -> list[Path]:
+    """Data against fitted model per sensor and zone, with normalised residuals below."""
+    out_dir = Path(out_dir)
+    S, Z, _ = scene.shape
+    bins = _bin_axis(scene)
+    paths = []
+    for s in range(S):
+        fig, axes = plt.subplots(2, Z, figsize=(2.3 * Z, 4.6), sharex=True, squeeze=False,
+                                 gridspec_kw={"height_ratios": [2, 1]})
+        for z in range(Z):
+            ax = axes[0, z]
+            ax.plot(bins, data[s, z], ".", ms=2.5, color="k", label="data (mean)")
+            ax.plot(bins, model[s, z], color="tab:red", lw=1.0, label="fit")
+            ax.set_yscale("log")
+            ax.set_ylim(bottom=max(0.5, float(data[s].min()) * 0.5))
+            ax.set_title(f"zone {z}", fontsize=9)
+            r = (model[s, z] - data[s, z]) / sigma[s, z]
+            axes[1, z].axhline(0, color="k", lw=0.5)
+            axes[1, z].plot(bins, r, color="tab:blue", lw=0.8)
+            axes[1, z].set_ylim(-5, 5)
+            axes[1, z].set_xlabel("bin")
+        axes[0, 0].set_ylabel("counts")
+        axes[1, 0].set_ylabel("(fit - data) / sigma")
+        axes[0, 0].legend(fontsize=7)
+        fig.suptitle(f"{scene.name}: calibration fit, sensor {_sensor_label(scene, s)}")
+        paths.append(_save(fig, out_dir / f"fit_sensor{s}.png"))
+    return paths
+
+
+def plot_loss(history, path: str | Path) -> Path:
+    """The loss at every solver step (all stages, in order)."""
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.semilogy(np.arange(len(history)), history, color="k", lw=1)
+    ax.set_xlabel("solver step (all stages)")
+    ax.set_ylabel("loss")
+    ax.set_title("calibration: loss history")
+    return _save(fig, path)

@@ -63,7 +63,7 @@ def simulate(
             )
         )
     )
-    hist = np.asarray(draw(keys), np.float64)
+    hist = np.array(draw(keys), np.float64)  # a writable copy
     el = scene.contact_elements()
     touches = None
     if len(el):

@@ -161,6 +161,22 @@ class ForwardModel(eqx.Module):
         total = sum(masses.values()) if masses else jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
         return self._finish(self._apply_pulse(total, params), params)
 
+    def linear_parts(self, params: Params) -> tuple[jax.Array, jax.Array]:
+        """The model as ``gain[s] * R + crosstalk[s, z] * P + ambient[s, z]`` (no pile-up):
+        returns ``R`` (everything proportional to K, at unit gain) and ``P`` (the light-entry
+        peak of unit size), both (sensors, zones, bins). Calibration profiles the linear
+        parameters out with these."""
+        if self.pile_up:
+            raise ValueError("with pile-up the model is not linear in gain, crosstalk and ambient")
+        S, Z, B = self.shape
+        unit = params.replace(gain=jnp.ones_like(params.gain), crosstalk_counts=jnp.ones_like(params.crosstalk_counts))
+        masses = self._node_masses(unit)
+        zero = jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
+        cross = masses.pop("crosstalk", zero)
+        rest = sum(masses.values()) if masses else zero
+        binned = self._apply_pulse(jnp.stack([rest, cross]), params)
+        return binned[0], binned[1]
+
     def breakdown(self, params: Params) -> dict[str, jax.Array]:
         """Each component's contribution in counts per bin (before pile-up), for plots and pruning."""
         out = {k: self._apply_pulse(v, params) for k, v in self._node_masses(params, separate=True).items()}

@@ -1,0 +1,541 @@
+"""Calibration: fit n1, mu_s, mu_a and the nuisance parameters to a baseline capture.
+
+Residuals are Poisson-weighted, ``(model - mean) / sqrt(max(mean, 1) / frames)``,
+so they are O(1) and ``sum(r^2) / dof`` is a reduced chi-square. Parameters
+are fitted in an unconstrained space (:mod:`tofjax.fit.transforms`). The start
+comes from the data: the emission time from the light-entry peak, ambient from
+the bins before it, n1 from the far-edge peak's time, amplitudes from a fit of
+the linear parameters alone; then a fit with a widened pulse, then the real
+one (coarse to fine), so the narrow far-edge peak cannot trap the fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..capture import Capture
+from ..config import ConfigError, from_dict, load_toml
+from ..model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
+from ..scene import Scene
+from .solve import solve_with_history
+from .transforms import FITTABLE, default_transforms
+
+__all__ = ["CalibrationError", "CalibrationResult", "Calibrator", "FitConfig", "calibrate", "load_fit_config"]
+
+SOLVERS = ("levenberg-marquardt", "gauss-newton", "dogleg", "poisson-deviance")
+DEFAULT_FREE = (
+    "n1",
+    "mu_s_per_m",
+    "mu_a_per_m",
+    "gain",
+    "ambient_counts",
+    "crosstalk_counts",
+    "pulse_sigma_s",
+    "pulse_tail_s",
+    "emission_time_s",
+    "interface_backscatter_per_m",
+    "end_reflectance",
+)
+#: Parameters that scale the histogram linearly: fitted first, alone, for a robust start.
+LINEAR = ("gain", "ambient_counts", "crosstalk_counts")
+
+
+class CalibrationError(ValueError):
+    """The data cannot be calibrated as given (wrong scene, not a baseline, bad counts)."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Options of a calibration fit (TOML: ``[fit]`` keys at the top level of the file).
+
+    - ``solver``: ``levenberg-marquardt`` (default), ``gauss-newton``, ``dogleg``,
+      or ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares).
+    - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
+    - ``max_steps``: per stage.
+    - ``free``: which parameters to fit; the rest stay at the scene's values.
+    - ``multistart``: extra starts with n1 jittered by +-10%; the best fit wins.
+    - ``coarse_to_fine``: first fit with a pulse three times wider (off by default: the start
+      from the data already puts n1 within a few per cent, and a widened pulse lets the
+      near-field terms wander on the default scene).
+    - ``quadrature``: model fidelity (time nodes per bin).
+    - ``max_reduced_chi2``: above this the capture is not taken for a baseline.
+    """
+
+    solver: str = "levenberg-marquardt"
+    rtol: float = 1e-7
+    atol: float = 1e-7
+    max_steps: int = 200
+    free: tuple[str, ...] = DEFAULT_FREE
+    multistart: int = 0
+    multistart_seed: int = 0
+    coarse_to_fine: bool = False
+    quadrature: int = 2
+    max_reduced_chi2: float = 4.0
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        for k in ("rtol", "atol", "max_reduced_chi2"):
+            if getattr(self, k) <= 0:
+                raise ConfigError(f"{k}: must be > 0, got {getattr(self, k)!r}")
+        if self.max_steps < 1:
+            raise ConfigError(f"max_steps: must be >= 1, got {self.max_steps!r}")
+        if self.multistart < 0:
+            raise ConfigError(f"multistart: must be >= 0, got {self.multistart!r}")
+        if self.quadrature < 1:
+            raise ConfigError(f"quadrature: must be >= 1, got {self.quadrature!r}")
+        for name in self.free:
+            if name not in FITTABLE:
+                raise ConfigError(f"free: {name!r} cannot be fitted; fittable: {', '.join(FITTABLE)}")
+        if not self.free:
+            raise ConfigError("free: at least one parameter must be free")
+
+    def make_solver(self):
+        if self.solver == "levenberg-marquardt":
+            return optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol)
+        if self.solver == "gauss-newton":
+            return optx.GaussNewton(rtol=self.rtol, atol=self.atol)
+        if self.solver == "dogleg":
+            return optx.Dogleg(rtol=self.rtol, atol=self.atol)
+        return optx.BFGS(rtol=self.rtol, atol=self.atol)
+
+
+def load_fit_config(path) -> FitConfig:
+    """Read a fit config TOML; errors name the file and the key."""
+    try:
+        return from_dict(FitConfig, load_toml(path))
+    except ConfigError as e:
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+
+
+@dataclass
+class CalibrationResult:
+    """A finished fit, in physical units."""
+
+    params: Params  # every model parameter, fitted ones replaced
+    free: tuple[str, ...]
+    values: dict[str, np.ndarray]
+    stderr: dict[str, np.ndarray]
+    interval95: dict[str, tuple[np.ndarray, np.ndarray]]  # Laplace, symmetric in the unconstrained space
+    covariance: np.ndarray  # physical units, over the flattened free parameters
+    labels: list[str]  # one per row of ``covariance``
+    converged: bool
+    result: str
+    steps: int
+    reduced_chi2: float
+    loss_history: list[float]
+    solver: str
+    frames: int
+    stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        def pack(k):
+            lo, hi = self.interval95[k]
+            return {
+                "value": np.asarray(self.values[k]).tolist(),
+                "stderr": np.asarray(self.stderr[k]).tolist(),
+                "interval95": [np.asarray(lo).tolist(), np.asarray(hi).tolist()],
+            }
+
+        return {
+            "parameters": {k: pack(k) for k in self.free},
+            "units": {k: FITTABLE[k] for k in self.free},
+            "covariance": {"labels": self.labels, "matrix": np.asarray(self.covariance).tolist()},
+            "converged": self.converged,
+            "result": self.result,
+            "steps": self.steps,
+            "reduced_chi2": self.reduced_chi2,
+            "loss_history": self.loss_history,
+            "solver": self.solver,
+            "frames": self.frames,
+            "stages": self.stages,
+            "fixed": {
+                f.name: np.asarray(getattr(self.params, f.name)).tolist()
+                for f in dataclasses.fields(self.params)
+                if f.name not in self.free and not f.name.startswith("touch_")
+            },
+        }
+
+
+def fit_report(result: CalibrationResult) -> str:
+    """A short text table: each parameter with its standard error and Laplace 95% interval."""
+    lines = [
+        f"calibration: {'converged' if result.converged else 'NOT converged'} ({result.result}) after "
+        f"{result.steps} steps, {result.solver}, {result.frames} frames, reduced chi-square {result.reduced_chi2:.3f}",
+        f"{'parameter':30s} {'value':>12s} {'stderr':>10s}   95% interval (Laplace)",
+    ]
+    for k in result.free:
+        v, e = np.ravel(result.values[k]), np.ravel(result.stderr[k])
+        lo, hi = (np.ravel(x) for x in result.interval95[k])
+        unit = FITTABLE[k]
+        if v.size == 1:
+            lines.append(f"{k:30s} {v[0]:12.6g} {e[0]:10.3g}   [{lo[0]:.6g}, {hi[0]:.6g}] {unit}")
+        else:
+            lines.append(
+                f"{k + f' ({v.size})':30s} {np.mean(v):12.6g} {np.mean(e):10.3g}   values {v.min():.4g} .. {v.max():.4g} {unit}"
+            )
+    i = result.labels.index("mu_s_per_m") if "mu_s_per_m" in result.labels else None
+    j = result.labels.index("mu_a_per_m") if "mu_a_per_m" in result.labels else None
+    if i is not None and j is not None:
+        c = result.covariance
+        corr = c[i, j] / np.sqrt(c[i, i] * c[j, j]) if c[i, i] > 0 and c[j, j] > 0 else float("nan")
+        lines.append(
+            f"correlation(mu_s, mu_a) = {corr:+.2f}"
+            + ("  (strong: a baseline alone barely separates scattering from absorption)" if abs(corr) > 0.8 else "")
+        )
+    return "\n".join(lines)
+
+
+# ---- checks -------------------------------------------------------------------------------
+
+
+def check_baseline(capture: Capture, scene: Scene) -> None:
+    """Refuse data that cannot be a usable baseline, with the reason."""
+    h = capture.histograms
+    if scene.shape != capture.scene.shape:
+        raise CalibrationError(
+            f"the scene has (sensors, zones, bins) = {scene.shape} but the capture {capture.scene.shape}"
+        )
+    if capture.n_frames < 1:
+        raise CalibrationError("the capture has no frames")
+    if not np.isfinite(h).all():
+        bad = np.argwhere(~np.isfinite(h))[0]
+        raise CalibrationError(f"non-finite counts (NaN or inf), first at frame {bad[0]}, sensor {bad[1]}, zone {bad[2]}")
+    if (h < 0).any():
+        raise CalibrationError("negative counts: these are not raw histograms")
+    per_zone = h.sum(axis=(0, 3))
+    if (per_zone == 0).any():
+        s, z = np.argwhere(per_zone == 0)[0]
+        raise CalibrationError(f"all-zero histograms (sensor {s}, zone {z}): is the sensor connected?")
+    sat = scene.sensor.saturation_counts
+    n_sat = int((h >= sat).sum())
+    if n_sat:
+        raise CalibrationError(
+            f"{n_sat} bins at the saturation limit ({sat:g} counts): lower the sensor's iterations or gain"
+        )
+
+
+# ---- the fit ------------------------------------------------------------------------------
+
+
+class _Problem:
+    """The residual function of a fit, with the linear parameters profiled out.
+
+    The model is ``gain[s] R + crosstalk[s, z] P + ambient[s, z]`` with ``R`` and
+    ``P`` nonlinear in the rest (:meth:`ForwardModel.linear_parts`). For given
+    nonlinear parameters the best linear ones solve a small weighted least-squares
+    problem per sensor (1 + 2 zones unknowns), so the solver only sees the few
+    nonlinear parameters (variable projection); JAX differentiates through the
+    solve, which gives the exact variable-projection Jacobian.
+    """
+
+    def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions):
+        self.scene = scene
+        self.transforms = default_transforms(scene)
+        self.model = build_model(scene.without_touches(), opts)
+        comps = self.model.components
+        present = {"gain": True, "crosstalk_counts": "crosstalk" in comps, "ambient_counts": "ambient" in comps}
+        self.linear = tuple(p for p in LINEAR if p in free and present[p])
+        self.nonlinear = tuple(p for p in free if p not in LINEAR)
+        self.free = tuple(free)
+        self.data = jnp.asarray(data)
+        self.frames = frames
+        self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
+        self._solvers: dict = {}
+
+    def set_data(self, data, frames: int) -> None:
+        """New data of the same shape: the compiled solves are reused."""
+        self.data = jnp.asarray(data)
+        self.frames = frames
+        self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
+
+    def pack(self, params: Params, names=None) -> dict[str, jax.Array]:
+        names = self.nonlinear if names is None else names
+        return {k: jnp.asarray(self.transforms[k].to_unconstrained(np.asarray(getattr(params, k)))) for k in names}
+
+    def unpack(self, u, base: Params) -> Params:
+        return base.replace(**{k: self.transforms[k].to_physical(v) for k, v in u.items()})
+
+    def profile(self, params: Params, data=None, sigma=None) -> Params:
+        """``params`` with the free linear parameters at their weighted least-squares values."""
+        data = self.data if data is None else data
+        sigma = self.sigma if sigma is None else sigma
+        if not self.linear:
+            return params
+        R, P = self.model.linear_parts(params)
+        S, Z, B = R.shape
+        eye = jnp.eye(Z, dtype=R.dtype)
+        cols, fixed = [], jnp.zeros_like(R)
+        if "gain" in self.linear:
+            cols.append(R[:, None])  # (S, 1, Z, B)
+        else:
+            fixed = fixed + params.gain[:, None, None] * R
+        if "crosstalk_counts" in self.linear:
+            cols.append(eye[None, :, :, None] * P[:, None])  # (S, Z, Z, B): column z lives in zone z
+        elif "crosstalk" in self.model.components:
+            fixed = fixed + params.crosstalk_counts[..., None] * P
+        if "ambient_counts" in self.linear:
+            cols.append(jnp.broadcast_to(eye[None, :, :, None], (S, Z, Z, B)))
+        elif "ambient" in self.model.components:
+            fixed = fixed + params.ambient_counts[..., None]
+        A = jnp.concatenate(cols, axis=1).reshape(S, -1, Z * B)  # (S, C, Z B)
+        w = (1.0 / sigma**2).reshape(S, 1, Z * B)
+        y = (data - fixed).reshape(S, Z * B)
+        normal = jnp.einsum("scn,sdn->scd", A * w, A)
+        ridge = 1e-12 * jnp.trace(normal, axis1=1, axis2=2)[:, None, None] * jnp.eye(A.shape[1], dtype=A.dtype)
+        coef = jnp.linalg.solve(normal + ridge, jnp.einsum("scn,sn->sc", A * w, y)[..., None])[..., 0]
+        out, i = {}, 0
+        if "gain" in self.linear:
+            out["gain"] = coef[:, 0]
+            i = 1
+        if "crosstalk_counts" in self.linear:
+            out["crosstalk_counts"] = coef[:, i : i + Z]
+            i += Z
+        if "ambient_counts" in self.linear:
+            out["ambient_counts"] = coef[:, i : i + Z]
+        return params.replace(**out)
+
+    def residuals(self, u, args):
+        """Profiled residuals; ``args = (base params, mean data, sigma)``."""
+        base, data, sigma = args
+        params = self.profile(self.unpack(u, base), data, sigma)
+        return ((self.model(params) - data) / sigma).ravel()
+
+    def full_residuals(self, u, base):
+        """Residuals with every free parameter explicit (for the covariance)."""
+        return ((self.model(self.unpack(u, base)) - self.data) / self.sigma).ravel()
+
+    def deviance(self, u, args):
+        """Poisson deviance per bin of the profiled model (for the minimiser option)."""
+        base, d, sigma = args
+        mu = jnp.maximum(self.model(self.profile(self.unpack(u, base), d, sigma)), 1e-9)
+        term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
+        return 2.0 * self.frames * jnp.sum(term) / d.size
+
+    def solver_for(self, names: tuple[str, ...], solver, max_steps: int, minimise: bool):
+        """A jitted solve over the nonlinear parameters ``names``, compiled once and reused."""
+        key = (names, max_steps, minimise)
+        if key not in self._solvers:
+            target = self.deviance if minimise else self.residuals
+            self._solvers[key] = jax.jit(
+                lambda u, args: solve_with_history(target, solver, u, args, max_steps=max_steps, minimise=minimise)
+            )
+        return self._solvers[key]
+
+
+def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
+    """A start from the data: emission time, ambient, n1 from the far-edge peak."""
+    sm = scene.sensor
+    d = capture.mean()
+    S, Z, B = d.shape
+    width = sm.bin_width_s
+    total = d.sum(axis=(0, 1))
+    early = max(4, B // 3)
+    peak = int(np.argmax(total[:early]))
+    lo, hi = max(peak - 2, 0), min(peak + 3, B)
+    # ambient: bins well before the light-entry peak, else the last tenth of the histogram
+    pre = max(peak - 4, 0)
+    if pre >= 3:
+        ambient = np.median(d[..., :pre], axis=-1)
+    else:
+        ambient = np.median(d[..., -max(B // 10, 3) :], axis=-1)
+    w = np.clip(total[lo:hi] - ambient.sum(), 0, None)
+    centre = (np.sum(w * (np.arange(lo, hi) + 0.5)) / max(w.sum(), 1e-12)) * width
+    tau = float(base.pulse_tail_s)
+    t_e = max(centre - tau, 0.0)
+    # n1: the far-edge bump of each zone, where counts rise again after the decay
+    from ..model.geometry import Geometry
+
+    geom = Geometry.from_scene(scene, 8, np.float64)
+    length = np.asarray(geom.ray_length).mean(-1)  # (S, Z)
+    estimates, weights = [], []
+    for s in range(S):
+        for z in range(Z):
+            L = length[s, z]
+            if L <= 0:
+                continue
+            a = int((t_e + 2 * L * 1.0 / SPEED_OF_LIGHT_M_PER_S) / width) + 1
+            b = min(int((t_e + 2 * L * 3.5 / SPEED_OF_LIGHT_M_PER_S) / width) + 3, B - 1)
+            if b - a < 3:
+                continue
+            x = d[s, z] - ambient[s, z]
+            rise = np.array([x[i] - x[max(i - 4, 0) : i].min() for i in range(a, b)])
+            i = a + int(np.argmax(rise))
+            noise = math.sqrt(max(d[s, z, i], 1.0) / capture.n_frames)
+            if rise.max() < 5 * noise:
+                continue
+            j0, j1 = max(i - 1, 0), min(i + 2, B)
+            base_level = x[max(i - 4, 0) : i].min()
+            ww = np.clip(x[j0:j1] - base_level, 0, None)
+            t_peak = (np.sum(ww * (np.arange(j0, j1) + 0.5)) / max(ww.sum(), 1e-12)) * width
+            estimates.append(SPEED_OF_LIGHT_M_PER_S * (t_peak - t_e - tau) / (2 * L))
+            weights.append(rise.max())
+    n1 = float(base.n1)
+    if estimates:
+        order = np.argsort(estimates)
+        cum = np.cumsum(np.asarray(weights)[order])
+        n1 = float(np.asarray(estimates)[order][np.searchsorted(cum, cum[-1] / 2)])
+        n1 = float(np.clip(n1, 1.01, 3.9))
+    return base.replace(
+        emission_time_s=t_e,
+        ambient_counts=np.maximum(ambient, 0.1),
+        n1=n1,
+        mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
+        mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
+    )
+
+
+def _covariance(problem: _Problem, params: Params) -> tuple[np.ndarray, list[str], dict]:
+    """Laplace covariance of every free parameter (linear ones included) from the Jacobian
+    of the full residuals at the optimum, carried to physical units."""
+    u = problem.pack(params, problem.free)
+    flat, unravel = jax.flatten_util.ravel_pytree(u)
+    jac = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), params))(flat))
+    cov_u = np.linalg.pinv(jac.T @ jac, hermitian=True)
+    dflat = np.asarray(jax.flatten_util.ravel_pytree({k: problem.transforms[k].derivative(v) for k, v in u.items()})[0])
+    cov = cov_u * np.outer(dflat, dflat)
+    stderr_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
+    stderr_u_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    stderr, interval, labels, pos = {}, {}, [], 0
+    for k in sorted(u):  # ravel_pytree orders dict keys sorted
+        shape = np.shape(u[k])
+        n = int(np.prod(shape))
+        stderr[k] = stderr_flat[pos : pos + n].reshape(shape)
+        # the 95% interval is symmetric in the unconstrained space, so it respects bounds
+        su = stderr_u_flat[pos : pos + n].reshape(shape)
+        t = problem.transforms[k]
+        interval[k] = (np.asarray(t.to_physical(u[k] - 1.96 * su)), np.asarray(t.to_physical(u[k] + 1.96 * su)))
+        labels += [k] if shape == () else [f"{k}[{i}]" for i in range(n)]
+        pos += n
+    return cov, labels, stderr, interval
+
+
+def _result_name(result) -> str:
+    for name in ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence", "nonfinite", "singular"):
+        if hasattr(optx.RESULTS, name) and bool(result == getattr(optx.RESULTS, name)):
+            return name
+    return "failed"
+
+
+class Calibrator:
+    """Calibration of one scene with one config; compiled once, reused for every capture.
+
+    ``Calibrator(scene, config).fit(capture)``; :func:`calibrate` is the one-shot form.
+    """
+
+    def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
+        self.scene = scene.without_touches()
+        self.config = config
+        self.options = ModelOptions(quadrature=config.quadrature)
+        self._problem: _Problem | None = None
+        if self.scene.noise.pile_up:
+            raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
+
+    def fit(self, capture: Capture) -> CalibrationResult:
+        """Fit to a baseline capture (see :func:`calibrate`)."""
+        scene, config = self.scene, self.config
+        check_baseline(capture, scene)
+        base = Params.from_scene(scene, self.options.jnp_dtype)
+        if self._problem is None:
+            self._problem = _Problem(scene, config.free, capture.mean(), capture.n_frames, self.options)
+        else:
+            self._problem.set_data(capture.mean(), capture.n_frames)
+        problem = self._problem
+        start = _initial_params(capture, scene, base)
+        solver = config.make_solver()
+        minimise = config.solver == "poisson-deviance"
+        stages: list[dict[str, Any]] = []
+
+        def stage(name, params, names):
+            """One solve over the nonlinear parameters ``names`` (the rest held at ``params``)."""
+
+            u0 = problem.pack(params, names)
+            run = problem.solver_for(names, solver, config.max_steps, minimise)
+            out = run(u0, (params, problem.data, problem.sigma))
+            h = np.asarray(out.history)
+            h = h[np.isfinite(h)]
+            ok = bool(out.result == optx.RESULTS.successful)
+            stages.append(
+                {"stage": name, "free": list(names), "steps": int(out.steps), "converged": ok, "final_loss": float(h[-1])}
+            )
+            return problem.profile(problem.unpack(out.value, params)), out, ok, h.tolist()
+
+        candidates = [problem.profile(start)]
+        if config.multistart:
+            rng = np.random.default_rng(config.multistart_seed)
+            candidates += [
+                problem.profile(start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1))) for _ in range(config.multistart)
+            ]
+
+        best = None
+        for k, params in enumerate(candidates):
+            history: list[float] = []
+            if config.coarse_to_fine and "pulse_sigma_s" in problem.nonlinear:
+                wide = params.replace(pulse_sigma_s=3.0 * float(params.pulse_sigma_s))
+                coarse = tuple(p for p in problem.nonlinear if p != "pulse_sigma_s")
+                params, _, _, h = stage(f"start {k}: widened pulse", wide, coarse)
+                history += h
+                params = params.replace(pulse_sigma_s=float(start.pulse_sigma_s))
+            params, out, ok, h = stage(f"start {k}: full", params, problem.nonlinear)
+            history += h
+            loss = stages[-1]["final_loss"]
+            if best is None or loss < best[0]:
+                best = (loss, params, out, ok, history)
+
+        _, params, out, ok, best_history = best
+        r = np.asarray(problem.full_residuals(problem.pack(params, problem.free), params))
+        n_free = int(sum(np.size(getattr(params, k)) for k in problem.free))
+        dof = max(r.size - n_free, 1)
+        reduced = float(np.sum(r**2) / dof)
+        cov, labels, stderr, interval = _covariance(problem, params)
+        values = {k: np.asarray(getattr(params, k)) for k in config.free}
+        return CalibrationResult(
+            params=params,
+            free=tuple(config.free),
+            values=values,
+            stderr={k: stderr[k] for k in config.free},
+        interval95={k: interval[k] for k in config.free},
+            covariance=cov,
+            labels=labels,
+            converged=ok,
+            result=_result_name(out.result),
+            steps=int(out.steps),
+            reduced_chi2=reduced,
+            loss_history=best_history,
+            solver=config.solver,
+            frames=capture.n_frames,
+            stages=stages,
+        )
+
+
+def calibrate(
+    capture: Capture,
+    config: FitConfig = FitConfig(),
+    *,
+    scene: Scene | None = None,
+) -> CalibrationResult:
+    """Fit the scene's optical and nuisance parameters to a baseline capture.
+
+    **Arguments:**
+
+    - ``capture``: a baseline (no touch), any number of frames; they are averaged.
+    - ``config``: solver, tolerances, free parameters (:class:`FitConfig`).
+    - ``scene``: the scene to start from (default: the capture's own).
+
+    **Returns:** a :class:`CalibrationResult`. A fit that did not converge has
+    ``converged = False``; it is never reported as if it had. ``reduced_chi2``
+    far above 1 means the model does not describe the data (a touch in the
+    baseline, a wrong scene).
+
+    Raises :class:`CalibrationError` for data that cannot be a baseline.
+    """
+    return Calibrator(scene or capture.scene, config).fit(capture)

@@ -1,0 +1,74 @@
+"""One jitted optimistix solve that also records the loss at every step.
+
+``optx.least_squares`` returns only the end point; users of a calibration want
+to see how it got there. This drives an optimistix solver's own ``init``,
+``step`` and ``terminate`` in a ``lax.while_loop`` (as ``optx`` does
+internally) and writes ``0.5 * sum(residuals^2)`` (or the scalar loss of a
+minimiser) into a preallocated history.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+__all__ = ["SolveResult", "solve_with_history"]
+
+
+class SolveResult(NamedTuple):
+    value: object  # the solution pytree
+    result: object  # optx.RESULTS
+    steps: jax.Array
+    history: jax.Array  # (max_steps + 1,) loss per step, NaN after the last
+
+
+def solve_with_history(residuals, solver, y0, args, *, max_steps: int, minimise: bool = False) -> SolveResult:
+    """Run ``solver`` on ``residuals(y, args)`` from ``y0``.
+
+    For least-squares solvers ``residuals`` returns an array of residuals; with
+    ``minimise=True`` it returns a scalar loss and ``solver`` is a minimiser.
+    Returns the end point, optimistix's result code, the number of steps and the
+    loss history. Jit-compatible; a failure is a result code, never an exception.
+    """
+
+    def fn(y, a):
+        return residuals(y, a), None
+
+    def loss(y):
+        out = residuals(y, args)
+        return out if minimise else 0.5 * jnp.sum(out**2)
+
+    f_struct = jax.eval_shape(lambda y: fn(y, args)[0], y0)
+    aux_struct = None
+    tags = frozenset()
+    options = {}
+    state0 = solver.init(fn, y0, args, options, f_struct, aux_struct, tags)
+    dyn0, static = eqx.partition(state0, eqx.is_array)
+    history0 = jnp.full((max_steps + 1,), jnp.nan, dtype=jnp.result_type(float)).at[0].set(loss(y0))
+    term0, res0 = solver.terminate(fn, y0, args, options, state0, tags)
+
+    def cond(carry):
+        _, step, _, term, res, _ = carry
+        return (~term) & (res == optx.RESULTS.successful) & (step < max_steps)
+
+    def body(carry):
+        y, step, dyn, _, _, hist = carry
+        state = eqx.combine(static, dyn)
+        y_new, state_new, _ = solver.step(fn, y, args, options, state, tags)
+        term, res = solver.terminate(fn, y_new, args, options, state_new, tags)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(y_new)]))
+        res = optx.RESULTS.where(finite, res, optx.RESULTS.nonfinite)
+        hist = hist.at[step + 1].set(loss(y_new))
+        dyn_new, _ = eqx.partition(state_new, eqx.is_array)
+        return y_new, step + 1, dyn_new, term, res, hist
+
+    carry = (y0, jnp.array(0), dyn0, term0, res0, history0)
+    y, steps, dyn, term, res, hist = jax.lax.while_loop(cond, body, carry)
+    res = optx.RESULTS.where((res == optx.RESULTS.successful) & ~term, optx.RESULTS.nonlinear_max_steps_reached, res)
+    state = eqx.combine(static, dyn)
+    y, _, _ = solver.postprocess(fn, y, None, args, options, state, tags, res)
+    return SolveResult(y, res, steps, hist)

@@ -1,0 +1,82 @@
+"""Unconstrained parametrisation of the fit parameters.
+
+Every fitted parameter lives in an unconstrained space where one tolerance
+fits all: positive ones through a log (relative to a natural scale), bounded
+ones through a scaled sigmoid. Results are reported in physical units, with
+standard errors carried through the transform's derivative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import Scene
+
+__all__ = ["Transform", "default_transforms", "FITTABLE"]
+
+
+@dataclass(frozen=True)
+class Transform:
+    """``kind = "log"``: x = scale exp(u); ``kind = "sigmoid"``: x = lo + (hi - lo) sigmoid(u)."""
+
+    kind: str
+    lo: float = 0.0
+    hi: float = 1.0
+    scale: float = 1.0
+
+    def to_physical(self, u):
+        if self.kind == "log":
+            return self.scale * jnp.exp(u)
+        return self.lo + (self.hi - self.lo) * jnp.reciprocal(1.0 + jnp.exp(-u))
+
+    def to_unconstrained(self, x):
+        x = np.asarray(x, float)
+        if self.kind == "log":
+            return np.log(np.maximum(x, 1e-12 * self.scale) / self.scale)
+        f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
+        return np.log(f) - np.log1p(-f)
+
+    def derivative(self, u):
+        """dx/du at ``u``: carries standard errors from u to physical units."""
+        if self.kind == "log":
+            return self.scale * jnp.exp(u)
+        s = jnp.reciprocal(1.0 + jnp.exp(-u))
+        return (self.hi - self.lo) * s * (1.0 - s)
+
+
+#: Parameters calibration can fit, with their units for reports.
+FITTABLE = {
+    "n1": "",
+    "mu_s_per_m": "1/m",
+    "mu_a_per_m": "1/m",
+    "gain": "counts m^2",
+    "ambient_counts": "counts/bin",
+    "crosstalk_counts": "counts",
+    "pulse_sigma_s": "s",
+    "pulse_tail_s": "s",
+    "emission_time_s": "s",
+    "interface_backscatter_per_m": "1/m",
+    "end_reflectance": "",
+}
+
+
+def default_transforms(scene: Scene) -> dict[str, Transform]:
+    """The transform of every fittable parameter, scaled to the scene."""
+    sm = scene.sensor
+    window = sm.n_bins * sm.bin_width_s
+    return {
+        "n1": Transform("sigmoid", lo=1.0, hi=4.0),
+        "mu_s_per_m": Transform("log", scale=1.0),
+        "mu_a_per_m": Transform("log", scale=1.0),
+        "gain": Transform("log", scale=max(sm.gain, 1e-12)),
+        "ambient_counts": Transform("log", scale=1.0),
+        "crosstalk_counts": Transform("log", scale=1000.0),
+        "pulse_sigma_s": Transform("log", scale=sm.bin_width_s),
+        "pulse_tail_s": Transform("log", scale=sm.bin_width_s),
+        "emission_time_s": Transform("sigmoid", lo=0.0, hi=window),
+        "interface_backscatter_per_m": Transform("log", scale=1.0),
+        "end_reflectance": Transform("sigmoid", lo=0.0, hi=1.0),
+    }
