@@ -141,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="the main job on the built-in default scene (what `make demo` runs)")
     s.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     s.add_argument("--scene", help="baseline scene instead of the built-in OptoSkin")
-    s.add_argument("--frames", type=int, default=20, help="baseline frames (default 20)")
+    s.add_argument("--frames", type=int, default=100, help="baseline frames (default 100)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=_cmd_demo)
 

@@ -1,11 +1,13 @@
 """The main job on the built-in default scene: what ``make demo`` runs.
 
 Simulates the default OptoSkin baseline and a frame with three contacts in a
-line, then writes captures, plots and a short text summary.
+line, calibrates the baseline, then writes captures, plots, the calibration
+and a short text summary.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import jax
@@ -28,7 +30,7 @@ def three_touch_scene(scene: Scene) -> Scene:
     return scene.replace(touches=touches, name=f"{scene.name}+3 touches")
 
 
-def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, frames: int = 20, seed: int = 0) -> Path:
+def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, frames: int = 100, seed: int = 0) -> Path:
     """Run the demo and return the path of its summary.
 
     **Arguments:**
@@ -45,13 +47,13 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     opts = ModelOptions()
     lines = [f"tofjax demo: {base_scene.name} ({base_scene.description})", ""]
 
-    print(f"[1/4] simulating {frames} baseline frames and 1 touch frame ...", flush=True)
+    print(f"[1/5] simulating {frames} baseline frames and 1 touch frame ...", flush=True)
     baseline = simulate(base_scene, frames, seed, options=opts)
     touch = simulate(touch_scene, 1, seed + 1, options=opts)
     write_capture(out / "baseline.h5", baseline)
     write_capture(out / "touch.h5", touch)
 
-    print("[2/4] plotting ...", flush=True)
+    print("[2/5] plotting ...", flush=True)
     plot_scene(touch_scene, out / "scene.png")
     plot_capture(touch, out, baseline=baseline)
     model = build_model(touch_scene, opts)
@@ -62,7 +64,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     s_best, z_best = np.unravel_index(np.argmax(touch_part), touch_part.shape)
     plot_components(breakdown, touch_scene, int(s_best), int(z_best), out / "components.png")
 
-    print("[3/4] checking the physics ...", flush=True)
+    print("[3/5] checking the physics ...", flush=True)
     wg, sm = base_scene.waveguide, base_scene.sensor
     S, Z, B = base_scene.shape
     lines += [
@@ -93,7 +95,19 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         )
     lines.append("")
 
-    print("[4/4] timing the forward model ...", flush=True)
+    print("[4/5] calibrating the baseline (fit of n1, mu_s, mu_a and nuisance parameters) ...", flush=True)
+    from .fit.calibrate import calibrate, fit_report
+
+    fit = calibrate(baseline)
+    (out / "calibration.json").write_text(json.dumps(fit.to_json(), indent=2))
+    lines += [
+        "calibration of baseline.h5 (Laplace intervals; true n1 = "
+        f"{wg.n1}, mu_s + mu_a = {wg.mu_s_per_m + wg.mu_a_per_m:g} /m)",
+        *("  " + line for line in fit_report(fit).splitlines()),
+        "",
+    ]
+
+    print("[5/5] timing the forward model ...", flush=True)
     f = jax.jit(lambda p: build_model(base_scene, opts)(p))
     p0 = Params.from_scene(base_scene, opts.jnp_dtype)
     dt = median_seconds(f, p0)
@@ -101,7 +115,8 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         f"forward model, baseline scene, {opts.dtype}, quadrature {opts.quadrature}: "
         f"{dt * 1e6:.0f} us per evaluation (median of 50, this machine)",
         "",
-        "files: scene.png, histograms_sensor*.png (capture vs baseline), components.png, baseline.h5, touch.h5",
+        "files: scene.png, histograms_sensor*.png (capture vs baseline), components.png, baseline.h5, touch.h5,",
+        "       calibration.json",
         "next: `tofjax plot out/demo/touch.h5 --baseline out/demo/baseline.h5 --out DIR`",
     ]
     summary = out / "summary.txt"

@@ -67,6 +67,9 @@ class FitConfig:
       near-field terms wander on the default scene).
     - ``quadrature``: model fidelity (time nodes per bin).
     - ``max_reduced_chi2``: above this the capture is not taken for a baseline.
+    - ``prior_width``: width of a weak Gaussian prior on each nonlinear parameter in the
+      unconstrained space (3 = a factor e^3 ~ 20 for log-scaled ones), centred on the
+      scene's values; it keeps weakly determined parameters finite. 0 turns it off.
     """
 
     solver: str = "levenberg-marquardt"
@@ -77,12 +80,15 @@ class FitConfig:
     multistart: int = 0
     multistart_seed: int = 0
     coarse_to_fine: bool = False
+    prior_width: float = 3.0
     quadrature: int = 2
     max_reduced_chi2: float = 4.0
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.prior_width < 0:
+            raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
         for k in ("rtol", "atol", "max_reduced_chi2"):
             if getattr(self, k) <= 0:
                 raise ConfigError(f"{k}: must be > 0, got {getattr(self, k)!r}")
@@ -238,7 +244,7 @@ class _Problem:
     solve, which gives the exact variable-projection Jacobian.
     """
 
-    def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions):
+    def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions, prior_width: float):
         self.scene = scene
         self.transforms = default_transforms(scene)
         self.model = build_model(scene.without_touches(), opts)
@@ -251,6 +257,7 @@ class _Problem:
         self.frames = frames
         self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
         self._solvers: dict = {}
+        self.prior_width = prior_width
 
     def set_data(self, data, frames: int) -> None:
         """New data of the same shape: the compiled solves are reused."""
@@ -304,22 +311,33 @@ class _Problem:
             out["ambient_counts"] = coef[:, i : i + Z]
         return params.replace(**out)
 
-    def residuals(self, u, args):
-        """Profiled residuals; ``args = (base params, mean data, sigma)``."""
-        base, data, sigma = args
-        params = self.profile(self.unpack(u, base), data, sigma)
-        return ((self.model(params) - data) / sigma).ravel()
+    def prior_residuals(self, u, prior):
+        """A weak Gaussian prior in the unconstrained space, ``(u - prior) / width``, on the
+        nonlinear parameters: it keeps a parameter the data cannot pin (mu_a -> 0 in log
+        space) from running off to infinity, and barely moves well-determined ones."""
+        if self.prior_width <= 0:
+            return jnp.zeros((0,), self.data.dtype)
+        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k in self.nonlinear]
+        return jnp.concatenate(parts) if parts else jnp.zeros((0,), self.data.dtype)
 
-    def full_residuals(self, u, base):
-        """Residuals with every free parameter explicit (for the covariance)."""
-        return ((self.model(self.unpack(u, base)) - self.data) / self.sigma).ravel()
+    def residuals(self, u, args):
+        """Profiled residuals; ``args = (base params, mean data, sigma, prior centre)``."""
+        base, data, sigma, prior = args
+        params = self.profile(self.unpack(u, base), data, sigma)
+        data_part = ((self.model(params) - data) / sigma).ravel()
+        return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
+
+    def full_residuals(self, u, base, prior):
+        """Residuals with every free parameter explicit (for the covariance), prior included."""
+        data_part = ((self.model(self.unpack(u, base)) - self.data) / self.sigma).ravel()
+        return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
 
     def deviance(self, u, args):
-        """Poisson deviance per bin of the profiled model (for the minimiser option)."""
-        base, d, sigma = args
+        """Poisson deviance per bin of the profiled model (for the minimiser option), plus the prior."""
+        base, d, sigma, prior = args
         mu = jnp.maximum(self.model(self.profile(self.unpack(u, base), d, sigma)), 1e-9)
         term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
-        return 2.0 * self.frames * jnp.sum(term) / d.size
+        return (2.0 * self.frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
 
     def solver_for(self, names: tuple[str, ...], solver, max_steps: int, minimise: bool):
         """A jitted solve over the nonlinear parameters ``names``, compiled once and reused."""
@@ -394,12 +412,13 @@ def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
     )
 
 
-def _covariance(problem: _Problem, params: Params) -> tuple[np.ndarray, list[str], dict]:
+def _covariance(problem: _Problem, params: Params, prior_params: Params) -> tuple[np.ndarray, list[str], dict, dict]:
     """Laplace covariance of every free parameter (linear ones included) from the Jacobian
     of the full residuals at the optimum, carried to physical units."""
     u = problem.pack(params, problem.free)
     flat, unravel = jax.flatten_util.ravel_pytree(u)
-    jac = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), params))(flat))
+    prior = problem.pack(prior_params, problem.free)
+    jac = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), params, prior))(flat))
     cov_u = np.linalg.pinv(jac.T @ jac, hermitian=True)
     dflat = np.asarray(jax.flatten_util.ravel_pytree({k: problem.transforms[k].derivative(v) for k, v in u.items()})[0])
     cov = cov_u * np.outer(dflat, dflat)
@@ -446,7 +465,9 @@ class Calibrator:
         check_baseline(capture, scene)
         base = Params.from_scene(scene, self.options.jnp_dtype)
         if self._problem is None:
-            self._problem = _Problem(scene, config.free, capture.mean(), capture.n_frames, self.options)
+            self._problem = _Problem(
+            scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width
+        )
         else:
             self._problem.set_data(capture.mean(), capture.n_frames)
         problem = self._problem
@@ -459,8 +480,9 @@ class Calibrator:
             """One solve over the nonlinear parameters ``names`` (the rest held at ``params``)."""
 
             u0 = problem.pack(params, names)
+            prior = problem.pack(base, names)  # the scene's values
             run = problem.solver_for(names, solver, config.max_steps, minimise)
-            out = run(u0, (params, problem.data, problem.sigma))
+            out = run(u0, (params, problem.data, problem.sigma, prior))
             h = np.asarray(out.history)
             h = h[np.isfinite(h)]
             ok = bool(out.result == optx.RESULTS.successful)
@@ -492,11 +514,11 @@ class Calibrator:
                 best = (loss, params, out, ok, history)
 
         _, params, out, ok, best_history = best
-        r = np.asarray(problem.full_residuals(problem.pack(params, problem.free), params))
+        r = np.asarray(problem.model(params) - problem.data) / np.asarray(problem.sigma)
         n_free = int(sum(np.size(getattr(params, k)) for k in problem.free))
         dof = max(r.size - n_free, 1)
         reduced = float(np.sum(r**2) / dof)
-        cov, labels, stderr, interval = _covariance(problem, params)
+        cov, labels, stderr, interval = _covariance(problem, params, base)
         values = {k: np.asarray(getattr(params, k)) for k in config.free}
         return CalibrationResult(
             params=params,
