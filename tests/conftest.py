@@ -1,6 +1,7 @@
 """Test set-up: float64 for gradients and fits, set here (never on import of tofjax)."""
 
 import os
+import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -9,6 +10,11 @@ import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# Many tests compile the same model or fit again (each CLI call builds afresh): a
+# compilation cache shared by the session turns those into cache hits.
+_cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")
+jax.config.update("jax_compilation_cache_dir", _cache)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 # Every example compiles or runs a model: few examples, no deadline (CI machines are slow and shared).
 settings.register_profile("tofjax", max_examples=15, deadline=None, derandomize=True)

@@ -88,13 +88,19 @@ def test_console_script_runs_without_traceback(tmp_path):
     assert r.stderr.count("\n") == 1 and "waveguide.thickness_m: missing key" in r.stderr
 
 
-def test_demo_writes_plots_summary_and_captures(tmp_path):
+def test_demo_writes_plots_summary_and_captures(tmp_path, optoskin):
     from tofjax.demo import run_demo
+    from tofjax.scene import SensorModel
 
-    summary = run_demo(tmp_path / "demo", frames=2)
+    # the demo's job on a smaller OptoSkin (3 sensors, 3 zones) to keep the suite fast
+    small = optoskin.replace(
+        sensor=SensorModel(bin_width_s=1e-10, n_bins=96, zones=3, fov_deg=29.0), sensors=optoskin.sensors[:3]
+    )
+    summary = run_demo(tmp_path / "demo", small, frames=20)
     text = summary.read_text()
     assert "touch 0" in text and "touch 2" in text and "us per evaluation" in text
-    for name in ("scene.png", "components.png", "histograms_sensor0.png", "baseline.h5", "touch.h5"):
+    assert "calibration: converged" in text and "95% interval" in text
+    for name in ("scene.png", "components.png", "histograms_sensor0.png", "baseline.h5", "touch.h5", "calibration.json"):
         assert (tmp_path / "demo" / name).exists(), name
     touch = read_capture(tmp_path / "demo" / "touch.h5")
     assert touch.truth_touches.shape == (1, 3, 3)
