@@ -145,3 +145,9 @@ def test_cli_calibrate_and_touch_capture_refused(tmp_path, small, capsys):
     assert main(["calibrate", str(base), "--config", str(cfg), "--out", str(tmp_path / "u.json")]) == 3
     assert json.loads((tmp_path / "u.json").read_text())["converged"] is False
     assert main(["calibrate", str(base), "--config", str(cfg), "--out", str(tmp_path / "u.json"), "--allow-unconverged"]) == 0
+
+
+def test_shipped_fit_config_is_the_default():
+    from pathlib import Path
+
+    assert load_fit_config(Path(__file__).parents[1] / "configs" / "fit" / "default.toml") == FitConfig()
