@@ -151,3 +151,8 @@ def test_shipped_fit_config_is_the_default():
     from pathlib import Path
 
     assert load_fit_config(Path(__file__).parents[1] / "configs" / "fit" / "default.toml") == FitConfig()
+
+
+def test_linear_parameters_alone_are_not_a_fit():
+    with pytest.raises(ConfigError, match="at least one of n1"):
+        FitConfig(free=("gain", "ambient_counts"))

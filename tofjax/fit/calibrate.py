@@ -103,6 +103,11 @@ class FitConfig:
                 raise ConfigError(f"free: {name!r} cannot be fitted; fittable: {', '.join(FITTABLE)}")
         if not self.free:
             raise ConfigError("free: at least one parameter must be free")
+        if all(name in LINEAR for name in self.free):
+            raise ConfigError(
+                "free: at least one of n1, mu_s_per_m, mu_a_per_m, the pulse, the emission time or the "
+                "reflectances must be free (gain, ambient and crosstalk alone are a linear solve, not a fit)"
+            )
 
     def make_solver(self):
         if self.solver == "levenberg-marquardt":
@@ -466,8 +471,8 @@ class Calibrator:
         base = Params.from_scene(scene, self.options.jnp_dtype)
         if self._problem is None:
             self._problem = _Problem(
-            scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width
-        )
+                scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width
+            )
         else:
             self._problem.set_data(capture.mean(), capture.n_frames)
         problem = self._problem
