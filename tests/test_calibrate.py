@@ -156,3 +156,28 @@ def test_shipped_fit_config_is_the_default():
 def test_linear_parameters_alone_are_not_a_fit():
     with pytest.raises(ConfigError, match="at least one of n1"):
         FitConfig(free=("gain", "ambient_counts"))
+
+
+def test_posterior_short_run_resume_and_guard(fitted, tmp_path, small):
+    """A short emcee run (the full study is in experiments/): finite samples near the fit,
+    summary complete, an interrupted chain resumes, and a chain from other data is refused."""
+    from tofjax.fit.posterior import PosteriorOptions, sample_posterior
+
+    cal, res, cap = fitted
+    chain = tmp_path / "chain.h5"
+    opts = PosteriorOptions(max_steps=150, check_every=50, progress=False, chain=str(chain))
+    post = sample_posterior(cal, cap, res, opts)
+    assert post.steps == 150 and np.isfinite(post.samples).all()
+    s = post.summary()
+    n1 = s["parameters"]["n1"]
+    assert n1["interval95"][0] < n1["median"] < n1["interval95"][1]
+    assert abs(n1["median"] - small.waveguide.n1) < 0.005
+    assert 0.05 < s["acceptance_fraction"] < 0.9
+    assert np.asarray(s["correlation"]["matrix"]).shape == (len(post.names), len(post.names))
+    # resume: the same chain file continues to 200 steps instead of starting again
+    more = sample_posterior(cal, cap, res, PosteriorOptions(max_steps=200, check_every=50, progress=False, chain=str(chain)))
+    assert more.steps == 200
+    other = simulate(small, 60, seed=11)
+    cal.fit(other)
+    with pytest.raises(CalibrationError, match="other data or settings"):
+        sample_posterior(cal, other, res, opts)

@@ -72,7 +72,7 @@ def _cmd_calibrate(a) -> int:
     import numpy as np
 
     from .capture import read_capture
-    from .fit.calibrate import CalibrationError, FitConfig, calibrate, fit_report, load_fit_config
+    from .fit.calibrate import CalibrationError, Calibrator, FitConfig, fit_report, load_fit_config
     from .scene import load_scene
 
     cap = read_capture(a.baseline)
@@ -82,11 +82,36 @@ def _cmd_calibrate(a) -> int:
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
         )
     config = load_fit_config(a.config) if a.config else FitConfig()
-    result = calibrate(cap, config, scene=scene)
+    calibrator = Calibrator((scene or cap.scene), config)
+    result = calibrator.fit(cap)
+    report = result.to_json()
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result.to_json(), indent=2))
+    out.write_text(json.dumps(report, indent=2))
     print(fit_report(result))
+    if a.mcmc and result.converged:
+        from .fit.posterior import PosteriorOptions, sample_posterior
+
+        post = sample_posterior(
+            calibrator,
+            cap,
+            result,
+            PosteriorOptions(walkers=a.walkers, max_steps=a.max_steps, chain=a.chain, progress=True),
+        )
+        report["posterior"] = post.summary()
+        out.write_text(json.dumps(report, indent=2))
+        print(
+            f"posterior: {post.steps} steps, tau {np.nanmax(post.tau):.0f}, acceptance {post.acceptance:.2f}, "
+            f"{post.n_effective:.0f} effective samples, {'converged' if post.converged else 'NOT converged (raise --max-steps)'}"
+        )
+        for k, v in report["posterior"]["parameters"].items():
+            print(f"  {k:30s} median {v['median']:.6g}  95% [{v['interval95'][0]:.6g}, {v['interval95'][1]:.6g}]")
+        if a.plots:
+            from .plot import plot_posterior, plot_traces
+
+            plot_posterior(post.samples, post.names, None, Path(a.plots) / "corner.png")
+            plot_traces(post.chain, post.names, Path(a.plots) / "traces.png")
+            print(f"wrote corner.png and traces.png to {a.plots}/")
     if a.plots:
         from .model import build_model
         from .plot import plot_fit, plot_loss
@@ -152,6 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output JSON")
     s.add_argument("--plots", help="folder for fit and loss plots")
     s.add_argument("--allow-unconverged", action="store_true", help="exit 0 even if the fit did not converge")
+    s.add_argument("--mcmc", action="store_true", help="also sample the posterior with emcee")
+    s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
+    s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
+    s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")

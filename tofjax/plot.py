@@ -20,7 +20,7 @@ from .capture import Capture  # noqa: E402
 from .model.geometry import zone_edges  # noqa: E402
 from .scene import Scene  # noqa: E402
 
-__all__ = ["plot_capture", "plot_components", "plot_fit", "plot_loss", "plot_scene"]
+__all__ = ["plot_capture", "plot_components", "plot_fit", "plot_loss", "plot_posterior", "plot_scene", "plot_traces"]
 
 
 def _sensor_label(scene: Scene, i: int) -> str:
@@ -169,4 +169,29 @@ def plot_loss(history, path: str | Path) -> Path:
     ax.set_xlabel("solver step (all stages)")
     ax.set_ylabel("loss")
     ax.set_title("calibration: loss history")
+    return _save(fig, path)
+
+
+def plot_posterior(samples: np.ndarray, names: list[str], truths, path: str | Path) -> Path:
+    """Corner plot of posterior samples (physical units); ``truths`` may be None."""
+    import corner
+
+    fig = corner.corner(samples, labels=names, truths=truths, quantiles=[0.025, 0.5, 0.975], show_titles=True,
+                        title_fmt=".3g", label_kwargs={"fontsize": 8}, title_kwargs={"fontsize": 7})
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_traces(chain: np.ndarray, names: list[str], path: str | Path) -> Path:
+    """Walker traces, (steps, walkers, parameters), one panel per parameter."""
+    P = chain.shape[-1]
+    fig, axes = plt.subplots(P, 1, figsize=(7, 1.3 * P + 0.5), sharex=True, squeeze=False)
+    for i in range(P):
+        axes[i, 0].plot(chain[:, :, i], color="k", alpha=0.15, lw=0.5)
+        axes[i, 0].set_ylabel(names[i], fontsize=7)
+    axes[-1, 0].set_xlabel("step")
+    fig.suptitle("posterior: walker traces (unconstrained space)")
     return _save(fig, path)

@@ -277,12 +277,16 @@ class _Problem:
     def unpack(self, u, base: Params) -> Params:
         return base.replace(**{k: self.transforms[k].to_physical(v) for k, v in u.items()})
 
-    def profile(self, params: Params, data=None, sigma=None) -> Params:
-        """``params`` with the free linear parameters at their weighted least-squares values."""
+    def profile(self, params: Params, data=None, sigma=None, with_logdet: bool = False):
+        """``params`` with the free linear parameters at their weighted least-squares values.
+
+        With ``with_logdet`` also returns ``sum_s log det(A_s^T W A_s)``: integrating the
+        linear parameters out of the Gaussian likelihood (flat priors) multiplies the
+        profile likelihood by ``det^-1/2``, which the posterior uses."""
         data = self.data if data is None else data
         sigma = self.sigma if sigma is None else sigma
         if not self.linear:
-            return params
+            return (params, jnp.zeros((), params.n1.dtype)) if with_logdet else params
         R, P = self.model.linear_parts(params)
         S, Z, B = R.shape
         eye = jnp.eye(Z, dtype=R.dtype)
@@ -314,6 +318,8 @@ class _Problem:
             i += Z
         if "ambient_counts" in self.linear:
             out["ambient_counts"] = coef[:, i : i + Z]
+        if with_logdet:
+            return params.replace(**out), jnp.sum(jnp.linalg.slogdet(normal + ridge)[1])
         return params.replace(**out)
 
     def prior_residuals(self, u, prior):
@@ -464,11 +470,15 @@ class Calibrator:
         if self.scene.noise.pile_up:
             raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
 
+    def base_params(self) -> Params:
+        """The scene's own parameters: the prior centre and the values of fixed parameters."""
+        return Params.from_scene(self.scene, self.options.jnp_dtype)
+
     def fit(self, capture: Capture) -> CalibrationResult:
         """Fit to a baseline capture (see :func:`calibrate`)."""
         scene, config = self.scene, self.config
         check_baseline(capture, scene)
-        base = Params.from_scene(scene, self.options.jnp_dtype)
+        base = self.base_params()
         if self._problem is None:
             self._problem = _Problem(
                 scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width
