@@ -250,7 +250,6 @@ class _Problem:
     """
 
     def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions, prior_width: float):
-        self.scene = scene
         self.transforms = default_transforms(scene)
         self.model = build_model(scene.without_touches(), opts)
         comps = self.model.components
@@ -258,9 +257,7 @@ class _Problem:
         self.linear = tuple(p for p in LINEAR if p in free and present[p])
         self.nonlinear = tuple(p for p in free if p not in LINEAR)
         self.free = tuple(free)
-        self.data = jnp.asarray(data)
-        self.frames = frames
-        self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
+        self.set_data(data, frames)
         self._solvers: dict = {}
         self.prior_width = prior_width
 
@@ -480,9 +477,7 @@ class Calibrator:
         check_baseline(capture, scene)
         base = self.base_params()
         if self._problem is None:
-            self._problem = _Problem(
-                scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width
-            )
+            self._problem = _Problem(scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width)
         else:
             self._problem.set_data(capture.mean(), capture.n_frames)
         problem = self._problem

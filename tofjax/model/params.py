@@ -8,7 +8,6 @@ the forward model only ever sees physical values.
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -76,9 +75,6 @@ class Params(eqx.Module):
     @property
     def n_touches(self) -> int:
         return self.touch_strength.shape[0]
-
-    def astype(self, dtype) -> "Params":
-        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), self)
 
     def replace(self, **changes) -> "Params":
         """A copy with some fields changed (values are cast to this pytree's dtype)."""
