@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 
 from .config import ConfigError
+from .errors import UserError
 from .scene import Scene, scene_from_json
 
 __all__ = ["Capture", "CaptureError", "CaptureWriter", "read_capture", "write_capture", "FORMAT", "VERSION"]
@@ -27,7 +28,7 @@ VERSION = 1
 HIST_DTYPE = np.float32
 
 
-class CaptureError(ValueError):
+class CaptureError(UserError):
     """A capture file is missing, truncated, foreign or inconsistent."""
 
 

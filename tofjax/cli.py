@@ -12,6 +12,7 @@ from pathlib import Path
 
 from .capture import CaptureError
 from .config import ConfigError
+from .errors import UserError
 
 
 def _cmd_simulate(a) -> int:
@@ -194,12 +195,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # Fitting and gradients need float64; set it here, at the entry point, never on import.
     from . import enable_x64
-    from .fit.calibrate import CalibrationError
 
     enable_x64()
     try:
         return args.func(args)
-    except (ConfigError, CaptureError, CalibrationError) as e:
+    except UserError as e:
         print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

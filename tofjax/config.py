@@ -16,12 +16,14 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
+from .errors import UserError
+
 T = TypeVar("T")
 
 __all__ = ["ConfigError", "from_dict", "load_toml", "to_dict"]
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A configuration is invalid. The message names the key and the reason."""
 
 
