@@ -181,3 +181,42 @@ def test_posterior_short_run_resume_and_guard(fitted, tmp_path, small):
     cal.fit(other)
     with pytest.raises(CalibrationError, match="other data or settings"):
         sample_posterior(cal, other, res, opts)
+
+
+def test_covariance_jacobian_matches_autodiff(fitted):
+    """The linear columns written down from linear_parts equal forward-mode AD of the full residuals."""
+    import jax
+    import jax.flatten_util
+
+    cal, res, _ = fitted
+    problem = cal._problem
+    u = problem.pack(res.params, problem.free)
+    flat, unravel = jax.flatten_util.ravel_pytree(u)
+    prior = problem.pack(cal.base_params(), problem.free)
+    ad = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), res.params, prior))(flat))
+    ours = problem.covariance_jacobian(res.params, cal.base_params())
+    assert ours.shape == ad.shape
+    np.testing.assert_allclose(ours, ad, rtol=0, atol=1e-9 * np.abs(ad).max())
+
+
+@given(mu_s=st.floats(1e-4, 1e3), mu_a=st.floats(1e-4, 1e3))
+def test_extinction_albedo_coordinates_round_trip(fitted, mu_s, mu_a):
+    cal, res, _ = fitted
+    problem = cal._problem
+    p = res.params.replace(mu_s_per_m=mu_s, mu_a_per_m=mu_a)
+    u = problem.pack(p)
+    assert "extinction" in u and "albedo" in u and "mu_s_per_m" not in u
+    back = problem.physical(u)
+    assert float(back["mu_s_per_m"]) == pytest.approx(mu_s, rel=1e-9)
+    assert float(back["mu_a_per_m"]) == pytest.approx(mu_a, rel=1e-9)
+
+
+def test_loss_rule_stops_early_within_a_fraction_of_a_standard_error(small):
+    """The chi-square stopping rule saves steps and moves the answer by << 1 standard error."""
+    cap = simulate(small, 60, seed=5)
+    tight = Calibrator(small, FitConfig(loss_tol=0.0, rtol=1e-9, atol=1e-9)).fit(cap)
+    quick = Calibrator(small, FitConfig(loss_tol=1e-3)).fit(cap)
+    assert quick.converged and tight.converged
+    assert quick.steps < tight.steps
+    for k in ("n1", "mu_s_per_m", "mu_a_per_m", "pulse_sigma_s", "end_reflectance"):
+        assert abs(float(quick.values[k]) - float(tight.values[k])) < 0.2 * float(tight.stderr[k]), k

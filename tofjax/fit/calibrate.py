@@ -23,6 +23,7 @@ import optimistix as optx
 
 from ..capture import Capture
 from ..config import ConfigError, from_dict, load_toml
+from ..errors import UserError
 from ..model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
 from ..scene import Scene
 from .solve import solve_with_history
@@ -48,7 +49,7 @@ DEFAULT_FREE = (
 LINEAR = ("gain", "ambient_counts", "crosstalk_counts")
 
 
-class CalibrationError(ValueError):
+class CalibrationError(UserError):
     """The data cannot be calibrated as given (wrong scene, not a baseline, bad counts)."""
 
 
@@ -59,6 +60,10 @@ class FitConfig:
     - ``solver``: ``levenberg-marquardt`` (default), ``gauss-newton``, ``dogleg``,
       or ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares).
     - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
+    - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than
+      this (default 1e-3: the fit is then within a few hundredths of a standard error of
+      the optimum, see ``experiments/study_fit_speed.py``; the parameter tolerances
+      alone take two to five times more steps in the flat mu_s / mu_a valley). 0 turns it off.
     - ``max_steps``: per stage.
     - ``free``: which parameters to fit; the rest stay at the scene's values.
     - ``multistart``: extra starts with n1 jittered by +-10%; the best fit wins.
@@ -66,6 +71,9 @@ class FitConfig:
       from the data already puts n1 within a few per cent, and a widened pulse lets the
       near-field terms wander on the default scene).
     - ``quadrature``: model fidelity (time nodes per bin).
+    - ``dtype``: ``float64`` (default) or ``float32`` for the model (the solver's own
+      variables stay in the default float precision). float32 is faster per step, but
+      its rounding (~1e-7 relative) limits how far the tolerances can be met.
     - ``max_reduced_chi2``: above this the capture is not taken for a baseline.
     - ``prior_width``: width of a weak Gaussian prior on each nonlinear parameter in the
       unconstrained space (3 = a factor e^3 ~ 20 for log-scaled ones), centred on the
@@ -75,6 +83,7 @@ class FitConfig:
     solver: str = "levenberg-marquardt"
     rtol: float = 1e-7
     atol: float = 1e-7
+    loss_tol: float = 1e-3
     max_steps: int = 200
     free: tuple[str, ...] = DEFAULT_FREE
     multistart: int = 0
@@ -82,11 +91,14 @@ class FitConfig:
     coarse_to_fine: bool = False
     prior_width: float = 3.0
     quadrature: int = 2
+    dtype: str = "float64"
     max_reduced_chi2: float = 4.0
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.loss_tol < 0:
+            raise ConfigError(f"loss_tol: must be >= 0, got {self.loss_tol!r}")
         if self.prior_width < 0:
             raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
         for k in ("rtol", "atol", "max_reduced_chi2"):
@@ -96,6 +108,8 @@ class FitConfig:
             raise ConfigError(f"max_steps: must be >= 1, got {self.max_steps!r}")
         if self.multistart < 0:
             raise ConfigError(f"multistart: must be >= 0, got {self.multistart!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
         if self.quadrature < 1:
             raise ConfigError(f"quadrature: must be >= 1, got {self.quadrature!r}")
         for name in self.free:
@@ -147,6 +161,8 @@ class CalibrationResult:
     solver: str
     frames: int
     stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    #: Laplace standard errors in the fit's unconstrained coordinates (posterior walkers start from them)
+    unconstrained_stderr: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         def pack(k):
@@ -251,6 +267,7 @@ class _Problem:
 
     def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions, prior_width: float):
         self.transforms = default_transforms(scene)
+        self.dtype = opts.jnp_dtype
         self.model = build_model(scene.without_touches(), opts)
         comps = self.model.components
         present = {"gain": True, "crosstalk_counts": "crosstalk" in comps, "ambient_counts": "ambient" in comps}
@@ -260,19 +277,51 @@ class _Problem:
         self.set_data(data, frames)
         self._solvers: dict = {}
         self.prior_width = prior_width
+        # the profile of a start point, jitted (run eagerly it dispatches the model op by op: seconds)
+        self.profile_jit = jax.jit(lambda p, d, s: self.profile(p, d, s))
+        self.model_jit = jax.jit(lambda p: self.model(p))
 
     def set_data(self, data, frames: int) -> None:
         """New data of the same shape: the compiled solves are reused."""
-        self.data = jnp.asarray(data)
+        self.data = jnp.asarray(data, self.dtype)
         self.frames = frames
         self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
 
+    # mu_s and mu_a are fitted as extinction mu_t = mu_s + mu_a (log) and albedo
+    # mu_s / mu_t (logit): a baseline pins mu_t far better than the split, and in
+    # (log mu_s, log mu_a) that makes a curved valley (log(e^a + e^b) = const) in which
+    # Gauss-Newton steps overshoot and Levenberg-Marquardt crawls (~100 steps); in
+    # (mu_t, albedo) the valley is straight. Results are reported as mu_s and mu_a.
+    JOINT = ("mu_s_per_m", "mu_a_per_m")
+
     def pack(self, params: Params, names=None) -> dict[str, jax.Array]:
+        """Unconstrained coordinates of the physical parameters ``names`` (default: the nonlinear ones)."""
         names = self.nonlinear if names is None else names
-        return {k: jnp.asarray(self.transforms[k].to_unconstrained(np.asarray(getattr(params, k)))) for k in names}
+        joint = all(j in names for j in self.JOINT)
+        u = {
+            k: jnp.asarray(self.transforms[k].to_unconstrained(np.asarray(getattr(params, k))))
+            for k in names
+            if not (joint and k in self.JOINT)
+        }
+        if joint:
+            mu_s = max(float(params.mu_s_per_m), 1e-12)
+            mu_a = max(float(params.mu_a_per_m), 1e-12)
+            u["extinction"] = jnp.asarray(math.log(mu_s + mu_a))
+            u["albedo"] = jnp.asarray(math.log(mu_s) - math.log(mu_a))
+        return u
+
+    def physical(self, u) -> dict[str, jax.Array]:
+        """Physical values of the parameters whose coordinates ``u`` holds (jit- and grad-safe)."""
+        out = {k: self.transforms[k].to_physical(v) for k, v in u.items() if k not in ("extinction", "albedo")}
+        if "extinction" in u:
+            mu_t = jnp.exp(u["extinction"])
+            albedo = jax.nn.sigmoid(u["albedo"])
+            out["mu_s_per_m"] = mu_t * albedo
+            out["mu_a_per_m"] = mu_t * (1.0 - albedo)
+        return out
 
     def unpack(self, u, base: Params) -> Params:
-        return base.replace(**{k: self.transforms[k].to_physical(v) for k, v in u.items()})
+        return base.replace(**self.physical(u))
 
     def profile(self, params: Params, data=None, sigma=None, with_logdet: bool = False):
         """``params`` with the free linear parameters at their weighted least-squares values.
@@ -325,7 +374,7 @@ class _Problem:
         space) from running off to infinity, and barely moves well-determined ones."""
         if self.prior_width <= 0:
             return jnp.zeros((0,), self.data.dtype)
-        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k in self.nonlinear]
+        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in self.linear]
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), self.data.dtype)
 
     def residuals(self, u, args):
@@ -335,10 +384,57 @@ class _Problem:
         data_part = ((self.model(params) - data) / sigma).ravel()
         return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
 
-    def full_residuals(self, u, base, prior):
-        """Residuals with every free parameter explicit (for the covariance), prior included."""
-        data_part = ((self.model(self.unpack(u, base)) - self.data) / self.sigma).ravel()
+    def full_residuals(self, u, base, prior, data=None, sigma=None):
+        """Residuals with every free parameter explicit (for the covariance), prior included.
+        Jitted callers pass ``data`` and ``sigma``: read from ``self`` inside a trace they
+        would be frozen into the compiled function and go stale after :meth:`set_data`."""
+        data = self.data if data is None else data
+        sigma = self.sigma if sigma is None else sigma
+        data_part = ((self.model(self.unpack(u, base)) - data) / sigma).ravel()
         return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
+
+    def covariance_jacobian(self, params: Params, prior_params: Params) -> np.ndarray:
+        """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
+        ``ravel_pytree`` order). The nonlinear columns come from forward-mode AD; the
+        linear ones (gain, crosstalk, ambient: one per sensor or zone, most of the
+        columns) are written down from ``linear_parts``, which is much cheaper."""
+        u = self.pack(params, self.free)
+        lin = {k: u[k] for k in u if k in LINEAR}
+        nl = {k: u[k] for k in u if k not in LINEAR}
+        f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
+        prior = self.pack(prior_params, self.free)
+        key = ("covariance", tuple(sorted(u)))
+        if key not in self._solvers:
+            self._solvers[key] = jax.jit(
+                lambda f, lin_u, base, prior, data, sigma: jax.jacfwd(
+                    lambda g: self.full_residuals({**unravel_nl(g), **lin_u}, base, prior, data, sigma)
+                )(f)
+            )
+            self._solvers[key + ("parts",)] = jax.jit(lambda p: self.model.linear_parts(p))
+        j_nl = np.asarray(self._solvers[key](f_nl, lin, params, prior, self.data, self.sigma))  # (N + priors, n_nl)
+        R, P = (np.asarray(a) for a in self._solvers[key + ("parts",)](params))
+        S, Z, B = R.shape
+        sigma = np.asarray(self.sigma)
+        n_rows = j_nl.shape[0]
+        cols, pos = {}, 0
+        for k in sorted(nl):
+            n = int(np.size(nl[k]))
+            cols[k] = j_nl[:, pos : pos + n]
+            pos += n
+        for k, uk in lin.items():
+            dxdu = np.ravel(np.asarray(self.transforms[k].derivative(uk)))
+            block = np.zeros((n_rows, dxdu.size))
+            for i in range(dxdu.size):
+                d = np.zeros((S, Z, B))
+                if k == "gain":
+                    d[i] = R[i]
+                elif k == "crosstalk_counts" and "crosstalk" in self.model.components:
+                    d[i // Z, i % Z] = P[i // Z, i % Z]
+                elif k == "ambient_counts" and "ambient" in self.model.components:
+                    d[i // Z, i % Z] = 1.0
+                block[: S * Z * B, i] = (d / sigma).ravel() * dxdu[i]
+            cols[k] = block
+        return np.concatenate([cols[k] for k in sorted(u)], axis=1)
 
     def deviance(self, u, args):
         """Poisson deviance per bin of the profiled model (for the minimiser option), plus the prior."""
@@ -347,13 +443,17 @@ class _Problem:
         term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
         return (2.0 * self.frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
 
-    def solver_for(self, names: tuple[str, ...], solver, max_steps: int, minimise: bool):
+    def solver_for(self, names: tuple[str, ...], solver, max_steps: int, minimise: bool, loss_tol: float = 0.0):
         """A jitted solve over the nonlinear parameters ``names``, compiled once and reused."""
-        key = (names, max_steps, minimise)
+        key = (names, max_steps, minimise, loss_tol)
         if key not in self._solvers:
             target = self.deviance if minimise else self.residuals
+            # the deviance loss is chi-square per bin: the same tolerance in its units
+            tol = 2.0 * loss_tol / self.data.size if minimise else loss_tol
             self._solvers[key] = jax.jit(
-                lambda u, args: solve_with_history(target, solver, u, args, max_steps=max_steps, minimise=minimise)
+                lambda u, args: solve_with_history(
+                    target, solver, u, args, max_steps=max_steps, minimise=minimise, loss_tol=tol
+                )
             )
         return self._solvers[key]
 
@@ -420,30 +520,44 @@ def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
     )
 
 
-def _covariance(problem: _Problem, params: Params, prior_params: Params) -> tuple[np.ndarray, list[str], dict, dict]:
+def _covariance(problem: _Problem, params: Params, prior_params: Params) -> tuple[np.ndarray, list[str], dict, dict, dict]:
     """Laplace covariance of every free parameter (linear ones included) from the Jacobian
     of the full residuals at the optimum, carried to physical units."""
     u = problem.pack(params, problem.free)
     flat, unravel = jax.flatten_util.ravel_pytree(u)
-    prior = problem.pack(prior_params, problem.free)
-    jac = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), params, prior))(flat))
+    jac = problem.covariance_jacobian(params, prior_params)
     cov_u = np.linalg.pinv(jac.T @ jac, hermitian=True)
-    dflat = np.asarray(jax.flatten_util.ravel_pytree({k: problem.transforms[k].derivative(v) for k, v in u.items()})[0])
-    cov = cov_u * np.outer(dflat, dflat)
+    names = sorted(problem.free)
+
+    def phys_flat(f):
+        x = problem.physical(unravel(f))
+        return jnp.concatenate([jnp.ravel(x[k]) for k in names])
+
+    d = np.asarray(jax.jacfwd(phys_flat)(flat))  # d physical / d unconstrained
+    cov = d @ cov_u @ d.T
+    x_flat = np.asarray(phys_flat(flat))
     stderr_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
-    stderr_u_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    stderr, interval, labels, pos = {}, {}, [], 0
-    for k in sorted(u):  # ravel_pytree orders dict keys sorted
-        shape = np.shape(u[k])
+    stderr, interval, u_stderr, labels, pos = {}, {}, {}, [], 0
+    for k in names:
+        shape = np.shape(getattr(params, k))
         n = int(np.prod(shape))
+        x = x_flat[pos : pos + n].reshape(shape)
         stderr[k] = stderr_flat[pos : pos + n].reshape(shape)
-        # the 95% interval is symmetric in the unconstrained space, so it respects bounds
-        su = stderr_u_flat[pos : pos + n].reshape(shape)
+        # the 95% interval is symmetric in the parameter's own unconstrained space
+        # (log, logit), so it respects bounds; its width there is the delta method's.
         t = problem.transforms[k]
-        interval[k] = (np.asarray(t.to_physical(u[k] - 1.96 * su)), np.asarray(t.to_physical(u[k] + 1.96 * su)))
+        w = t.to_unconstrained(x)
+        sw = stderr[k] / np.maximum(np.asarray(t.derivative(w)), 1e-300)
+        interval[k] = (np.asarray(t.to_physical(w - 1.96 * sw)), np.asarray(t.to_physical(w + 1.96 * sw)))
         labels += [k] if shape == () else [f"{k}[{i}]" for i in range(n)]
         pos += n
-    return cov, labels, stderr, interval
+    pos = 0
+    su_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
+    for k in sorted(u):  # ravel_pytree orders dict keys sorted
+        n = int(np.size(u[k]))
+        u_stderr[k] = su_flat[pos : pos + n].reshape(np.shape(u[k]))
+        pos += n
+    return cov, labels, stderr, interval, u_stderr
 
 
 def _result_name(result) -> str:
@@ -462,7 +576,7 @@ class Calibrator:
     def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
         self.scene = scene.without_touches()
         self.config = config
-        self.options = ModelOptions(quadrature=config.quadrature)
+        self.options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype)
         self._problem: _Problem | None = None
         if self.scene.noise.pile_up:
             raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
@@ -491,7 +605,7 @@ class Calibrator:
 
             u0 = problem.pack(params, names)
             prior = problem.pack(base, names)  # the scene's values
-            run = problem.solver_for(names, solver, config.max_steps, minimise)
+            run = problem.solver_for(names, solver, config.max_steps, minimise, config.loss_tol)
             out = run(u0, (params, problem.data, problem.sigma, prior))
             h = np.asarray(out.history)
             h = h[np.isfinite(h)]
@@ -499,13 +613,14 @@ class Calibrator:
             stages.append(
                 {"stage": name, "free": list(names), "steps": int(out.steps), "converged": ok, "final_loss": float(h[-1])}
             )
-            return problem.profile(problem.unpack(out.value, params)), out, ok, h.tolist()
+            return problem.profile_jit(problem.unpack(out.value, params), problem.data, problem.sigma), out, ok, h.tolist()
 
-        candidates = [problem.profile(start)]
+        candidates = [problem.profile_jit(start, problem.data, problem.sigma)]
         if config.multistart:
             rng = np.random.default_rng(config.multistart_seed)
             candidates += [
-                problem.profile(start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1))) for _ in range(config.multistart)
+                problem.profile_jit(start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1)), problem.data, problem.sigma)
+                for _ in range(config.multistart)
             ]
 
         best = None
@@ -524,11 +639,11 @@ class Calibrator:
                 best = (loss, params, out, ok, history)
 
         _, params, out, ok, best_history = best
-        r = np.asarray(problem.model(params) - problem.data) / np.asarray(problem.sigma)
+        r = (np.asarray(problem.model_jit(params)) - np.asarray(problem.data)) / np.asarray(problem.sigma)
         n_free = int(sum(np.size(getattr(params, k)) for k in problem.free))
         dof = max(r.size - n_free, 1)
         reduced = float(np.sum(r**2) / dof)
-        cov, labels, stderr, interval = _covariance(problem, params, base)
+        cov, labels, stderr, interval, u_stderr = _covariance(problem, params, base)
         values = {k: np.asarray(getattr(params, k)) for k in config.free}
         return CalibrationResult(
             params=params,
@@ -546,6 +661,7 @@ class Calibrator:
             solver=config.solver,
             frames=capture.n_frames,
             stages=stages,
+            unconstrained_stderr=u_stderr,
         )
 
 

@@ -123,18 +123,13 @@ def sample_posterior(
         return np.asarray(batched(jnp.asarray(x)), np.float64)
 
     # initial scatter from the Laplace errors in the unconstrained space
-    scale = []
-    for k in names:
-        lo, hi = fit.interval95[k]
-        t = problem.transforms[k]
-        ulo, uhi = t.to_unconstrained(lo), t.to_unconstrained(hi)
-        scale.append(np.ravel(np.abs(uhi - ulo) / (2 * 1.96)))
-    scale = np.maximum(np.concatenate(scale), 1e-6)
+    scale = np.concatenate([np.ravel(fit.unconstrained_stderr[k]) for k in sorted(u_fit)])
+    scale = np.maximum(scale, 1e-6)
     rng = np.random.default_rng(options.seed)
 
     backend = None
     start = np.asarray(flat0)[None, :] + 0.1 * scale[None, :] * rng.normal(size=(W, P))
-    fingerprint = _fingerprint(capture, names, W)
+    fingerprint = _fingerprint(capture, (*names, *sorted(u_fit)), W)  # coordinates too
     if options.chain:
         import h5py
 
@@ -174,15 +169,12 @@ def sample_posterior(
     thin = max(int(0.5 * np.nanmin(tau)), 1) if np.all(np.isfinite(tau)) else 1
     flat = sampler.get_chain(discard=min(burn, sampler.iteration - 1), thin=thin, flat=True)
     # back to physical units
-    phys = []
-    for row in flat:
-        u = unravel(jnp.asarray(row))
-        phys.append(np.concatenate([np.ravel(problem.transforms[k].to_physical(u[k])) for k in names]))
-    samples = np.asarray(phys)
+    to_phys = jax.jit(jax.vmap(lambda f: jnp.concatenate([jnp.ravel(v) for _, v in sorted(problem.physical(unravel(f)).items())])))
+    samples = np.asarray(to_phys(jnp.asarray(flat)))
     labels = []
-    for k in names:
-        n = int(np.size(u_fit[k]))
-        labels += [k] if np.ndim(u_fit[k]) == 0 else [f"{k}[{i}]" for i in range(n)]
+    for k in names:  # sorted, as the columns of ``samples``
+        n = int(np.size(getattr(base, k)))
+        labels += [k] if np.ndim(getattr(base, k)) == 0 else [f"{k}[{i}]" for i in range(n)]
     n_samples_total = (sampler.iteration - min(burn, sampler.iteration - 1)) * W
     return PosteriorResult(
         names=labels,
