@@ -534,8 +534,12 @@ class TMF8828Array:
         for spec in self.specs:
             if spec.pin is not None:
                 spec.pin.off()
-        for i in range(len(self.specs)):
-            self._bring_up(i)
+        for i, spec in enumerate(self.specs):
+            try:
+                self._bring_up(i)
+            except SensorLost as e:
+                where = f" on mux channel {spec.mux_channel}" if spec.mux_channel is not None else ""
+                raise DeviceError(f"{spec.name}: no answer{where} ({e}); check power, wiring and the enable line") from None
         return self
 
     def close(self) -> None:

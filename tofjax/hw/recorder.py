@@ -1,0 +1,215 @@
+"""Recording: whole frames from a rig into a capture file, each appended and flushed.
+
+:func:`acquire` is the one entry point (``tofjax acquire`` and ``tofjax baseline`` call
+it). Frames come from :class:`~tofjax.hw.driver.TMF8828Array` only when whole; each is
+written with :class:`~tofjax.capture.CaptureWriter`, which flushes after every frame, so
+Ctrl-C or a power cut loses at most the frame in flight and the file stays readable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..capture import CaptureWriter
+from ..errors import UserError
+from ..scene import Scene
+from . import protocol as P
+from .bus import BusFaults
+from .driver import DeviceError, FrameDropped, TMF8828Array
+from .emulator import DeviceFaults
+from .rig import Rig, emulated_bus, load_rig_or_scene, open_array, real_bus
+
+__all__ = ["AcquireOptions", "AcquireResult", "acquire", "record"]
+
+
+@dataclass(frozen=True)
+class AcquireOptions:
+    """What to record and how.
+
+    - ``frames`` / ``duration_s``: stop after this many whole frames / seconds (of the rig's
+      clock: simulated seconds when emulated). At least one must be given.
+    - ``emulate``: an emulated rig (histograms from the scene's forward model) instead of ``/dev/i2c-N``.
+    - ``image``: application image (Intel HEX or binary). Required on hardware; with ``emulate``
+      and no image a synthetic one is used (it is not firmware; see ``docs/acquisition.md``).
+    - ``bus``, ``bus_speed_hz``: override the rig's bus number / speed (the speed only matters
+      for emulation: on a Pi it is set in config.txt).
+    - ``baseline``: record a no-touch baseline (the scene without touches).
+    - ``seed``, ``noise``: emulator photon noise (``None``: the scene's ``[noise]``).
+    - ``bus_faults``, ``device_faults``: fault injection for emulated rigs.
+    - ``period_ms``: override the rig's measurement period.
+    - ``max_dropped_in_row``: consecutive dropped frames after which recording stops with an error.
+    - ``progress``: a live status line (tqdm) with frame rate and error counts.
+    """
+
+    frames: int | None = None
+    duration_s: float | None = None
+    emulate: bool = False
+    image: str | None = None
+    bus: int | None = None
+    bus_speed_hz: int | None = None
+    baseline: bool = False
+    seed: int = 0
+    noise: bool | None = None
+    bus_faults: BusFaults = BusFaults()
+    device_faults: DeviceFaults = DeviceFaults()
+    period_ms: int | None = None
+    max_dropped_in_row: int = 20
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.frames is None and self.duration_s is None:
+            raise UserError("give --frames N or --duration S")
+        if self.frames is not None and self.frames < 1:
+            raise UserError(f"--frames: must be >= 1, got {self.frames}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise UserError(f"--duration: must be > 0, got {self.duration_s}")
+
+
+@dataclass
+class AcquireResult:
+    path: Path
+    frames: int
+    dropped: int
+    errors: dict[str, int]
+    elapsed_s: float  # on the rig's clock (simulated when emulated)
+    wall_s: float
+    interrupted: bool = False
+    bus: dict[str, Any] = field(default_factory=dict)
+    synthetic_image: bool = False
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.frames / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    def summary(self) -> str:
+        errs = ", ".join(f"{k} {v}" for k, v in self.errors.items() if v) or "none"
+        return (f"{'interrupted: ' if self.interrupted else ''}wrote {self.path}: {self.frames} frames "
+                f"({self.frame_rate_hz:.2f} frames/s), {self.dropped} dropped; handled errors: {errs}")
+
+
+def record(array: TMF8828Array, writer: CaptureWriter, *, frames: int | None = None, duration_s: float | None = None,
+           touches=None, progress: bool = True, max_dropped_in_row: int = 20, label: str = "") -> tuple[int, int, bool]:
+    """Read whole frames from an opened ``array`` and append each to ``writer``.
+
+    Returns ``(frames written, frames dropped, interrupted)``. Ctrl-C ends it cleanly:
+    every frame completed before it is in the file.
+    """
+    from tqdm import tqdm
+
+    clock = array.clock
+    t0 = clock.now()
+    written = dropped = in_row = 0
+    interrupted = False
+    bar = tqdm(total=frames, unit="frame", disable=not progress, desc=label or "acquire", dynamic_ncols=True)
+    try:
+        while (frames is None or written < frames) and (duration_s is None or clock.now() - t0 < duration_s):
+            try:
+                fr = array.read_frame()
+            except FrameDropped:
+                dropped += 1
+                in_row += 1
+                if in_row >= max_dropped_in_row:
+                    raise DeviceError(f"{in_row} frames in a row could not be read whole: {array.errors.short()}; "
+                                      "check the wiring, or slow the bus") from None
+                continue
+            in_row = 0
+            writer.append(fr.histograms, fr.timestamp - t0, reference=fr.reference, touches=touches)
+            written += 1
+            bar.update(1)
+            dt = clock.now() - t0
+            bar.set_postfix_str(f"{written / dt if dt > 0 else 0:.2f} fps, dropped {dropped}, errors: "
+                                f"{array.errors.short()}", refresh=False)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+    return written, dropped, interrupted
+
+
+def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: AcquireOptions) -> AcquireResult:
+    """Record a capture from a rig (real or emulated) into ``out``.
+
+    **Arguments:**
+
+    - ``rig_or_scene``: a rig file, a scene file or built-in scene name (one sensor: no
+      selection; several: behind a mux on channels 0..), or a ``(Rig, Scene)`` pair.
+    - ``out``: the capture file (HDF5, :mod:`tofjax.capture` format, with the reference channel).
+    - ``options``: see :class:`AcquireOptions`.
+
+    **Returns:** an :class:`AcquireResult` (frames written, dropped, error counts, rates).
+    """
+    from ..simulate import true_parameters
+
+    if isinstance(rig_or_scene, tuple):
+        rig, scene = rig_or_scene
+        is_rig = True
+    else:
+        rig, scene, is_rig = load_rig_or_scene(rig_or_scene)
+    if options.bus_speed_hz is not None:
+        rig = dataclasses.replace(rig, bus_speed_hz=options.bus_speed_hz)
+    if options.period_ms is not None:
+        rig = dataclasses.replace(rig, period_ms=options.period_ms)
+    if options.baseline:
+        scene = scene.without_touches()
+    if not options.emulate:
+        n = rig.bus if options.bus is None else options.bus
+        if not Path(f"/dev/i2c-{n}").exists():
+            raise UserError(f"/dev/i2c-{n} does not exist: enable I2C (sudo raspi-config, Interface Options) "
+                            "or pass --emulate")
+    image_path = options.image or rig.image_path()
+    synthetic = image_path is None
+    if synthetic:
+        if not options.emulate:
+            raise UserError(
+                "no application image: pass --image PATH (the ams-OSRAM TMF8828 image, Intel HEX or binary; "
+                "tofjax does not ship it, see docs/acquisition.md)"
+            )
+        image = P.synthetic_image()
+    else:
+        image = P.load_image(image_path)
+    truth = None
+    touches = None
+    if options.emulate:
+        if not is_rig and scene.n_sensors > 8:
+            raise UserError("an emulated rig for a bare scene puts its sensors behind one 8-channel mux")
+        bus, pins, _ = emulated_bus(rig, scene, noise=options.noise, bus_faults=options.bus_faults,
+                                    device_faults=options.device_faults, image=image, seed=options.seed)
+        from ..model import Params
+
+        truth = true_parameters(Params.from_scene(scene))
+        truth.update(seed=options.seed, emulated=True, bus_speed_hz=rig.bus_speed_hz, synthetic_image=synthetic)
+        el = scene.contact_elements()
+        touches = el[:, [0, 1, 3]] if len(el) else None
+        capture_scene = scene
+    else:
+        bus, pins = real_bus(rig, options.bus)
+        capture_scene = scene.without_touches()  # on hardware the contacts are what we want to find
+    array = open_array(rig, scene, bus, pins, image)
+    source = "tmf8828-emulated" if options.emulate else "tmf8828"
+    t_wall = time.perf_counter()
+    try:
+        array.open()
+        t0 = array.clock.now()
+        with CaptureWriter(out, capture_scene, source=source, with_reference=True,
+                           max_touches=0 if touches is None else len(touches), truth=truth) as w:
+            written, dropped, interrupted = record(
+                array, w, frames=options.frames, duration_s=options.duration_s, touches=touches,
+                progress=options.progress, max_dropped_in_row=options.max_dropped_in_row,
+                label="baseline" if options.baseline else "acquire",
+            )
+        elapsed = array.clock.now() - t0
+    finally:
+        array.close()
+        if not options.emulate:
+            bus.close()
+            for p in pins or []:
+                p.close()
+    stats = getattr(bus, "stats", None)
+    busd = {} if stats is None else {"transfers": stats.transfers, "bytes": stats.bytes, "busy_s": stats.busy_s,
+                                     "frequency_hz": bus.frequency_hz}
+    return AcquireResult(Path(out), written, dropped, dict(array.errors.counts), elapsed,
+                         time.perf_counter() - t_wall, interrupted, busd, synthetic)
