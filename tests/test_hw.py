@@ -329,3 +329,18 @@ def test_driver_options_validate():
     with pytest.raises(UserError, match="period_ms"):
         DriverOptions(period_ms=0)
     assert EmulatorTiming().stop_s == 0.025
+
+
+def test_bench_acquire_fast(optoskin):
+    """The benchmark's measurement on a small case: bus-limited within 10 %, driver CPU well under the period."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_acquire", ROOT / "experiments" / "bench_acquire.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    scene = _scene(optoskin, 1, 7)
+    rig = Rig(scene="optoskin", sensors=(RigSensor(),), select="none", period_ms=1)
+    r = bench.run_case("1x3x3", rig, scene, _signals(1, 7), 1_000_000, 3, 1)
+    assert r["rate_vs_bus_limited"] >= 0.9 and r["driver_cpu_fraction"] < 0.5 and r["errors"] == 0
+    # 31 records x (INT read + 135-byte read + clear): ~41 kbit, ~41 ms at 1 MHz
+    assert 0.038 < r["bus_limited_period_s"] < 0.043

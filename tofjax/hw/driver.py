@@ -38,6 +38,7 @@ __all__ = [
     "SensorSpec",
     "TMF8828",
     "TMF8828Array",
+    "bus_limited_frame_s",
 ]
 
 
@@ -596,3 +597,23 @@ class TMF8828Array:
             self.errors.add("frames_dropped")
             raise
         return Frame(np.stack(hists).astype(np.float64), np.stack(refs), self.clock.now(), results)
+
+
+def bus_limited_frame_s(layout: str, n_sensors: int, frequency_hz: float, *, continuous: bool | None = None,
+                        mux: bool = False) -> float:
+    """The least bus time one frame takes with this driver's transfers, with no waiting at all.
+
+    Per record: one INT_STATUS read (39 bits), the record read through ``i2c_rdwr`` (30 + 9 n
+    bits for n bytes) and the interrupt clear (29 bits). Measured in turn (several sensors),
+    each sensor also costs its start (idle check, clear, measure command and one status read),
+    its stop, and with a mux one channel select. Bits include start, address, ACK and stop bits.
+    """
+    lay = P.Layout(layout)
+    continuous = n_sensors == 1 if continuous is None else continuous
+    read_byte, write_byte = 39, 29
+    per_packet = read_byte + (30 + 9 * P.HIST_PACKET_LEN) + write_byte
+    per_result = read_byte + (30 + 9 * P.RESULT_LEN) + write_byte
+    per_sensor = lay.n_subcaptures * (lay.packets_per_subcapture * per_packet + per_result)
+    if not continuous:
+        per_sensor += read_byte + write_byte + write_byte + read_byte + write_byte + (20 if mux else 0)
+    return n_sensors * per_sensor / frequency_hz

@@ -8,7 +8,10 @@ Ctrl-C or a power cut loses at most the frame in flight and the file stays reada
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,6 +94,23 @@ class AcquireResult:
                 f"({self.frame_rate_hz:.2f} frames/s), {self.dropped} dropped; handled errors: {errs}")
 
 
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold Ctrl-C while one frame is being written, so a frame is in the file whole or not at all
+    (a kill -9 or power cut cannot be held: the writer's order of writes covers those)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got = []
+    old = signal.signal(signal.SIGINT, lambda *a: got.append(a))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            raise KeyboardInterrupt
+
+
 def record(array: TMF8828Array, writer: CaptureWriter, *, frames: int | None = None, duration_s: float | None = None,
            touches=None, progress: bool = True, max_dropped_in_row: int = 20, label: str = "") -> tuple[int, int, bool]:
     """Read whole frames from an opened ``array`` and append each to ``writer``.
@@ -117,7 +137,8 @@ def record(array: TMF8828Array, writer: CaptureWriter, *, frames: int | None = N
                                       "check the wiring, or slow the bus") from None
                 continue
             in_row = 0
-            writer.append(fr.histograms, fr.timestamp - t0, reference=fr.reference, touches=touches)
+            with _sigint_deferred():
+                writer.append(fr.histograms, fr.timestamp - t0, reference=fr.reference, touches=touches)
             written += 1
             bar.update(1)
             dt = clock.now() - t0

@@ -1,0 +1,123 @@
+"""Recording from emulated rigs: captures that read like any other, faults, Ctrl-C and kill -9."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from tofjax.capture import read_capture
+from tofjax.cli import main
+from tofjax.hw.bus import BusFaults
+from tofjax.hw.emulator import DeviceFaults
+from tofjax.hw.recorder import AcquireOptions, acquire
+from tofjax.scene import Touch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def small_scene(optoskin):
+    """Two OptoSkin sensors and one touch: a multi-sensor rig that compiles quickly."""
+    return optoskin.replace(sensors=optoskin.sensors[:2], name="optoskin-2",
+                            touches=(Touch(position_m=(0.10, 0.20), radius_m=0.01, strength=1.0),))
+
+
+@pytest.fixture(scope="module")
+def scene_file(small_scene, tmp_path_factory):
+    p = tmp_path_factory.mktemp("scene") / "two.toml"
+    p.write_text(small_scene.to_toml())
+    return p
+
+
+def test_emulated_capture_reads_like_any_other(scene_file, small_scene, tmp_path, capsys):
+    out = tmp_path / "cap.h5"
+    res = acquire(str(scene_file), out, AcquireOptions(frames=4, emulate=True, progress=False, bus_speed_hz=1_000_000))
+    assert res.frames == 4 and res.dropped == 0 and res.synthetic_image
+    cap = read_capture(out)
+    assert cap.histograms.shape == (4, *small_scene.shape) and cap.scene.shape == small_scene.shape
+    assert cap.reference.shape == (4, 2, 128) and np.all(np.diff(cap.timestamps) > 0)
+    assert cap.source == "tmf8828-emulated" and cap.truth["emulated"] and cap.truth_touches.shape == (4, 1, 3)
+    assert np.all(cap.histograms == np.round(cap.histograms)) and cap.histograms.max() < 2**24
+    # the simulated bus time per frame: 2 sensors x (measure 5 ms + period 33 ms + readout ~40 ms at 1 MHz)
+    assert 0.12 < np.median(np.diff(cap.timestamps)) < 0.2
+    assert main(["plot", str(out), "--out", str(tmp_path / "plots")]) == 0
+
+    base = tmp_path / "base.h5"
+    assert main(["baseline", str(scene_file), "--emulate", "--frames", "3", "--out", str(base), "--quiet"]) == 0
+    b = read_capture(base)
+    assert b.n_frames == 3 and not b.scene.touches and b.truth_touches is None
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_faulty_emulated_rig_writes_only_whole_frames(scene_file, tmp_path):
+    out = tmp_path / "faulty.h5"
+    res = acquire(str(scene_file), out, AcquireOptions(
+        frames=8, emulate=True, progress=False, noise=False, bus_speed_hz=1_000_000,
+        bus_faults=BusFaults(nack=0.01, timeout=0.005, corrupt=0.02, seed=5),
+        device_faults=DeviceFaults(repeat=0.01, skip=0.005, wrong_cid=0.01, reset=0.002, seed=5)))
+    cap = read_capture(out)
+    assert cap.n_frames == res.frames == 8
+    assert sum(res.errors.values()) > 10
+    # noise off: every whole frame is the same, so one broken frame would stand out
+    assert np.all(cap.histograms == cap.histograms[0]) and np.all(cap.reference == cap.reference[0])
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert main(["acquire", "optoskin", "--bus", "97", "--frames", "1", "--out", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/dev/i2c-97 does not exist" in err[0]
+    assert main(["acquire", "optoskin", "--emulate", "--frames", "1", "--out", str(tmp_path / "x.h5"),
+                 "--faults", "gremlins=0.1"]) == 2
+    assert "unknown fault 'gremlins'" in capsys.readouterr().err
+    assert main(["acquire", "optoskin", "--emulate", "--frames", "1", "--out", str(tmp_path / "x.h5"),
+                 "--image", str(tmp_path / "none.hex")]) == 2
+    assert "not shipped" in capsys.readouterr().err
+
+
+def _frames_in(path: Path) -> int:
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return int(f["timestamps"].shape[0])
+    except (OSError, KeyError):
+        return 0
+
+
+def test_interrupted_recordings_keep_every_whole_frame(scene_file, tmp_path):
+    """SIGINT (Ctrl-C) and SIGKILL (a power cut, as far as the file is concerned) mid-recording."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_ENABLE_X64="1",
+               JAX_COMPILATION_CACHE_DIR=os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}"),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5")
+    procs = {}
+    for sig in (signal.SIGINT, signal.SIGKILL):
+        out = tmp_path / f"{sig.name}.h5"
+        cmd = [sys.executable, "-m", "tofjax.cli", "acquire", str(scene_file), "--emulate", "--no-noise",
+               "--duration", "1e6", "--quiet", "--out", str(out)]
+        procs[sig] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), out)
+    deadline = time.time() + 120
+    while any(_frames_in(out) < 5 for _, out in procs.values()):
+        assert time.time() < deadline, "the recordings did not start"
+        assert all(p.poll() is None for p, _ in procs.values()), [p.communicate() for p, _ in procs.values()]
+        time.sleep(0.2)
+    seen = {}
+    for sig, (p, out) in procs.items():
+        seen[sig] = _frames_in(out)
+        p.send_signal(sig)
+    for sig, (p, out) in procs.items():
+        stdout, stderr = p.communicate(timeout=60)
+        if sig == signal.SIGINT:
+            assert p.returncode == 130 and "interrupted: wrote" in stdout, stderr
+        else:
+            assert p.returncode == -signal.SIGKILL
+        cap = read_capture(out)
+        assert cap.n_frames >= seen[sig]
+        assert np.all(cap.histograms == cap.histograms[0]) and np.all(cap.reference == cap.reference[0])
+        assert np.all(np.diff(cap.timestamps) > 0)
