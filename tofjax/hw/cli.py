@@ -69,6 +69,17 @@ def _common(s) -> None:
     s.add_argument("--quiet", action="store_true", help="no live status line")
 
 
+def _cmd_replay(a) -> int:
+    from .recorder import replay
+
+    res = replay(a.capture, a.out, speed=a.speed, progress=not a.quiet)
+    wall_rate = res.frames / res.wall_s if res.wall_s > 0 else float("nan")
+    what = f"wrote {res.path}" if a.out else f"replayed {res.path}"
+    print(f"{'interrupted: ' if res.interrupted else ''}{what}: {res.frames} frames "
+          f"({res.elapsed_s:.2f} s recorded, {res.wall_s:.2f} s now, {wall_rate:.1f} frames/s)")
+    return 130 if res.interrupted else 0
+
+
 def register(sub) -> None:
     s = sub.add_parser("acquire", help="record a capture from TMF8828 sensors over I2C (or --emulate)")
     _common(s)
@@ -81,3 +92,10 @@ def register(sub) -> None:
     _common(s)
     s.add_argument("--frames", type=int, required=True, help="whole frames to record")
     s.set_defaults(func=lambda a: _cmd_acquire(a, baseline=True))
+
+    s = sub.add_parser("replay", help="feed a recorded capture through the live acquisition pipeline")
+    s.add_argument("capture", help="capture file (.h5)")
+    s.add_argument("--speed", default="max", help="max (default), recorded, or a multiple of the recorded speed")
+    s.add_argument("--out", help="write the frames again, as a live recording would (a copy through the pipeline)")
+    s.add_argument("--quiet", action="store_true", help="no live status line")
+    s.set_defaults(func=_cmd_replay)

@@ -15,18 +15,18 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
-from ..capture import CaptureWriter
+from ..capture import Capture, CaptureWriter, read_capture
 from ..errors import UserError
 from ..scene import Scene
 from . import protocol as P
-from .bus import BusFaults
-from .driver import DeviceError, FrameDropped, TMF8828Array
+from .bus import BusFaults, SimClock
+from .driver import DeviceError, ErrorCounts, Frame, FrameDropped
 from .emulator import DeviceFaults
 from .rig import Rig, emulated_bus, load_rig_or_scene, open_array, real_bus
 
-__all__ = ["AcquireOptions", "AcquireResult", "acquire", "record"]
+__all__ = ["AcquireOptions", "AcquireResult", "EndOfStream", "ReplaySource", "acquire", "iter_frames", "record", "replay"]
 
 
 @dataclass(frozen=True)
@@ -111,44 +111,140 @@ def _sigint_deferred():
             raise KeyboardInterrupt
 
 
-def record(array: TMF8828Array, writer: CaptureWriter, *, frames: int | None = None, duration_s: float | None = None,
+class EndOfStream(Exception):
+    """A frame source (a replay) has no more frames."""
+
+
+@dataclass
+class StreamStats:
+    frames: int = 0
+    dropped: int = 0
+
+
+def iter_frames(source, *, frames: int | None = None, duration_s: float | None = None,
+                max_dropped_in_row: int = 20, stats: StreamStats | None = None) -> Iterator[Frame]:
+    """Whole frames from a live rig (an opened :class:`TMF8828Array`) or a :class:`ReplaySource`, the same way.
+
+    Frames the driver could not read whole are skipped and counted in ``stats.dropped``;
+    after ``max_dropped_in_row`` in a row it stops with a :class:`DeviceError`. Stops after
+    ``frames`` frames, ``duration_s`` seconds of the source's clock, or the end of a replay.
+    """
+    stats = stats if stats is not None else StreamStats()
+    clock = source.clock
+    t0 = clock.now()
+    in_row = 0
+    while (frames is None or stats.frames < frames) and (duration_s is None or clock.now() - t0 < duration_s):
+        try:
+            fr = source.read_frame()
+        except EndOfStream:
+            return
+        except FrameDropped:
+            stats.dropped += 1
+            in_row += 1
+            if in_row >= max_dropped_in_row:
+                raise DeviceError(f"{in_row} frames in a row could not be read whole: {source.errors.short()}; "
+                                  "check the wiring, or slow the bus") from None
+            continue
+        in_row = 0
+        stats.frames += 1
+        yield fr
+
+
+def record(source, writer: CaptureWriter, *, frames: int | None = None, duration_s: float | None = None,
            touches=None, progress: bool = True, max_dropped_in_row: int = 20, label: str = "") -> tuple[int, int, bool]:
-    """Read whole frames from an opened ``array`` and append each to ``writer``.
+    """Append whole frames from ``source`` (an opened rig or a replay) to ``writer``, each flushed.
 
     Returns ``(frames written, frames dropped, interrupted)``. Ctrl-C ends it cleanly:
     every frame completed before it is in the file.
     """
     from tqdm import tqdm
 
-    clock = array.clock
+    clock = source.clock
     t0 = clock.now()
-    written = dropped = in_row = 0
+    stats = StreamStats()
+    written = 0
     interrupted = False
     bar = tqdm(total=frames, unit="frame", disable=not progress, desc=label or "acquire", dynamic_ncols=True)
     try:
-        while (frames is None or written < frames) and (duration_s is None or clock.now() - t0 < duration_s):
-            try:
-                fr = array.read_frame()
-            except FrameDropped:
-                dropped += 1
-                in_row += 1
-                if in_row >= max_dropped_in_row:
-                    raise DeviceError(f"{in_row} frames in a row could not be read whole: {array.errors.short()}; "
-                                      "check the wiring, or slow the bus") from None
-                continue
-            in_row = 0
+        for fr in iter_frames(source, frames=frames, duration_s=duration_s, max_dropped_in_row=max_dropped_in_row,
+                              stats=stats):
             with _sigint_deferred():
                 writer.append(fr.histograms, fr.timestamp - t0, reference=fr.reference, touches=touches)
             written += 1
             bar.update(1)
             dt = clock.now() - t0
-            bar.set_postfix_str(f"{written / dt if dt > 0 else 0:.2f} fps, dropped {dropped}, errors: "
-                                f"{array.errors.short()}", refresh=False)
+            bar.set_postfix_str(f"{written / dt if dt > 0 else 0:.2f} fps, dropped {stats.dropped}, errors: "
+                                f"{source.errors.short()}", refresh=False)
     except KeyboardInterrupt:
         interrupted = True
     finally:
         bar.close()
-    return written, dropped, interrupted
+    return written, stats.dropped, interrupted
+
+
+class ReplaySource:
+    """A recorded capture as a frame source: the same :meth:`read_frame` as a live rig.
+
+    ``speed``: ``"max"`` (as fast as the consumer takes them), ``"recorded"`` (the recorded
+    frame times, in wall time), or a number (a multiple of the recorded speed). ``clock``
+    reads the recorded time of the frame last given, so timestamps pass through unchanged.
+    """
+
+    def __init__(self, capture: Capture | str | Path, speed: str | float = "max"):
+        self.capture = capture if isinstance(capture, Capture) else read_capture(capture)
+        if speed == "max":
+            self.factor = None
+        elif speed == "recorded":
+            self.factor = 1.0
+        else:
+            try:
+                self.factor = float(speed)
+            except (TypeError, ValueError):
+                raise UserError(f"--speed: max, recorded or a positive number, got {speed!r}") from None
+            if not self.factor > 0:
+                raise UserError(f"--speed: must be > 0, got {speed!r}")
+        self.errors = ErrorCounts()
+        self.clock = SimClock(0.0)  # the recording's own time origin: timestamps pass through unchanged
+        self._i = 0
+        self._wall0: float | None = None
+
+    def read_frame(self) -> Frame:
+        cap = self.capture
+        if self._i >= cap.n_frames:
+            raise EndOfStream
+        i = self._i
+        t = float(cap.timestamps[i])
+        if self.factor is not None:
+            if self._wall0 is None:
+                self._wall0 = time.perf_counter() - (t - float(cap.timestamps[0])) / self.factor
+            wait = self._wall0 + (t - float(cap.timestamps[0])) / self.factor - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+        self.clock.t = t
+        self._i += 1
+        ref = None if cap.reference is None else cap.reference[i]
+        return Frame(cap.histograms[i], ref, t, [])
+
+
+def replay(capture: str | Path, out: str | Path | None = None, *, speed: str | float = "max",
+           progress: bool = True) -> AcquireResult:
+    """Feed a recorded capture through the live pipeline (:func:`iter_frames`, :func:`record`),
+    at recorded or maximum speed; with ``out``, the frames are written again as a live rig's are."""
+    src = ReplaySource(capture, speed)
+    cap = src.capture
+    t_wall = time.perf_counter()
+    if out is None:
+        n = sum(1 for _ in iter_frames(src))
+        written, dropped, interrupted, path = n, 0, False, Path(capture)
+    else:
+        with CaptureWriter(out, cap.scene, source=cap.source, with_reference=cap.reference is not None,
+                           max_touches=0 if cap.truth_touches is None else cap.truth_touches.shape[1],
+                           truth=cap.truth or None) as w:
+            written, dropped, interrupted = record(src, w, progress=progress, label="replay")
+        path = Path(out)
+    elapsed = float(cap.timestamps[written - 1] - cap.timestamps[0]) if written > 1 else 0.0
+    return AcquireResult(path, written, dropped, dict(src.errors.counts), elapsed, time.perf_counter() - t_wall,
+                         interrupted)
 
 
 def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: AcquireOptions) -> AcquireResult:
