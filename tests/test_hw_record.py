@@ -144,3 +144,17 @@ def test_replay_feeds_a_capture_through_the_live_pipeline(scene_file, tmp_path, 
     span = a.timestamps[-1] - a.timestamps[0]
     assert res.frames == 3 and span / 4 * 0.9 < time.perf_counter() - t < span / 4 + 0.5
     assert main(["replay", str(src), "--speed", "fast"]) == 2
+
+
+def test_rig_file_with_an_intel_hex_image(scene_file, tmp_path):
+    """A user-supplied Intel HEX image named in a rig file (relative path) is parsed and downloaded."""
+    from tofjax.hw import protocol as P
+
+    img = P.synthetic_image(size=3000, seed=11)
+    (tmp_path / "app.hex").write_text(P.to_intel_hex(img))
+    (tmp_path / "rig.toml").write_text(
+        f'scene = "{scene_file}"\nselect = "pins"\nimage = "app.hex"\nbus_speed_hz = 1000000\n'
+        '[[sensors]]\nenable_pin = 17\n[[sensors]]\nenable_pin = 27\naddress = 0x50\n')
+    res = acquire(str(tmp_path / "rig.toml"), tmp_path / "c.h5", AcquireOptions(frames=2, emulate=True, progress=False))
+    assert res.frames == 2 and not res.synthetic_image and sum(res.errors.values()) == 0
+    assert read_capture(tmp_path / "c.h5").histograms.shape[1:] == (2, 7, 128)

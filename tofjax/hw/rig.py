@@ -20,8 +20,9 @@ bus or on an emulated one (:func:`emulated_bus`).
 
 from __future__ import annotations
 
+import dataclasses
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -75,9 +76,8 @@ class Rig:
     #: ``None``: the scene's ``sensor.iterations`` / 1024
     kilo_iterations: int | None = None
     spad_map: int | None = None
+    #: the application image (Intel HEX or binary); a relative path is relative to the rig file
     image: str | None = None
-    #: where relative paths (scene, image) are resolved; set by :func:`load_rig`
-    base_dir: str = field(default=".", compare=False)
 
     def __post_init__(self):
         if not self.sensors:
@@ -86,7 +86,7 @@ class Rig:
             raise ConfigError(f"select: must be pins, mux or none, got {self.select!r}")
         if self.select == "none" and len(self.sensors) > 1:
             raise ConfigError("select: \"none\" works for one sensor only; wire several with pins or a mux")
-        if self.bus_speed_hz not in (100_000, 400_000, 1_000_000) and not 10_000 <= self.bus_speed_hz <= 1_000_000:
+        if not 10_000 <= self.bus_speed_hz <= 1_000_000:
             raise ConfigError(f"bus_speed_hz: the TMF8828 accepts up to 1 MHz, got {self.bus_speed_hz}")
         for i, s in enumerate(self.sensors):
             if self.select == "pins" and s.enable_pin is None:
@@ -117,23 +117,26 @@ class Rig:
         return out
 
     def load_scene(self) -> Scene:
-        p = Path(self.base_dir) / self.scene
-        return load_scene(p if p.exists() else self.scene)
+        return load_scene(self.scene)
 
     def image_path(self) -> Path | None:
-        return None if not self.image else Path(self.base_dir) / os.path.expanduser(self.image)
+        return None if not self.image else Path(os.path.expanduser(self.image))
 
 
 def load_rig(path: str | Path) -> Rig:
+    """Load a rig file; its ``scene`` and ``image`` paths are taken relative to the file."""
     path = Path(path)
     data = load_toml(path)
     try:
-        rig = from_dict(Rig, {k: v for k, v in data.items() if k != "base_dir"})
+        rig = from_dict(Rig, data)
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
-    import dataclasses
-
-    return dataclasses.replace(rig, base_dir=str(path.parent))
+    changes = {}
+    if (path.parent / rig.scene).exists():
+        changes["scene"] = str(path.parent / rig.scene)
+    if rig.image and not Path(os.path.expanduser(rig.image)).is_absolute():
+        changes["image"] = str(path.parent / rig.image)
+    return dataclasses.replace(rig, **changes)
 
 
 def rig_for_scene(scene_ref: str, scene: Scene) -> Rig:
