@@ -157,10 +157,12 @@ def test_frame_reassembly_equals_emulated_histograms(optoskin, layout, zones):
 
 def test_emulated_rig_reproduces_the_forward_model(optoskin):
     """An emulated rig (noise off) gives `tofjax simulate`'s expected counts, rounded to whole counts."""
+    from tofjax.scene import Touch
     from tofjax.simulate import expected_counts
 
-    scene = _scene(optoskin, 2, 7)
-    rig, _, _ = load_rig_or_scene("optoskin")
+    # the scene of tests/test_hw_record.py (its model is computed once per session)
+    scene = optoskin.replace(sensors=optoskin.sensors[:2], name="optoskin-2",
+                             touches=(Touch(position_m=(0.10, 0.20), radius_m=0.01, strength=1.0),))
     rig = rig_for_scene("optoskin", scene)
     bus, _, emus = emulated_bus(rig, scene, noise=False, frequency_hz=1e6)
     f = open_array(rig, scene, bus, None, P.synthetic_image()).open().read_frame()
@@ -344,3 +346,17 @@ def test_bench_acquire_fast(optoskin):
     assert r["rate_vs_bus_limited"] >= 0.9 and r["driver_cpu_fraction"] < 0.5 and r["errors"] == 0
     # 31 records x (INT read + 135-byte read + clear): ~41 kbit, ~41 ms at 1 MHz
     assert 0.038 < r["bus_limited_period_s"] < 0.043
+
+
+def test_reopening_a_running_rig_needs_no_download(optoskin):
+    """A second session on sensors that kept power (mux rig, no enable lines): stop, configure, measure."""
+    scene = _scene(optoskin, 2, 7)
+    rig = rig_for_scene("optoskin", scene)
+    sig = _signals(2, 7)
+    bus, _, emus = emulated_bus(rig, scene, noise=False, signals=sig, frequency_hz=1e6)
+    open_array(rig, scene, bus, None, P.synthetic_image()).open().read_frame()
+    emus[0]._command(P.CMD_MEASURE)  # left measuring by a crashed session, command still pending
+    b0 = bus.stats.bytes
+    arr = open_array(rig, scene, bus, None, P.synthetic_image(seed=99)).open()  # would not boot if downloaded
+    assert bus.stats.bytes - b0 < 1000
+    np.testing.assert_array_equal(arr.read_frame().histograms, np.rint(sig[0]))

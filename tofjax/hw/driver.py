@@ -322,9 +322,17 @@ class TMF8828:
             self.wait_idle()
 
     def init(self, image: bytes) -> None:
-        """Power-up, download, configure: what a sensor needs after every power cycle."""
+        """Power-up, download, configure: what a sensor needs after every power cycle.
+
+        A sensor whose application already runs (no enable line, a previous session did not
+        power it down) is stopped and configured again without a download."""
         self.power_up()
-        self.download(image)
+        if self.app_id() == P.APPID_APP:
+            self.wait_idle()  # a command still running would make the device ignore the stop
+            self.write(P.CMD_STAT, P.CMD_STOP)
+            self.wait_idle()
+        else:
+            self.download(image)
         self.configure()
 
     # ---- readout ------------------------------------------------------------------------

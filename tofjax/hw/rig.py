@@ -21,6 +21,7 @@ bus or on an emulated one (:func:`emulated_bus`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -211,15 +212,23 @@ def sensor_specs(rig: Rig, scene: Scene, pins: list | None = None) -> list[Senso
 # ---- emulation -------------------------------------------------------------------------------
 def expected_sensor_signals(scene: Scene, reference_counts: float = 2.0e4) -> tuple[np.ndarray, np.ndarray]:
     """The forward model's expected counts (sensors, zones, bins) and a reference-SPAD histogram
-    (sensors, bins): the instrument response (the unit light-entry peak) times ``reference_counts``."""
+    (sensors, bins): the instrument response (the unit light-entry peak) times ``reference_counts``.
+
+    Cached per scene (a rig is opened again and again in tests, the demo and notebooks)."""
+    import jax
+
+    lam, ref = _signals_cached(scene, float(reference_counts), bool(jax.config.jax_enable_x64))
+    return lam.copy(), ref.copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _signals_cached(scene: Scene, reference_counts: float, x64: bool) -> tuple[np.ndarray, np.ndarray]:
     import jax.numpy as jnp
 
     from ..model import ModelOptions, Params, build_model
     from ..simulate import expected_counts
 
-    import jax
-
-    opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32")
+    opts = ModelOptions(dtype="float64" if x64 else "float32")
     lam = expected_counts(scene, opts)
     base = scene.replace(noise=scene.noise.__class__(poisson=False, pile_up=False))
     model = build_model(base, opts, components=("crosstalk",))
