@@ -26,6 +26,7 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) experiments/bench_forward.py --out out/bench
+	$(PY) experiments/bench_acquire.py --out out/bench
 
 clean:
 	rm -rf out .pytest_cache

@@ -301,6 +301,7 @@ class TMF8828:
         self.command(P.CMD_WRITE_CONFIG_PAGE)
         self.write(P.CMD_STAT, P.CMD_I2C_ADDRESS)
         self.address = new
+
         def moved():
             stat = self._probe(P.CMD_STAT)  # silence while it moves is expected
             return stat is not None and stat < P.STAT_PENDING_MIN
@@ -413,6 +414,8 @@ class TMF8828:
                     verdict = "repeat"
                 else:
                     verdict = "skip"
+                if reread and verdict != "skip":
+                    self.errors.add("corrupt")  # the first read's header had a bit error
                 if verdict != "skip" or reread:
                     break
                 data = self._read_record(kind)  # a bit error or a real skip? read it again
