@@ -360,3 +360,25 @@ def test_reopening_a_running_rig_needs_no_download(optoskin):
     arr = open_array(rig, scene, bus, None, P.synthetic_image(seed=99)).open()  # would not boot if downloaded
     assert bus.stats.bytes - b0 < 1000
     np.testing.assert_array_equal(arr.read_frame().histograms, np.rint(sig[0]))
+
+
+def test_int_pin_replaces_polling_over_the_bus(optoskin):
+    """With the INT line wired, the driver waits on the pin: same frames, far fewer transfers while waiting."""
+    from tofjax.hw.rig import emulated_int_pins
+
+    scene = _scene(optoskin, 2, 7)
+    sig = _signals(2, 7)
+    transfers = {}
+    for wired in (False, True):
+        sensors = tuple(RigSensor(enable_pin=17 + i, int_pin=(20 + i) if wired else None) for i in range(2))
+        rig = Rig(scene="optoskin", sensors=sensors, select="pins", period_ms=33)
+        bus, pins, emus = emulated_bus(rig, scene, noise=False, signals=sig, frequency_hz=400_000)
+        arr = open_array(rig, scene, bus, pins, P.synthetic_image(), int_pins=emulated_int_pins(rig, emus)).open()
+        n0, t0 = bus.stats.transfers, bus.clock.now()
+        for _ in range(2):
+            np.testing.assert_array_equal(arr.read_frame().histograms, np.rint(sig[0]))
+        transfers[wired] = (bus.stats.transfers - n0, bus.clock.now() - t0)
+    assert transfers[True][0] < 0.8 * transfers[False][0]
+    assert transfers[True][1] == pytest.approx(transfers[False][1], rel=0.05)
+    with pytest.raises(ConfigError, match="GPIO is used twice"):
+        Rig(scene="optoskin", sensors=(RigSensor(enable_pin=17, int_pin=17),))

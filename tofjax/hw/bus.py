@@ -19,7 +19,7 @@ import numpy as np
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
-__all__ = ["BusFaults", "I2CTarget", "RealClock", "SimBus", "SimClock", "SimPin", "TCA9548A"]
+__all__ = ["BusFaults", "I2CTarget", "RealClock", "SimBus", "SimClock", "SimIntPin", "SimPin", "TCA9548A"]
 
 
 class SimClock:
@@ -107,6 +107,20 @@ class SimPin:
     def off(self) -> None:
         self.value = 0
         self.target.set_enable(False)
+
+    def close(self) -> None:
+        pass
+
+
+class SimIntPin:
+    """An input pin (gpiozero's ``DigitalInputDevice`` API: ``value``) wired to an emulated device's INT line."""
+
+    def __init__(self, target):
+        self.target = target
+
+    @property
+    def value(self) -> int:
+        return int(self.target.int_asserted())
 
     def close(self) -> None:
         pass

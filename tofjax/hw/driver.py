@@ -133,8 +133,11 @@ class TMF8828:
     """One TMF8828 at ``address`` on ``bus`` (anything with smbus2.SMBus's methods)."""
 
     def __init__(self, bus: Any, address: int = P.ADDRESS, *, options: DriverOptions = DriverOptions(),
-                 clock=None, errors: ErrorCounts | None = None, name: str = "tmf8828"):
+                 clock=None, errors: ErrorCounts | None = None, name: str = "tmf8828", int_pin: Any = None):
         self.bus = bus
+        #: the INT line as an input whose ``value`` is 1 while asserted (gpiozero ``DigitalInputDevice``
+        #: with ``pull_up=True``: INT is active-low, open-drain); ``None``: poll INT_STATUS over I2C
+        self.int_pin = int_pin
         self.address = address
         self.options = options
         self.layout = P.Layout(options.layout)
@@ -358,6 +361,13 @@ class TMF8828:
         timeout = self.layout.n_subcaptures * self.options.period_ms * 1e-3 + self.options.record_timeout_s
         deadline = self.clock.now() + timeout
         while True:
+            if self.int_pin is not None and not self.int_pin.value:
+                # wait on the INT line: no bus traffic until the device raises it
+                if self.clock.now() > deadline:
+                    self._check_alive()
+                    raise CaptureBroken(f"{self.name}: no interrupt within {timeout * 1e3:.0f} ms")
+                self.clock.sleep(self.options.poll_s)
+                continue
             st = self.read(P.INT_STATUS)
             if st & P.INT_HISTOGRAM:
                 kind = P.INT_HISTOGRAM
@@ -472,6 +482,7 @@ class SensorSpec:
     - ``pin``: an output with ``on()``/``off()`` driving its enable line, or ``None``.
     - ``mux_channel``: its channel on the multiplexer, or ``None``.
     - ``zone_map``: TMF zone index of each scene zone.
+    - ``int_pin``: its INT line as an input (``value`` 1 while asserted), or ``None`` to poll INT_STATUS.
     """
 
     name: str
@@ -479,6 +490,7 @@ class SensorSpec:
     address: int = P.ADDRESS
     pin: Any = None
     mux_channel: int | None = None
+    int_pin: Any = None
 
 
 @dataclass
@@ -511,7 +523,8 @@ class TMF8828Array:
         self.errors = ErrorCounts()
         self.max_recoveries = max_recoveries
         self.devices = [
-            TMF8828(bus, P.ADDRESS, options=options, clock=self.clock, errors=self.errors, name=s.name)
+            TMF8828(bus, P.ADDRESS, options=options, clock=self.clock, errors=self.errors, name=s.name,
+                    int_pin=s.int_pin)
             for s in self.specs
         ]
         self.continuous = len(self.specs) == 1

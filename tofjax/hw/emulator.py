@@ -184,6 +184,13 @@ class TMF8828Emulator:
         self._sync_enable()
         self.regs[P.APPID] = P.APPID_BOOTLOADER
 
+    def int_asserted(self) -> bool:
+        """The INT line: asserted while an enabled interrupt bit is set."""
+        if not self.enabled:
+            return False
+        self._advance()
+        return bool(self.int_status & self.int_enab)
+
     # ---- bus side -----------------------------------------------------------------------
     def responds(self) -> bool:
         if not self.enabled:

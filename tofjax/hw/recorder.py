@@ -24,7 +24,7 @@ from . import protocol as P
 from .bus import BusFaults, SimClock
 from .driver import DeviceError, ErrorCounts, Frame, FrameDropped
 from .emulator import DeviceFaults
-from .rig import Rig, emulated_bus, load_rig_or_scene, open_array, real_bus
+from .rig import Rig, emulated_bus, emulated_int_pins, load_rig_or_scene, open_array, real_bus
 
 __all__ = ["AcquireOptions", "AcquireResult", "EndOfStream", "ReplaySource", "acquire", "iter_frames", "record", "replay"]
 
@@ -293,8 +293,9 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
     if options.emulate:
         if not is_rig and scene.n_sensors > 8:
             raise UserError("an emulated rig for a bare scene puts its sensors behind one 8-channel mux")
-        bus, pins, _ = emulated_bus(rig, scene, noise=options.noise, bus_faults=options.bus_faults,
-                                    device_faults=options.device_faults, image=image, seed=options.seed)
+        bus, pins, emus = emulated_bus(rig, scene, noise=options.noise, bus_faults=options.bus_faults,
+                                       device_faults=options.device_faults, image=image, seed=options.seed)
+        int_pins = emulated_int_pins(rig, emus)
         from ..model import Params
 
         truth = true_parameters(Params.from_scene(scene))
@@ -303,9 +304,9 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
         touches = el[:, [0, 1, 3]] if len(el) else None
         capture_scene = scene
     else:
-        bus, pins = real_bus(rig, options.bus)
+        bus, pins, int_pins = real_bus(rig, options.bus)
         capture_scene = scene.without_touches()  # on hardware the contacts are what we want to find
-    array = open_array(rig, scene, bus, pins, image)
+    array = open_array(rig, scene, bus, pins, image, int_pins=int_pins)
     source = "tmf8828-emulated" if options.emulate else "tmf8828"
     t_wall = time.perf_counter()
     try:
@@ -323,8 +324,9 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
         array.close()
         if not options.emulate:
             bus.close()
-            for p in pins or []:
-                p.close()
+            for p in [*(pins or []), *(int_pins or [])]:
+                if p is not None:
+                    p.close()
     stats = getattr(bus, "stats", None)
     busd = {} if stats is None else {"transfers": stats.transfers, "bytes": stats.bytes, "busy_s": stats.busy_s,
                                      "frequency_hz": bus.frequency_hz}

@@ -33,7 +33,7 @@ from ..config import ConfigError, from_dict, load_toml
 from ..errors import UserError
 from ..scene import Scene, load_scene
 from . import protocol as P
-from .bus import BusFaults, SimBus, SimClock, SimPin, TCA9548A
+from .bus import BusFaults, SimBus, SimClock, SimIntPin, SimPin, TCA9548A
 from .driver import DriverOptions, SensorSpec, TMF8828Array
 from .emulator import DeviceFaults, EmulatorTiming, TMF8828Emulator, default_zone_map
 
@@ -49,6 +49,8 @@ class RigSensor:
     enable_pin: int | None = None
     mux_channel: int | None = None
     address: int | None = None
+    #: BCM GPIO of its INT line (optional): wait on the pin instead of polling INT_STATUS
+    int_pin: int | None = None
     tmf_zones: tuple[int, ...] | None = None
 
     def __post_init__(self):
@@ -56,8 +58,10 @@ class RigSensor:
             raise ConfigError(f"mux_channel: must be in [0, 7], got {self.mux_channel}")
         if self.address is not None and not 0x08 <= self.address <= 0x77:
             raise ConfigError(f"address: must be a 7-bit address in [0x08, 0x77], got {self.address:#x}")
-        if self.enable_pin is not None and not 0 <= self.enable_pin <= 53:
-            raise ConfigError(f"enable_pin: must be a BCM GPIO number in [0, 53], got {self.enable_pin}")
+        for key in ("enable_pin", "int_pin"):
+            v = getattr(self, key)
+            if v is not None and not 0 <= v <= 53:
+                raise ConfigError(f"{key}: must be a BCM GPIO number in [0, 53], got {v}")
 
 
 @dataclass(frozen=True)
@@ -94,7 +98,10 @@ class Rig:
                 raise ConfigError(f"sensors[{i}].enable_pin: required with select = \"pins\"")
             if self.select == "mux" and s.mux_channel is None:
                 raise ConfigError(f"sensors[{i}].mux_channel: required with select = \"mux\"")
-        for key in ("enable_pin", "mux_channel"):
+        gpios = [g for s in self.sensors for g in (s.enable_pin, s.int_pin) if g is not None]
+        if len(gpios) != len(set(gpios)):
+            raise ConfigError("sensors: a GPIO is used twice (enable_pin and int_pin must all differ)")
+        for key in ("mux_channel",):
             vals = [getattr(s, key) for s in self.sensors if getattr(s, key) is not None]
             if len(vals) != len(set(vals)):
                 raise ConfigError(f"sensors: two sensors share the same {key}")
@@ -194,7 +201,7 @@ def driver_options(rig: Rig, scene: Scene, **overrides) -> DriverOptions:
     return DriverOptions(**kw)
 
 
-def sensor_specs(rig: Rig, scene: Scene, pins: list | None = None) -> list[SensorSpec]:
+def sensor_specs(rig: Rig, scene: Scene, pins: list | None = None, int_pins: list | None = None) -> list[SensorSpec]:
     lay = P.layout_for(scene.sensor.zones, rig.layout)
     zmap = default_zone_map(lay, scene.sensor.zones)
     out = []
@@ -205,6 +212,7 @@ def sensor_specs(rig: Rig, scene: Scene, pins: list | None = None) -> list[Senso
             address=addr,
             pin=None if pins is None else pins[i],
             mux_channel=r.mux_channel if rig.select == "mux" else None,
+            int_pin=None if int_pins is None else int_pins[i],
         ))
     return out
 
@@ -246,6 +254,7 @@ def emulated_bus(rig: Rig, scene: Scene, *, frequency_hz: float | None = None, n
     (histograms from its forward model), wired as the rig says (pins or a mux).
 
     Returns ``(bus, pins, emulators)``; ``pins`` are :class:`SimPin` (or ``None`` without pins).
+    Sensors with an ``int_pin`` in the rig get a :class:`SimIntPin`: :func:`emulated_int_pins`.
     """
     _check(rig, scene, rig.name)
     lam, ref = signals if signals is not None else expected_sensor_signals(scene)
@@ -274,8 +283,16 @@ def emulated_bus(rig: Rig, scene: Scene, *, frequency_hz: float | None = None, n
     return bus, (pins or None), emus
 
 
+def emulated_int_pins(rig: Rig, emulators: list) -> list | None:
+    """INT inputs wired to the emulators of the sensors whose rig entry has an ``int_pin``."""
+    if not any(s.int_pin is not None for s in rig.sensors):
+        return None
+    return [None if s.int_pin is None else SimIntPin(e) for s, e in zip(rig.sensors, emulators)]
+
+
 def real_bus(rig: Rig, bus_number: int | None = None):
-    """Open ``/dev/i2c-N`` with smbus2 and the enable pins with gpiozero; clear errors if either is missing."""
+    """Open ``/dev/i2c-N`` with smbus2 and the enable / INT pins with gpiozero; clear errors if either is
+    missing. Returns ``(bus, enable pins or None, INT pins or None)``."""
     n = rig.bus if bus_number is None else bus_number
     dev = Path(f"/dev/i2c-{n}")
     if not dev.exists():
@@ -293,13 +310,22 @@ def real_bus(rig: Rig, bus_number: int | None = None):
         except ImportError:
             raise UserError("enable pins need gpiozero (pip install gpiozero) on the Raspberry Pi") from None
         pins = [DigitalOutputDevice(s.enable_pin, initial_value=False) for s in rig.sensors]
-    return bus, pins
+    int_pins = None
+    if any(s.int_pin is not None for s in rig.sensors):
+        try:
+            from gpiozero import DigitalInputDevice
+        except ImportError:
+            raise UserError("INT pins need gpiozero (pip install gpiozero) on the Raspberry Pi") from None
+        int_pins = [None if s.int_pin is None else DigitalInputDevice(s.int_pin, pull_up=True) for s in rig.sensors]
+    return bus, pins, int_pins
 
 
-def open_array(rig: Rig, scene: Scene, bus: Any, pins: list | None, image: bytes, **option_overrides) -> TMF8828Array:
-    """A :class:`TMF8828Array` for ``rig`` on ``bus`` (not yet opened)."""
+def open_array(rig: Rig, scene: Scene, bus: Any, pins: list | None, image: bytes, *, int_pins: list | None = None,
+               **option_overrides) -> TMF8828Array:
+    """A :class:`TMF8828Array` for ``rig`` on ``bus`` (not yet opened); ``int_pins``: one INT input
+    per sensor (or ``None`` entries) for rigs that wire them."""
     return TMF8828Array(
-        bus, sensor_specs(rig, scene, pins), image,
+        bus, sensor_specs(rig, scene, pins, int_pins), image,
         options=driver_options(rig, scene, **option_overrides),
         mux_address=rig.mux_address if rig.select == "mux" else None,
     )
