@@ -309,7 +309,7 @@ def test_rig_errors(tmp_path):
         rig('[[sensors]]\nenable_pin = 17\n[[sensors]]\nmux_channel = 1\n')
     with pytest.raises(ConfigError, match="mux_channel: must be in"):
         rig('select = "mux"\n[[sensors]]\nmux_channel = 9\n')
-    with pytest.raises(ConfigError, match="same enable_pin"):
+    with pytest.raises(ConfigError, match="GPIO is used twice"):
         rig('[[sensors]]\nenable_pin = 17\n[[sensors]]\nenable_pin = 17\n')
     p = tmp_path / "six.toml"
     p.write_text('scene = "optoskin"\nselect = "mux"\n[[sensors]]\nmux_channel = 0\n')
