@@ -137,6 +137,8 @@ class TMF8828Emulator:
         self.ram_written = 0
         self.bl_inited = False
         self.bl_busy_until = 0.0
+        self._bl_pending_ok = False
+        self._boot_ok = False
         self._bl_status(0x00)
         self._reset_app_state()
 
@@ -360,7 +362,6 @@ class TMF8828Emulator:
         if c.code == P.CMD_MEASURE:
             self.measuring = True
             self.sub = 0
-            self.tid_base = self.tid
             self.next_handover = c.done_at + self._period()
             self.drained_at = c.done_at
         elif c.code == P.CMD_LOAD_CONFIG_PAGE:
@@ -435,7 +436,7 @@ class TMF8828Emulator:
         now = self.clock.now()
         if self.booting_until is not None and now >= self.booting_until:
             self.booting_until = None
-            if getattr(self, "_boot_ok", False):
+            if self._boot_ok:
                 self.app = True
                 self.address = P.ADDRESS
                 self._reset_app_state()
@@ -448,7 +449,7 @@ class TMF8828Emulator:
                 self._bl_status(0x00)
         if self.cpu_ready_at is not None:
             self._sync_enable()
-        if not self.app and getattr(self, "_bl_pending_ok", False) and now >= self.bl_busy_until:
+        if not self.app and self._bl_pending_ok and now >= self.bl_busy_until:
             self._bl_pending_ok = False
             self._bl_status(0x00)
         if self.app and self.cmd is not None and now >= self.cmd.done_at:
