@@ -140,7 +140,7 @@ class TrainOptions:
     warmup_epochs: int = 0
     weight_decay: float = 1e-5
     loss: str = "mse"
-    patience: int = 60
+    patience: int = 100
 
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size < 1:
