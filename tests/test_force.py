@@ -2,6 +2,7 @@
 
 import json
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -196,7 +197,7 @@ def test_jax_forest_equals_sklearn():
     rng = np.random.default_rng(0)
     x = rng.uniform(size=(600, 7))
     y = np.sin(4 * x[:, 0]) + x[:, 1] * x[:, 2] + 0.05 * rng.standard_normal(600)
-    rf = fit_forest(x, y, ForestOptions(trees=25, max_depth=12, min_samples_leaf=1, n_jobs=1), seed=0)
+    rf = fit_forest(x, y, ForestOptions(trees=15, max_depth=12, min_samples_leaf=1, n_jobs=1), seed=0)
     arrays = forest_to_arrays(rf)
     # Unseen points, and the training points themselves (on thresholds' neighbours).
     xt = np.concatenate([rng.uniform(size=(300, 7)), x[:100]]).astype(np.float32)
@@ -215,12 +216,13 @@ def test_architectures_match_seed_001():
     assert (d.d_layer.out_features, d.b_layer.out_features, d.layers[0].in_features) == (32, 32, 64)
     e = build_mlp(mlp_spec("mlp", "derivative", 20), jax.random.key(0))
     assert (e.d_layer.in_features, e.d_layer.out_features, e.b_layer.in_features) == (40, 64, 20)
-    assert m(jnp.ones(20)).shape == () and e(jnp.ones(60)).shape == ()
+    assert eqx.filter_jit(m)(jnp.ones(20)).shape == () and eqx.filter_jit(e)(jnp.ones(60)).shape == ()
     # Operations per prediction: seed 001 counts ~6.7k for the MLP; ours counts multiplies and adds.
     assert 2 * (20 * 64 + 64 * 32 + 32) < operations(s) < 8000
     # Dropout is active with a key, off without one.
     x = jnp.ones(20)
-    assert m(x) == m(x) and m(x, jax.random.key(1)) != m(x)
+    f = eqx.filter_jit(m)
+    assert f(x) == f(x) and f(x, jax.random.key(1)) != f(x)
 
 
 def test_training_lowers_validation_loss_and_keeps_the_best():
@@ -256,9 +258,16 @@ def _cfg(tmp, data_paths, **over):
     return run_config_from_dict(d)
 
 
-def test_run_folder_and_metrics_schema(small_data, tmp_path):
+@pytest.fixture(scope="module")
+def mlp_run(small_data, tmp_path_factory):
     _, paths = small_data
-    run = train(_cfg(tmp_path, paths), tmp_path / "runs", log=None)
+    tmp = tmp_path_factory.mktemp("runs")
+    return train(_cfg(tmp, paths), tmp / "runs", log=None)
+
+
+def test_run_folder_and_metrics_schema(small_data, mlp_run, tmp_path):
+    _, paths = small_data
+    run = mlp_run
     names = {p.name for p in run.iterdir()}
     assert {"config.toml", "config.json", "meta.json", "metrics.csv", "metrics.json", "model.eqx", "model.json",
             "forest.npz", "predictions.csv", "fig15_mlp_vs_mlp_rf.png", "fig16_by_velocity.png"} <= names
@@ -299,7 +308,9 @@ def test_run_folder_and_metrics_schema(small_data, tmp_path):
 @pytest.mark.parametrize("kind", ["nonlinear", "gb"])
 def test_alternative_runs(small_data, tmp_path, kind):
     _, paths = small_data
-    run = train(_cfg(tmp_path, paths, model={"kind": kind}, features={"variant": "single"}), tmp_path, log=None)
+    opts = {"gb": {"iterations": 60}} if kind == "gb" else {}
+    run = train(_cfg(tmp_path, paths, model={"kind": kind, **opts}, features={"variant": "single"}, plots=False),
+                tmp_path, log=None)
     m = json.loads((run / "metrics.json").read_text())
     assert list(m["mae_n"]) == [kind] and m["mae_n"][kind]["overall"] < 15
     assert np.isfinite(predict_capture(run, paths["test"][0])[kind]).any()
@@ -330,22 +341,25 @@ def test_shipped_configs_load():
         load_run_config(p)
 
 
-def test_cli_train_predict_table(small_data, tmp_path, capsys):
+def test_cli_train_predict_table(small_data, mlp_run, tmp_path, capsys):
     from tofjax.cli import main
 
     _, paths = small_data
     cfg = tmp_path / "c.toml"
     cfg.write_text(
-        'name = "cli"\n[data]\n'
+        'name = "cli"\nplots = false\n[data]\n'
         f"train = {json.dumps([str(x) for x in paths['train']])}\ntest = {json.dumps([str(x) for x in paths['test']])}\n"
-        '[features]\nvariant = "single"\n[training]\nepochs = 3\n[forest]\ntrees = 5\nmax_depth = 5\n'
+        '[features]\nvariant = "single"\n[training]\nepochs = 2\n[forest]\ntrees = 3\nmax_depth = 4\n'
     )
     assert main(["train", str(cfg), "--runs", str(tmp_path / "runs"), "--quiet"]) == 0
     (run,) = list((tmp_path / "runs").iterdir())
-    assert main(["predict", str(run), str(paths["test"][0]), "--out", str(tmp_path / "p.csv")]) == 0
+    assert json.loads((run / "metrics.json").read_text())["variant"] == "single"
+    assert main(["predict", str(mlp_run), str(paths["test"][0]), "--out", str(tmp_path / "p.csv")]) == 0
     assert (tmp_path / "p.csv").read_text().startswith("time_s,force_n,mlp_n,mlp_rf_n")
-    assert main(["table", str(tmp_path / "runs")]) == 0
+    assert main(["table", str(tmp_path / "runs"), str(mlp_run)]) == 0
     assert "overall" in capsys.readouterr().out
+    assert main(["predict", str(tmp_path), str(paths["test"][0]), "--out", str(tmp_path / "q.csv")]) == 2
+    assert "not a force run" in capsys.readouterr().err
     cfg.write_text('name = "x"\n[training]\nepochz = 3\n')
     assert main(["train", str(cfg)]) == 2
     assert "epochz: unknown key" in capsys.readouterr().err

@@ -119,6 +119,10 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         "       calibration.json",
         "next: `tofjax plot out/demo/touch.h5 --baseline out/demo/baseline.h5 --out DIR`",
     ]
+    print("[+] training a small force model (seed 001) ...", flush=True)
+    from .force.demo import run as force_demo
+
+    lines += ["", *force_demo(out, seed=seed)]
     summary = out / "summary.txt"
     summary.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
