@@ -18,7 +18,6 @@ A run folder holds everything a researcher needs to trust and reuse it:
 from __future__ import annotations
 
 import csv
-import dataclasses
 import datetime as _dt
 import glob
 import json
@@ -528,7 +527,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
     timings["total_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     best = min(metrics["mae_n"], key=lambda k: metrics["mae_n"][k]["overall"])
-    say(f"  test MAE: " + ", ".join(f"{k} {v['overall']:.3f} N" for k, v in metrics["mae_n"].items())
+    say("  test MAE: " + ", ".join(f"{k} {v['overall']:.3f} N" for k, v in metrics["mae_n"].items())
         + f" (best {best}); wrote {out}")
     return out
 
