@@ -38,9 +38,9 @@ ROOT = Path(__file__).parents[1]
 class ForceStudyConfig:
     """Which runs, and what to override in all of them (for a fast version)."""
 
-    mlp_configs: tuple[str, ...] = ("configs/force/mlp_single.toml", "configs/force/mlp_single_nodrop.toml",
-                                    "configs/force/mlp_dual.toml",
-                                    "configs/force/mlp_derivative.toml")
+    mlp_configs: tuple[str, ...] = ("configs/force/mlp_single.toml", "configs/force/mlp_dual.toml",
+                                    "configs/force/mlp_derivative.toml", "configs/force/mlp_single_nodrop.toml",
+                                    "configs/force/mlp_dual_nodrop.toml", "configs/force/mlp_derivative_nodrop.toml")
     alternative_configs: tuple[str, ...] = ("configs/force/nonlinear.toml", "configs/force/svr.toml",
                                             "configs/force/deep_mlp.toml", "configs/force/gradient_boosting.toml")
     #: Every alternative is trained on each of these input variants (Table I).
@@ -120,11 +120,15 @@ def markdown(s: dict) -> str:
     rows = []
     for m in s["runs"]:
         for model, v in m["mae_n"].items():
-            label = {"mlp": "MLP only", "mlp_rf": "MLP + RF"}.get(model, model)
+            if m["kind"] != "mlp":  # runs before deep MLPs reported under their own kind
+                model, v = m["kind"], v
+            label = {"mlp": "MLP only", "mlp_rf": "MLP + RF", "deep_mlp": "deep MLP", "gb": "gradient boosting",
+                     "svr": "SVR", "nonlinear": "nonlinear regression"}.get(model, model)
+            op = m["operations_per_prediction"].get(model, next(iter(m["operations_per_prediction"].values())))
             variant = m["variant"] + (" (no dropout)" if m["name"].endswith("nodrop") else "")
-            rows.append((label, variant, v, m["operations_per_prediction"].get(model)))
+            rows.append((label, variant, v, op))
     vels = sorted({k for r in rows for k in r[2]["by_velocity_mm_s"]}, key=float)
-    order = ["MLP only", "MLP + RF", "nonlinear", "svr", "deep_mlp", "gb"]
+    order = ["MLP only", "MLP + RF", "nonlinear regression", "SVR", "deep MLP", "gradient boosting"]
     rows.sort(key=lambda r: (order.index(r[0]) if r[0] in order else 99, r[1]))
     head = "| model | input | " + " | ".join(f"v = {v} mm/s" for v in vels) + " | overall | operations / prediction |"
     lines = [head, "|" + "---|" * (4 + len(vels))]
@@ -167,7 +171,14 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "studies" / "force.toml"))
     ap.add_argument("--out", default="out/force_study")
+    ap.add_argument("--report", action="store_true", help="only rewrite force.md and the plot from force.json")
     a = ap.parse_args(argv)
+    if a.report:
+        s = json.loads((Path(a.out) / "force.json").read_text())
+        (Path(a.out) / "force.md").write_text(markdown(s))
+        plot_velocity(s, Path(a.out) / "force_velocity.png")
+        print(markdown(s))
+        return s
     import tofjax
 
     tofjax.enable_x64()  # the generator's lag filter; the models themselves run in float32

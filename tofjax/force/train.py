@@ -285,7 +285,7 @@ def load_predictor(run_dir: str | Path):
 def _predict(model, header: dict, raw: np.ndarray) -> dict[str, np.ndarray]:
     if isinstance(model, ForcePredictor):
         a, b = predict_batch(model, raw)
-        out = {"mlp": np.asarray(a, np.float64)}
+        out = {"mlp" if header["kind"] == "mlp" else header["kind"]: np.asarray(a, np.float64)}
         if model.forest is not None:
             out["mlp_rf"] = np.asarray(b, np.float64)
         return out
@@ -469,7 +469,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
         pred0 = ForcePredictor(mlp, None, jnp.asarray(scaling.lo, jnp.float32), jnp.asarray(scaling.hi, jnp.float32),
                                scaling.force_lo, span, fc.variant)
         f_mlp_train = np.asarray(predict_batch(pred0, ds.raw[i_tr])[0], np.float64)
-        ops["mlp"] = operations(spec) + 2 * x_all.shape[1] + 2
+        ops["mlp" if kind == "mlp" else kind] = operations(spec) + 2 * x_all.shape[1] + 2
         forest = None
         if config.forest.enabled and kind == "mlp":
             t0 = time.perf_counter()
