@@ -119,17 +119,20 @@ def forest_to_arrays(rf) -> ForestArrays:
 
 
 def forest_predict(forest: ForestArrays, x):
-    """Mean leaf value over the trees for one input ``x`` (features,); vmap it for batches."""
+    """Mean leaf value over the trees for one input ``x`` (features,); vmap it for batches.
+
+    The trees are walked together, one level per step, on the flattened node arrays
+    (one 1-D gather per array and level; unrolled, as the depth is fixed).
+    """
     x = jnp.asarray(x).astype(jnp.float32)
-    T = forest.feature.shape[0]
-    rows = jnp.arange(T)
-
-    def level(_, node):
-        go_left = x[forest.feature[rows, node]] <= forest.threshold[rows, node]
-        return jnp.where(go_left, forest.left[rows, node], forest.right[rows, node])
-
-    node = jax.lax.fori_loop(0, forest.depth, level, jnp.zeros(T, jnp.int32))
-    return jnp.mean(forest.value[rows, node])
+    T, N = forest.feature.shape
+    offset = jnp.arange(T, dtype=jnp.int32) * N
+    feature, threshold = forest.feature.reshape(-1), forest.threshold.reshape(-1)
+    left, right = (forest.left + offset[:, None]).reshape(-1), (forest.right + offset[:, None]).reshape(-1)
+    node = offset
+    for _ in range(forest.depth):
+        node = jnp.where(x[feature[node]] <= threshold[node], left[node], right[node])
+    return jnp.mean(forest.value.reshape(-1)[node])
 
 
 def forest_operations(rf) -> int:
