@@ -295,6 +295,13 @@ def test_run_folder_and_metrics_schema(small_data, mlp_run, tmp_path):
     got = pred["mlp_rf"][np.isfinite(pred["mlp_rf"])]
     np.testing.assert_allclose(got[: len(first)], [float(r[-1]) for r in first], atol=2e-3)
 
+    # A recorded capture without the generator's truth needs its baseline length.
+    rec = read_capture(paths["test"][0])
+    rec.truth = {}
+    with pytest.raises(FeatureError, match="baseline-frames"):
+        predict_capture(run, rec)
+    np.testing.assert_allclose(predict_capture(run, rec, baseline_frames=9)["mlp_rf"], pred["mlp_rf"])
+
     # A capture of another sensor layout: a clear error.
     cap = read_capture(paths["test"][0])
     bad = cap.scene.replace(sensor=cap.scene.sensor.__class__(**{**cap.scene.sensor.__dict__, "n_bins": 64}))
@@ -305,15 +312,33 @@ def test_run_folder_and_metrics_schema(small_data, mlp_run, tmp_path):
         predict_capture(run, tmp_path / "bad.h5")
 
 
-@pytest.mark.parametrize("kind", ["nonlinear", "gb"])
-def test_alternative_runs(small_data, tmp_path, kind):
+def test_alternative_run(small_data, tmp_path):
     _, paths = small_data
-    opts = {"gb": {"iterations": 60}} if kind == "gb" else {}
-    run = train(_cfg(tmp_path, paths, model={"kind": kind, **opts}, features={"variant": "single"}, plots=False),
+    kind = "nonlinear"
+    run = train(_cfg(tmp_path, paths, model={"kind": kind}, features={"variant": "single"}, plots=False),
                 tmp_path, log=None)
     m = json.loads((run / "metrics.json").read_text())
     assert list(m["mae_n"]) == [kind] and m["mae_n"][kind]["overall"] < 15
     assert np.isfinite(predict_capture(run, paths["test"][0])[kind]).any()
+
+
+@pytest.mark.parametrize("kind", ["svr", "gb"])
+def test_alternatives_fit_and_count_operations(kind):
+    from tofjax.force.alternatives import GBOptions, SVROptions, fit_alternative
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(size=(300, 4))
+    y = x[:, 0] ** 2 + 0.5 * x[:, 1]
+    opts = GBOptions(iterations=20, max_leaf_nodes=4) if kind == "gb" else SVROptions(max_train_samples=200)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):  # OpenMP threads on a busy 2-core machine only wait for each other
+        est, ops = fit_alternative(kind, opts, x[:250], y[:250], x[250:], y[250:])
+    assert np.mean(np.abs(est.predict(x[250:]) - y[250:])) < 0.1
+    if kind == "svr":
+        assert len(est.support_) <= 200 and ops == len(est.support_) * (3 * 4 + 12)
+    else:
+        assert 20 <= ops <= 20 * 4
 
 
 def test_bad_configs_name_the_keys(tmp_path):

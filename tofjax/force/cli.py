@@ -18,7 +18,7 @@ def _cmd_predict(a) -> int:
 
     from .train import predict_capture, write_prediction_csv
 
-    pred = predict_capture(a.run, a.capture)
+    pred = predict_capture(a.run, a.capture, baseline_frames=a.baseline_frames)
     write_prediction_csv(a.out, pred)
     keys = [k for k in pred if k not in ("time", "force")]
     msg = f"wrote {a.out}: {len(pred['time'])} frames, columns {', '.join(k + '_n' for k in keys)}"
@@ -70,6 +70,8 @@ def register(sub) -> None:
     s.add_argument("run", help="run folder (runs/<time>_<name>)")
     s.add_argument("capture", help="capture file (.h5)")
     s.add_argument("--out", required=True, help="output CSV")
+    s.add_argument("--baseline-frames", type=int, default=None,
+                   help="no-touch frames at the start of the capture (default: the capture's truth.baseline_frames)")
     s.set_defaults(func=_cmd_predict)
 
     s = sub.add_parser("table", help="Table I-like comparison of force runs (MAE per velocity, operations)")

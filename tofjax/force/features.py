@@ -123,7 +123,8 @@ def capture_baseline_frames(cap: Capture, config: FeatureConfig, source: str = "
     n = config.baseline_frames if config.baseline_frames is not None else cap.truth.get("baseline_frames")
     if n is None:
         raise FeatureError(
-            f"{source}: how many no-touch frames start the capture is unknown; set features.baseline_frames"
+            f"{source}: how many no-touch frames start the capture is unknown; set features.baseline_frames "
+            "(training) or --baseline-frames (tofjax predict)"
         )
     n = int(n)
     if n < 1 or n > cap.n_frames:

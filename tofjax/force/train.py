@@ -18,6 +18,7 @@ A run folder holds everything a researcher needs to trust and reuse it:
 from __future__ import annotations
 
 import csv
+import dataclasses
 import datetime as _dt
 import glob
 import json
@@ -295,9 +296,13 @@ def _predict(model, header: dict, raw: np.ndarray) -> dict[str, np.ndarray]:
     return {header["kind"]: np.asarray(y, np.float64)}
 
 
-def predict_capture(run_dir: str | Path, capture: Capture | str | Path) -> dict[str, np.ndarray]:
+def predict_capture(
+    run_dir: str | Path, capture: Capture | str | Path, *, baseline_frames: int | None = None
+) -> dict[str, np.ndarray]:
     """Predict the force of every frame of a capture with a run's model.
 
+    The capture's first ``baseline_frames`` frames (default: its ``truth.baseline_frames``,
+    else the training config's) must show nothing touching: they are its baseline.
     Returns ``{"time": ..., "force": (reference, NaN if none), "<model>": ...}``; frames
     whose features are not finite get NaN. Raises :class:`FeatureError` when the
     capture's beams or bins do not match the trained model.
@@ -309,6 +314,8 @@ def predict_capture(run_dir: str | Path, capture: Capture | str | Path) -> dict[
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     window = Window.from_json(header["window"])
     fcfg = from_dict(FeatureConfig, header["features"])
+    if baseline_frames is not None or "baseline_frames" in cap.truth:
+        fcfg = dataclasses.replace(fcfg, baseline_frames=baseline_frames or int(cap.truth["baseline_frames"]))
     raw, valid = raw_features(cap, window, fcfg, src)
     preds = _predict(model, header, np.where(np.isfinite(raw), raw, 0.0))
     out = {"time": cap.timestamps, "force": cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)}
