@@ -224,16 +224,18 @@ _CHUNK = 256
 
 
 @functools.lru_cache(maxsize=8)
-def _renderer(scene: Scene, xy: tuple[float, float], radius_m: float, dtype: str):
-    """A jitted (chunk of frames) -> noisy histograms function, compiled once per scene and contact."""
+def _renderer(scene: Scene, radius_m: float, dtype: str):
+    """A jitted (contact position, chunk of frames) -> expected histograms function, compiled once per scene."""
     opts = ModelOptions(dtype=dtype)
-    touched = scene.replace(touches=(Touch(position_m=xy, radius_m=radius_m, strength=1.0),))
+    lx, ly = scene.waveguide.size_m
+    touched = scene.replace(touches=(Touch(position_m=(lx / 2, ly / 2), radius_m=radius_m, strength=1.0),))
     model = build_model(touched, opts)
     p0 = Params.from_scene(touched, opts.jnp_dtype)
     S, Z, _ = scene.shape
 
-    def one(s, r, o, a, g):
+    def one(xy, s, r, o, a, g):
         q = p0.replace(
+            touch_xy_m=xy[None],
             touch_strength=s[None],
             touch_radius_m=r[None],
             shadow_opacity=o,
@@ -243,7 +245,7 @@ def _renderer(scene: Scene, xy: tuple[float, float], radius_m: float, dtype: str
         )
         return model(q)
 
-    return jax.jit(jax.vmap(one)), opts.jnp_dtype
+    return jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))), opts.jnp_dtype
 
 
 def _render(scene: Scene, p: Protocol, xy, strength, radius, opacity, ambient, flatten, rng):
@@ -252,14 +254,15 @@ def _render(scene: Scene, p: Protocol, xy, strength, radius, opacity, ambient, f
     Frames go through the vmapped forward model in fixed-size chunks, so it compiles once.
     Photon noise is drawn with NumPy (its Poisson sampler is ~10x faster than JAX's on CPU).
     """
-    f, dt = _renderer(scene, tuple(xy), p.indenter_radius_m, p.dtype)
+    f, dt = _renderer(scene, p.indenter_radius_m, p.dtype)
+    xy = jnp.asarray(xy, dt)
     n = len(strength)
     pad = (-n) % _CHUNK
     args = [np.pad(np.asarray(v, np.float64), (0, pad), mode="edge") for v in (strength, radius, opacity, ambient, flatten)]
     out = np.empty((n + pad, *scene.shape), np.float32)
     for i in range(0, n + pad, _CHUNK):
         sl = slice(i, i + _CHUNK)
-        out[sl] = np.asarray(f(*(jnp.asarray(a[sl], dt) for a in args)))
+        out[sl] = np.asarray(f(xy, *(jnp.asarray(a[sl], dt) for a in args)))
     lam = np.maximum(np.nan_to_num(out[:n].astype(np.float64), nan=0.0, posinf=0.0), 0.0)
     counts = rng.poisson(lam).astype(np.float64) if scene.noise.poisson else lam
     return np.minimum(counts, scene.sensor.saturation_counts).astype(np.float32)
