@@ -577,7 +577,7 @@ def table(run_dirs) -> str:
     head = ["run", "input", "model", *[f"v={v} mm/s" for v in vels], "overall", "ops/prediction"]
     lines = [head]
     for name, variant, model, v, op in rows:
-        lines.append([name, variant, model, *[f"{v['by_velocity_mm_s'].get(k, float('nan')):.3f}" for k in vels],
+        lines.append([name, variant, model, *[f"{v['by_velocity_mm_s'][k]:.3f}" if k in v["by_velocity_mm_s"] else "-" for k in vels],
                       f"{v['overall']:.3f}", f"{op:,}" if op is not None else "-"])
     widths = [max(len(str(r[i])) for r in lines) for i in range(len(head))]
     out = ["  ".join(str(c).ljust(w) for c, w in zip(r, widths)) for r in lines]
