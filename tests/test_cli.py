@@ -100,6 +100,7 @@ def test_demo_writes_plots_summary_and_captures(tmp_path, optoskin):
     text = summary.read_text()
     assert "touch 0" in text and "touch 2" in text and "us per evaluation" in text
     assert "calibration: converged" in text and "95% interval" in text
+    assert "force estimation (seed 001)" in text and "test MAE mlp_rf" in text
     for name in ("scene.png", "components.png", "histograms_sensor0.png", "baseline.h5", "touch.h5", "calibration.json"):
         assert (tmp_path / "demo" / name).exists(), name
     touch = read_capture(tmp_path / "demo" / "touch.h5")

@@ -155,6 +155,36 @@ class CaptureWriter:
         self._f.flush()
         self.n_frames = i + 1
 
+    def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None) -> None:
+        """Write many whole frames at once (one resize and one flush: fast for long simulated captures)."""
+        histograms = np.asarray(histograms, HIST_DTYPE)
+        n = histograms.shape[0]
+        if histograms.shape[1:] != self._hist.shape[1:]:
+            raise CaptureError(f"frame shape {histograms.shape[1:]} does not match the scene's {self._hist.shape[1:]}")
+        if (force is None) != (self._force is None):
+            raise CaptureError("force must be given for every frame of a capture with a force channel, and only then")
+        i = self.n_frames
+        # Same order as append: histograms and timestamps last.
+        if self._force is not None:
+            self._force.resize(i + n, 0)
+            self._force[i:] = np.asarray(force, np.float64)
+        if self._ref is not None:
+            self._ref.resize(i + n, 0)
+            self._ref[i:] = np.asarray(reference, HIST_DTYPE) if reference is not None else np.nan
+        if self._touch is not None:
+            self._touch.resize(i + n, 0)
+            if touches is not None:
+                t = np.asarray(touches, np.float64)[:, : self._touch.shape[1], :3]
+                rows = np.full((n, *self._touch.shape[1:]), np.nan)
+                rows[:, : t.shape[1]] = t
+                self._touch[i:] = rows
+        self._hist.resize(i + n, 0)
+        self._hist[i:] = histograms
+        self._time.resize(i + n, 0)
+        self._time[i:] = np.asarray(timestamps, np.float64)
+        self._f.flush()
+        self.n_frames = i + n
+
     def close(self) -> None:
         if self._f.id.valid:
             self._f.close()
@@ -180,14 +210,7 @@ def write_capture(path: str | Path, cap: Capture) -> Path:
         truth=cap.truth or None,
     ) as w:
         w._f.attrs["created"] = cap.created
-        for i in range(cap.n_frames):
-            w.append(
-                cap.histograms[i],
-                cap.timestamps[i],
-                force=None if cap.force is None else cap.force[i],
-                reference=None if cap.reference is None else cap.reference[i],
-                touches=None if cap.truth_touches is None else cap.truth_touches[i],
-            )
+        w.extend(cap.histograms, cap.timestamps, force=cap.force, reference=cap.reference, touches=cap.truth_touches)
     return path
 
 

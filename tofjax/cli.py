@@ -188,7 +188,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene", help="scene TOML file, or a built-in name")
     s.add_argument("--toml", action="store_true", help="print the scene with every default filled in")
     s.set_defaults(func=_cmd_scene)
-    from .hw.cli import register as _register_hw; _register_hw(sub)  # noqa: E702
+
+    # Subcommands of the packages built on the foundation, each registered by its own module.
+    from .force.cli import register as register_force  # train, predict, table, force-data (issue 5)
+    from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
+
+    register_force(sub)
+    register_hw(sub)
     return p
 
 

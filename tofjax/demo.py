@@ -123,6 +123,10 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
 
     print("[+] recording from an emulated TMF8828 rig ...", flush=True)
     lines += ["", *_hw_demo(out, base_scene, seed=seed)]
+    print("[+] training a small force model (seed 001) ...", flush=True)
+    from .force.demo import run as force_demo
+
+    lines += ["", *force_demo(out, seed=seed)]
     summary = out / "summary.txt"
     summary.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
