@@ -190,6 +190,11 @@ class CorrectionOptions:
       contact at the edge).
     - ``response_delay``: subtract the delay of the instrument response's peak (see
       :meth:`OpticalParams.response_delay_s`) when converting time to range.
+    - ``ambient_tracking``: bins that end before the light enters (3 pulse widths early) see
+      only ambient light; with baseline removal, their mean excess over the baseline is
+      subtracted per frame, sensor and zone, so a change of ambient light since the baseline
+      was taken does not masquerade as touch (decay correction would amplify it most at the
+      far edge).
     """
 
     method: str = "full"
@@ -197,6 +202,7 @@ class CorrectionOptions:
     mask: bool = True
     edge_margin_bins: float = 2.0
     response_delay: bool = True
+    ambient_tracking: bool = True
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -219,6 +225,7 @@ class Corrector(eqx.Module):
     gain: jax.Array  # (S, Z, B) exp(log gain) x mask (ones x mask for raw/baseline)
     log_gain: jax.Array  # (S, Z, B) uncapped-then-capped log of 1/(K G T), for inspection
     mask: jax.Array  # (S, Z, B) bool, True where a contact can be
+    early: jax.Array  # (B,) weights of the ambient-only bins (sum 1), or zeros
     range_m: jax.Array  # (S, Z, B) one-way range of each bin centre
     method: str = eqx.field(static=True)
     saturation: float = eqx.field(static=True)
@@ -228,9 +235,17 @@ class Corrector(eqx.Module):
         bad = ~jnp.isfinite(hist) | (hist >= self.saturation)
         ok = ~jnp.any(bad, axis=(-3, -2, -1))
         clean = jnp.where(bad, 0.0, hist)
-        signal = clean - self.baseline if self.method in ("baseline", "full") else clean
+        if self.method in ("baseline", "full"):
+            signal = clean - self.baseline
+            signal = signal - jnp.sum(signal * self.early, axis=-1, keepdims=True)
+        else:
+            signal = clean
         out = signal * self.gain
         return jnp.where(ok[..., None, None, None], out, 0.0), ok
+
+    def replace_baseline(self, baseline) -> "Corrector":
+        """The same correction against another baseline (the dynamic baseline uses it)."""
+        return eqx.tree_at(lambda c: c.baseline, self, jnp.asarray(baseline, self.gain.dtype))
 
 
 def bin_ranges(scene: Scene, optical: OpticalParams, response_delay: bool = True) -> np.ndarray:
@@ -299,11 +314,15 @@ def build_corrector(
     else:
         gain = mask.astype(float)
     base = baseline if needs_baseline else np.zeros((S, Z, B))
+    sm = scene.sensor
+    early = (np.arange(1, B + 1) * sm.bin_width_s < optical.emission_time_s - 3.0 * optical.pulse_sigma_s).astype(float)
+    early = early / early.sum() if options.ambient_tracking and early.sum() >= 3 else np.zeros(B)
     return Corrector(
         baseline=jnp.asarray(base, dtype),
         gain=jnp.asarray(gain, dtype),
         log_gain=jnp.asarray(log_gain, dtype),
         mask=jnp.asarray(mask),
+        early=jnp.asarray(early, dtype),
         range_m=jnp.asarray(np.broadcast_to(r, (S, Z, B)), dtype),
         method=options.method,
         saturation=float(scene.sensor.saturation_counts),

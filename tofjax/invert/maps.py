@@ -111,6 +111,12 @@ class MapOperator(eqx.Module):
             return m.reshape(*lead, self.ny, self.nx)
         return jnp.sum(flat[self.index] * self.weight, axis=-1).reshape(self.ny, self.nx)
 
+    def std(self, variance):
+        """Per-pixel standard deviation of the map of independent bins with ``variance`` (S, Z, B)
+        (the projection is linear: var(map) = W^2 var(h); clipping ignored)."""
+        v = jnp.asarray(variance, self.weight.dtype).reshape(-1)
+        return jnp.sqrt(jnp.sum(v[self.index] * self.weight**2, axis=-1)).reshape(self.ny, self.nx)
+
 
 def _projection(scene: Scene, grid: Grid, optical: OpticalParams, response_delay: bool):
     """Per pixel and sensor: fractional zone (centres at integers; NaN outside the field of

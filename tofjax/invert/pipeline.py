@@ -10,6 +10,7 @@ baseline and the calibration (gain, masks, projection, noise map); the returned
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from .correction import (
 )
 from .detect import Detection, DetectOptions, detect
 from .maps import Grid, MapOperator, MapOptions, build_map_operator
+from .reconstruct import ReconstructOptions
 
 __all__ = ["ALL_METHODS", "InvertOptions", "Inverter", "ProcessResult", "build_inverter", "process_captures", "write_maps"]
 
@@ -54,6 +56,7 @@ class InvertOptions:
     correction: CorrectionOptions = field(default_factory=CorrectionOptions)
     maps: MapOptions = field(default_factory=MapOptions)
     detect: DetectOptions = field(default_factory=DetectOptions)
+    reconstruct: ReconstructOptions = field(default_factory=ReconstructOptions)
     dtype: str = "float32"
     batch: int = 256
 
@@ -173,6 +176,9 @@ def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray
     of the N-frame baseline mean)."""
     g = np.asarray(corrector.gain, float)
     var_h = g**2 * np.maximum(baseline, 1.0) * ((1.0 + 1.0 / n_baseline) if corrector.method in ("baseline", "full") else 1.0)
+    e = np.asarray(corrector.early, float)
+    if corrector.method in ("baseline", "full") and e.any():  # the ambient estimate's own noise
+        var_h = var_h + g**2 * (np.maximum(baseline, 1.0) @ e**2)[..., None] * (1.0 + 1.0 / n_baseline)
     var_flat = var_h.ravel()
     w = np.asarray(operator.weight, float)
     var = np.sum(w**2 * var_flat[np.asarray(operator.index)], axis=-1)
@@ -211,9 +217,14 @@ def build_inverter(
     if options.method == "model":
         from .reconstruct import build_reconstructor
 
-        inv.reconstructor = build_reconstructor(scene, base, optical, n_baseline=n_baseline, grid=grid)
+        inv.reconstructor = build_reconstructor(scene, base, optical, options.reconstruct, n_baseline=n_baseline)
+        inv.grid = inv.reconstructor.grid
         inv.noise = inv.reconstructor.noise_map()
         inv.strength_scale = 1.0
+        # Strengths are absolute: one threshold in strength units, none relative to the maximum.
+        inv.options = dataclasses.replace(
+            options, detect=dataclasses.replace(options.detect, threshold=options.reconstruct.min_strength, relative=0.0)
+        )
     return inv
 
 

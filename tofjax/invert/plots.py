@@ -49,12 +49,13 @@ def plot_map(tactile_map, grid: Grid, scene: Scene, path, *, detection=None, tru
 
 
 def plot_map_grid(rows: list[list[dict]], grid: Grid, scene: Scene, path, *, col_titles=None, row_titles=None) -> Path:
-    """A table of maps: ``rows[i][j]`` is a dict with ``map`` and optional ``detection``, ``truth``."""
+    """A table of maps: ``rows[i][j]`` is a dict with ``map`` and optional ``detection``, ``truth``
+    and ``grid`` (default ``grid``)."""
     nr, nc = len(rows), len(rows[0])
     fig, axs = plt.subplots(nr, nc, figsize=(2.3 * nc, 2.3 * nr), squeeze=False)
     for i, row in enumerate(rows):
         for j, cell in enumerate(row):
-            draw_map(axs[i, j], cell["map"], grid, scene, cell.get("detection"), cell.get("truth"))
+            draw_map(axs[i, j], cell["map"], cell.get("grid", grid), scene, cell.get("detection"), cell.get("truth"))
             if i == 0 and col_titles:
                 axs[i, j].set_title(col_titles[j], fontsize=9)
         if row_titles:
