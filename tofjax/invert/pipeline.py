@@ -109,15 +109,26 @@ def _unit_peak(optical: OpticalParams, bin_width_s: float, delay_s: float) -> fl
                 - emg_cdf(jnp.asarray(t - 0.5 * bin_width_s), optical.pulse_sigma_s, optical.pulse_tail_s)
             )
 
-    vals = []
-    for phase in np.linspace(0, 1, 16, endpoint=False):
-        # Bin centres at (k - phase) * width after the event; interpolate at the delay.
-        u = delay_s / bin_width_s + phase
-        k0 = math.floor(u)
-        f = u - k0
-        a, b = binned(np.array([(k0 - phase) * bin_width_s, (k0 + 1 - phase) * bin_width_s]))
-        vals.append((1 - f) * a + f * b)
+    # Bin centres at (k - phase) * width after the event; interpolate at the delay.
+    phase = np.linspace(0, 1, 16, endpoint=False)
+    u = delay_s / bin_width_s + phase
+    k0 = np.floor(u)
+    f = u - k0
+    a = binned((k0 - phase) * bin_width_s)
+    b = binned((k0 + 1 - phase) * bin_width_s)
+    vals = (1 - f) * a + f * b
     return float(np.mean(vals))
+
+
+@jax.jit
+def _map_one(corrector, operator, h):
+    return operator(corrector(h)[0])
+
+
+@jax.jit
+def _map_batch(corrector, operator, h):
+    corrected, ok = corrector(h)
+    return operator(corrected), ok
 
 
 @dataclass
@@ -134,9 +145,9 @@ class Inverter:
     strength_scale: float
     reconstructor: object | None = None
 
-    def __post_init__(self):
-        self._frame = jax.jit(lambda c, o, h: o(c(h)[0]))
-        self._batch = jax.jit(lambda c, o, h: (lambda r: (o(r[0]), r[1]))(c(h)))
+    # Module-level jitted functions: inverters of the same shapes share one compilation.
+    _frame = staticmethod(_map_one)
+    _batch = staticmethod(_map_batch)
 
     def maps(self, histograms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Maps (F, ny, nx) and ok flags (F,) for histograms (F, S, Z, B)."""

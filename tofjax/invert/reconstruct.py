@@ -37,7 +37,7 @@ __all__ = ["ReconstructOptions", "Reconstructor", "build_reconstructor", "respon
 
 @dataclass(frozen=True)
 class ReconstructOptions:
-    """- ``cell_m``: grid cell size (default 1 cm).
+    """- ``cell_m``: grid cell size (default 7.5 mm).
     - ``contact_radius_m``: radius of the unit contact whose response fills ``A``.
     - ``tau``: sparsity, in noise standard deviations of each cell's evidence.
     - ``iterations``: FISTA iterations.
@@ -47,17 +47,20 @@ class ReconstructOptions:
       residual exactly where the contacts behind it are, and hides them.
     - ``sum_cells``: detection sees the strength summed over each 3 x 3 block of cells
       (a contact between cells splits its strength among them).
+    - ``edge_exclusion_m``: no cells whose centre is nearer the edge than this: there the
+      contact response and the far-edge reflection (and its shadow) are confounded.
     - ``min_strength``: detection threshold on that summed strength (absolute: strengths
       are in the forward model's units, so no threshold relative to the maximum is needed).
     - ``dtype``: float32 or float64 for the solve."""
 
-    cell_m: float = 0.01
+    cell_m: float = 0.0075
     contact_radius_m: float = 0.006
     tau: float = 4.0
     iterations: int = 300
     shadow: bool = True
     sum_cells: bool = True
     min_strength: float = 0.3
+    edge_exclusion_m: float = 0.008
     dtype: str = "float32"
 
     def __post_init__(self):
@@ -113,7 +116,12 @@ class Reconstructor:
     def __init__(self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: ReconstructOptions, n_baseline: int):
         self.scene, self.options = scene, options
         self.grid = Grid.for_scene(scene, options.cell_m)
-        centres = self.grid.centres().reshape(-1, 2)
+        all_centres = self.grid.centres().reshape(-1, 2)
+        lx, ly = scene.waveguide.size_m
+        e = options.edge_exclusion_m
+        x, y = all_centres[:, 0], all_centres[:, 1]
+        self.cells = np.flatnonzero((x >= e) & (x <= lx - e) & (y >= e) & (y <= ly - e))
+        centres = all_centres[self.cells]
         R = response_matrix(scene, optical, centres, options.contact_radius_m)  # (K, S, Z, B)
         K = R.shape[0]
         self.n_cells = K
@@ -163,7 +171,9 @@ class Reconstructor:
         h = np.asarray(histograms, float)
         F = h.shape[0]
         s, ok = self._solve(jnp.asarray(h.reshape(F, -1), self._G.dtype))
-        return np.asarray(s)[:, : self.n_cells].reshape(F, self.grid.ny, self.grid.nx), np.asarray(ok)
+        out = np.zeros((F, self.grid.ny * self.grid.nx))
+        out[:, self.cells] = np.asarray(s)[:, : self.n_cells]
+        return out.reshape(F, self.grid.ny, self.grid.nx), np.asarray(ok)
 
     def maps(self, histograms) -> tuple[np.ndarray, np.ndarray]:
         """What detection sees: strengths, summed over 3 x 3 blocks with ``sum_cells``."""
