@@ -63,13 +63,17 @@ def run(out: Path, resolution_m: float = 0.001, batch: int = 256, repeats: int =
     for angular in ("linear", "zone"):
         for dtype in ("float32", "float64"):
             inv = build_inverter(
-                scene, base, InvertOptions(method="full", maps=MapOptions(resolution_m=resolution_m, angular=angular), dtype=dtype)
+                scene,
+                base,
+                InvertOptions(method="full", maps=MapOptions(resolution_m=resolution_m, angular=angular), dtype=dtype),
             )
             dt = inv.corrector.gain.dtype
             h1 = jnp.asarray(H[0], dt)
             Hb = jnp.asarray(H, dt)
             one = _median(lambda: jax.block_until_ready(inv.map_frame(h1)), repeats)
-            many = _median(lambda: jax.block_until_ready(inv._batch(inv.corrector, inv.operator, Hb)), max(3, repeats // 5))
+            many = _median(
+                lambda: jax.block_until_ready(inv._batch(inv.corrector, inv.operator, Hb)), max(3, repeats // 5)
+            )
             rows[(angular, dtype)] = {"one_frame_ms": 1e3 * one, "batch_frames_per_s": batch / many, "inv": inv}
     # Plain NumPy, float32, the same index map.
     inv = rows[("linear", "float32")]["inv"]
@@ -87,7 +91,8 @@ def run(out: Path, resolution_m: float = 0.001, batch: int = 256, repeats: int =
     result = {
         "benchmark": "correction + tactile map, one 6-sensor frame",
         "data": "simulated (default OptoSkin scene, 6 contacts, photon noise)",
-        "machine": f"{platform.machine()} {platform.processor() or ''}".strip() + f", {os.cpu_count()} CPUs, shared, JAX {jax.__version__} CPU backend",
+        "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
+        + f", {os.cpu_count()} CPUs, shared, JAX {jax.__version__} CPU backend",
         "grid": f"{grid.nx} x {grid.ny} px at {resolution_m * 1000:g} mm",
         "pixels": grid.nx * grid.ny,
         "gathers_per_frame": int(np.count_nonzero(w)),

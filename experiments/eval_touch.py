@@ -38,9 +38,8 @@ import tofjax
 from tofjax.config import from_dict, load_toml
 from tofjax.invert.detect import DetectOptions, match
 from tofjax.invert.maps import MapOptions
-from tofjax.model.geometry import zone_edges
 from tofjax.invert.pipeline import InvertOptions, build_inverter
-from tofjax.invert.synth import random_contacts, simulate_contacts
+from tofjax.invert.synth import random_contacts, shadowed, simulate_contacts
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
 
@@ -60,25 +59,6 @@ class EvalConfig:
     n_sigma: float = 6.0
     shapes: tuple[str, ...] = ("configs/touch-stick.toml", "configs/touch-ring.toml")
     seed: int = 0
-
-
-def shadowed(scene, contacts: np.ndarray) -> np.ndarray:
-    """(N,) True where every sensor that sees contact i has another contact nearer to it in the same zone."""
-    sm = scene.sensor
-    edges = zone_edges(sm.fov_deg, sm.zones)
-    out = np.ones(len(contacts), bool)
-    seen_any = np.zeros(len(contacts), bool)
-    for s in scene.sensors:
-        d = contacts[:, :2] - np.array(s.position_m)
-        dist = np.hypot(d[:, 0], d[:, 1])
-        rel = (np.arctan2(d[:, 1], d[:, 0]) - math.radians(s.direction_deg) + np.pi) % (2 * np.pi) - np.pi
-        zone = np.searchsorted(edges[:, 1], rel)
-        inside = (rel >= edges[0, 0]) & (rel < edges[-1, 1])
-        for i in np.flatnonzero(inside):
-            seen_any[i] = True
-            blocked = np.any(inside & (zone == zone[i]) & (dist < dist[i] - 0.01))
-            out[i] &= blocked
-    return out & seen_any
 
 
 def _score(detections, contacts, radius):
@@ -147,13 +127,20 @@ def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
     single = np.array([[[x, y, 1.0]] for y in gy for x in g])
     scenarios = {"single": single}
     for n in config.multi_counts:
-        scenarios[f"multi{n}"] = random_contacts(scene, config.multi_configs, n, seed=config.seed + n, min_separation_m=config.min_separation_m)
+        scenarios[f"multi{n}"] = random_contacts(
+            scene, config.multi_configs, n, seed=config.seed + n, min_separation_m=config.min_separation_m
+        )
     results: dict = {"scenarios": {}}
     examples: dict = {}
     for k, (name, contacts) in enumerate(scenarios.items()):
         H = simulate_contacts(scene, contacts, seed=config.seed + 100 + k)
         shadow = np.concatenate([shadowed(scene, c) for c in contacts])
-        row = {"configs": len(contacts), "contacts_per_config": contacts.shape[1], "shadowed_contacts": int(shadow.sum()), "methods": {}}
+        row = {
+            "configs": len(contacts),
+            "contacts_per_config": contacts.shape[1],
+            "shadowed_contacts": int(shadow.sum()),
+            "methods": {},
+        }
         for m in tqdm(config.methods, desc=name, disable=not progress):
             res = inverters[m].process(H)
             score, found = _score(res.detections, contacts, config.match_radius_m)
@@ -162,7 +149,9 @@ def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
             score["recall_unshadowed"] = float(found[~shadow].mean()) if (~shadow).any() else float("nan")
             row["methods"][m] = score
             idx = [0, len(contacts) // 2, len(contacts) - 1] if name == "single" else [0, 1]
-            examples.setdefault(name, {})[m] = [(res.maps[i], res.detections[i], contacts[i, :, :2], res.grid) for i in idx]
+            examples.setdefault(name, {})[m] = [
+                (res.maps[i], res.detections[i], contacts[i, :, :2], res.grid) for i in idx
+            ]
         results["scenarios"][name] = row
     # Shapes.
     shape_rows = {}
@@ -174,7 +163,9 @@ def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
         for m in config.methods:
             res = inverters[m].process(cap.histograms)
             shape_rows[sc.name][m] = _shape_score(res.detections[0], el, inverters[m].grid)
-            examples.setdefault("shapes", {}).setdefault(m, []).append((res.maps[0], res.detections[0], el[:, :2], res.grid))
+            examples.setdefault("shapes", {}).setdefault(m, []).append(
+                (res.maps[0], res.detections[0], el[:, :2], res.grid)
+            )
     results["shapes"] = shape_rows
     result = {
         "study": "touch detection (seed 000 section 5)",
@@ -202,7 +193,9 @@ def _metrics_plot(result, path):
     methods = list(result["scenarios"][names[0]]["methods"])
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     w = 0.8 / len(methods)
-    for ax, key, label in zip(axes, ("precision", "recall", "mean_error_cm"), ("precision", "recall", "mean error [cm]")):
+    for ax, key, label in zip(
+        axes, ("precision", "recall", "mean_error_cm"), ("precision", "recall", "mean error [cm]")
+    ):
         for k, m in enumerate(methods):
             v = [result["scenarios"][n]["methods"][m][key] for n in names]
             ax.bar(np.arange(len(names)) + (k - (len(methods) - 1) / 2) * w, v, w, label=m)
@@ -252,7 +245,9 @@ def _figures(examples, grid, scene, methods, out: Path):
             continue
         n = len(examples[key][methods[0]])
         rows = [[_cell(examples[key][m][i], truth=key != "shapes") for m in methods] for i in range(n)]
-        plot_map_grid(rows, grid, scene, out / fname, col_titles=list(methods), row_titles=[f"{title} {i}" for i in range(n)])
+        plot_map_grid(
+            rows, grid, scene, out / fname, col_titles=list(methods), row_titles=[f"{title} {i}" for i in range(n)]
+        )
     multi = [k for k in examples if k.startswith("multi")]
     rows, titles = [], []
     for k in multi:

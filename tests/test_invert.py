@@ -64,7 +64,7 @@ def test_masks_zero_impossible_bins(scene, baseline):
     assert not mask[r > 0.43 + 3 * dr].any()  # beyond the farthest edge of a 30 x 30 cm slab
     assert mask[(r > 0.02) & (r < 0.2)].all()  # where contacts can be
     # Zone-specific far edge: some zone's edge is much nearer than the diagonal.
-    assert (mask.sum(-1).min() < mask.sum(-1).max() - 5)
+    assert mask.sum(-1).min() < mask.sum(-1).max() - 5
     rng = np.random.default_rng(0)
     h = rng.uniform(0, 1e6, (3, *scene.shape))
     for m in ("raw", "decay", "baseline", "full"):
@@ -154,7 +154,10 @@ def test_multi_touch_full_beats_baseline(scene):
 
 
 def test_calibration_json(scene, tmp_path):
-    cal = {"parameters": {"n1": {"value": 1.45, "stderr": 0.01}, "gain": {"value": [120.0] * 6, "stderr": [1.0] * 6}}, "fixed": {"mu_s_per_m": 0.5}}
+    cal = {
+        "parameters": {"n1": {"value": 1.45, "stderr": 0.01}, "gain": {"value": [120.0] * 6, "stderr": [1.0] * 6}},
+        "fixed": {"mu_s_per_m": 0.5},
+    }
     p = tmp_path / "cal.json"
     p.write_text(json.dumps(cal))
     o = OpticalParams.from_calibration(p, scene)
@@ -199,7 +202,20 @@ def test_process_writes_maps(captures):
     import h5py
 
     out = captures / "maps.h5"
-    rc = main(["process", str(captures / "touch.h5"), "--baseline", str(captures / "base.h5"), "--out", str(out), "--png", str(captures / "png"), "--method", "baseline"])
+    rc = main(
+        [
+            "process",
+            str(captures / "touch.h5"),
+            "--baseline",
+            str(captures / "base.h5"),
+            "--out",
+            str(out),
+            "--png",
+            str(captures / "png"),
+            "--method",
+            "baseline",
+        ]
+    )
     assert rc == 0
     with h5py.File(out) as f:
         assert f["maps"].shape == (2, 120, 120) and f.attrs["method"] == "baseline"
@@ -212,7 +228,19 @@ def test_process_writes_maps(captures):
     [
         (["detect", "{d}/soft.h5", "--baseline", "{d}/base.h5", "--json", "{d}/x.json"], "not the same setup"),
         (["detect", "{d}/touch.h5", "--baseline", "{d}/nope.h5", "--json", "{d}/x.json"], "no such file"),
-        (["process", "{d}/touch.h5", "--baseline", "{d}/base.h5", "--calibration", "{d}/touch.h5", "--out", "{d}/m.h5"], "not valid JSON"),
+        (
+            [
+                "process",
+                "{d}/touch.h5",
+                "--baseline",
+                "{d}/base.h5",
+                "--calibration",
+                "{d}/touch.h5",
+                "--out",
+                "{d}/m.h5",
+            ],
+            "not valid JSON",
+        ),
     ],
 )
 def test_cli_errors_are_one_line(captures, capsys, args, message):

@@ -119,6 +119,10 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         "       calibration.json",
         "next: `tofjax plot out/demo/touch.h5 --baseline out/demo/baseline.h5 --out DIR`",
     ]
+    print("[+] touch inversion: tactile maps and detections ...", flush=True)
+    from .invert.demo import run as invert_demo
+
+    lines += invert_demo(out, baseline, seed=seed + 2)
     summary = out / "summary.txt"
     summary.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

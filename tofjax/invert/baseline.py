@@ -55,7 +55,9 @@ class DynamicResult(NamedTuple):
         from .detect import Detection, detect
 
         return [
-            detect(m, inverter.grid, inverter.options.detect, noise=n, strength_scale=inverter.strength_scale) if good else Detection()
+            detect(m, inverter.grid, inverter.options.detect, noise=n, strength_scale=inverter.strength_scale)
+            if good
+            else Detection()
             for m, n, good in zip(self.maps, self.noise, self.ok)
         ]
 
@@ -84,7 +86,9 @@ def _scan(corrector, operator, baseline0, H, rate, z_thr):
 _scan_jit = jax.jit(_scan)
 
 
-def run_dynamic(inverter, histograms, options: DynamicBaselineOptions = DynamicBaselineOptions(), baseline0=None) -> DynamicResult:
+def run_dynamic(
+    inverter, histograms, options: DynamicBaselineOptions = DynamicBaselineOptions(), baseline0=None
+) -> DynamicResult:
     """Process frames in order with a baseline that follows drift.
 
     ``inverter`` is a back-projection :class:`~tofjax.invert.pipeline.Inverter` (method

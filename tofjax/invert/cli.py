@@ -56,7 +56,14 @@ def _cmd_process(a) -> int:
         from .plots import plot_map
 
         for i, (m, det) in enumerate(zip(res.maps, res.detections)):
-            plot_map(m, inv.grid, touch.scene, Path(a.png) / f"map_{i:04d}.png", detection=det, title=f"frame {i}, {a.method}")
+            plot_map(
+                m,
+                inv.grid,
+                touch.scene,
+                Path(a.png) / f"map_{i:04d}.png",
+                detection=det,
+                title=f"frame {i}, {a.method}",
+            )
         msg += f"; PNGs in {a.png}/"
     print(msg)
     return 0
@@ -80,7 +87,9 @@ def _common(s):
 
     s.add_argument("touch", help="touch capture (.h5)")
     s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
-    s.add_argument("--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)")
+    s.add_argument(
+        "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
+    )
     s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")
     s.add_argument("--relative", type=float, default=0.3, help="detection threshold, fraction of the map maximum (0.3)")

@@ -113,7 +113,9 @@ class OpticalParams:
             except (json.JSONDecodeError, UnicodeDecodeError) as e:
                 raise InversionError(f"{path}: not valid JSON: {e}") from None
         if not isinstance(data, dict) or not isinstance(data.get("parameters"), dict):
-            raise InversionError(f"{source}: not a calibration (no 'parameters' table; write it with `tofjax calibrate`)")
+            raise InversionError(
+                f"{source}: not a calibration (no 'parameters' table; write it with `tofjax calibrate`)"
+            )
         values: dict[str, Any] = dict(data.get("fixed") or {})
         for k, v in data["parameters"].items():
             if not isinstance(v, dict) or "value" not in v:

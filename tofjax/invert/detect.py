@@ -135,7 +135,9 @@ def detect(
         if any(math.hypot(x - a, y - b) < options.min_separation_m for a, b in taken):
             continue
         taken.append((x, y))
-        out.touches.append({"x_m": x, "y_m": y, "strength": float(m[j, i] * strength_scale), "component": int(labels[j, i])})
+        out.touches.append(
+            {"x_m": x, "y_m": y, "strength": float(m[j, i] * strength_scale), "component": int(labels[j, i])}
+        )
     return out
 
 

@@ -11,7 +11,6 @@ baseline and the calibration (gain, masks, projection, noise map); the returned
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +36,15 @@ from .detect import Detection, DetectOptions, detect
 from .maps import Grid, MapOperator, MapOptions, build_map_operator
 from .reconstruct import ReconstructOptions
 
-__all__ = ["ALL_METHODS", "InvertOptions", "Inverter", "ProcessResult", "build_inverter", "process_captures", "write_maps"]
+__all__ = [
+    "ALL_METHODS",
+    "InvertOptions",
+    "Inverter",
+    "ProcessResult",
+    "build_inverter",
+    "process_captures",
+    "write_maps",
+]
 
 #: Back-projection variants plus the model-based reconstruction.
 ALL_METHODS = (*METHODS, "model")
@@ -178,7 +185,9 @@ class Inverter:
     def process(self, histograms: np.ndarray, *, detect: bool = True) -> ProcessResult:
         maps, ok = self.maps(histograms)
         dets = [self.detect(m) if good else Detection() for m, good in zip(maps, ok)] if detect else None
-        return ProcessResult(maps=maps, ok=ok, grid=self.grid, method=self.options.method, detections=dets, noise=self.noise)
+        return ProcessResult(
+            maps=maps, ok=ok, grid=self.grid, method=self.options.method, detections=dets, noise=self.noise
+        )
 
 
 def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray, n_baseline: int) -> np.ndarray:
@@ -186,7 +195,11 @@ def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray
     so var(map) = W^2 var(h) with var(h) = gain^2 B (1 + 1/N) (photon noise of the frame and
     of the N-frame baseline mean)."""
     g = np.asarray(corrector.gain, float)
-    var_h = g**2 * np.maximum(baseline, 1.0) * ((1.0 + 1.0 / n_baseline) if corrector.method in ("baseline", "full") else 1.0)
+    var_h = (
+        g**2
+        * np.maximum(baseline, 1.0)
+        * ((1.0 + 1.0 / n_baseline) if corrector.method in ("baseline", "full") else 1.0)
+    )
     e = np.asarray(corrector.early, float)
     if corrector.method in ("baseline", "full") and e.any():  # the ambient estimate's own noise
         var_h = var_h + g**2 * (np.maximum(baseline, 1.0) @ e**2)[..., None] * (1.0 + 1.0 / n_baseline)
@@ -234,7 +247,8 @@ def build_inverter(
         inv.strength_scale = 1.0
         # Strengths are absolute: one threshold in strength units, none relative to the maximum.
         inv.options = dataclasses.replace(
-            options, detect=dataclasses.replace(options.detect, threshold=options.reconstruct.min_strength, relative=0.0)
+            options,
+            detect=dataclasses.replace(options.detect, threshold=options.reconstruct.min_strength, relative=0.0),
         )
     return inv
 
@@ -284,8 +298,14 @@ def write_maps(path: str | Path, result: ProcessResult, scene: Scene, optical: O
         if result.noise is not None:
             f["noise"] = result.noise
         if result.detections is not None:
-            f["labels"] = np.stack([d.labels if d.labels is not None else np.zeros(result.maps.shape[1:], int) for d in result.detections]).astype(np.int32)
-            rows = [(i, t["x_m"], t["y_m"], t["strength"], t["component"]) for i, d in enumerate(result.detections) for t in d.touches]
+            f["labels"] = np.stack(
+                [d.labels if d.labels is not None else np.zeros(result.maps.shape[1:], int) for d in result.detections]
+            ).astype(np.int32)
+            rows = [
+                (i, t["x_m"], t["y_m"], t["strength"], t["component"])
+                for i, d in enumerate(result.detections)
+                for t in d.touches
+            ]
             f["touches"] = np.array(rows, float).reshape(-1, 5)
             f["touches"].attrs["columns"] = "frame, x_m, y_m, strength, component"
     return path

@@ -17,7 +17,9 @@ from .maps import Grid  # noqa: E402
 __all__ = ["draw_map", "plot_map", "plot_map_grid"]
 
 
-def draw_map(ax, tactile_map, grid: Grid, scene: Scene, detection: Detection | None = None, truth=None, title=None, equalize=True):
+def draw_map(
+    ax, tactile_map, grid: Grid, scene: Scene, detection: Detection | None = None, truth=None, title=None, equalize=True
+):
     m = np.asarray(tactile_map, float)
     vmax = m.max() if equalize and m.max() > 0 else None
     ax.imshow(m, origin="lower", extent=grid.extent, cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
@@ -28,7 +30,9 @@ def draw_map(ax, tactile_map, grid: Grid, scene: Scene, detection: Detection | N
             ax.add_patch(plt.Circle((x, y), 0.02, fill=False, ec="#00e676", lw=1.0, ls="--"))
     if detection is not None:
         if detection.labels is not None and detection.labels.any():
-            ax.contour(grid.x, grid.y, (detection.labels > 0).astype(float), levels=[0.5], colors="#29b6f6", linewidths=0.8)
+            ax.contour(
+                grid.x, grid.y, (detection.labels > 0).astype(float), levels=[0.5], colors="#29b6f6", linewidths=0.8
+            )
         p = detection.positions()
         if len(p):
             ax.plot(p[:, 0], p[:, 1], "x", color="#00e5ff", ms=7, mew=1.6)

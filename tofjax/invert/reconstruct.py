@@ -87,7 +87,13 @@ def _params_with_optics(scene: Scene, optical: OpticalParams, dtype) -> Params:
 
 
 def response_matrix(
-    scene: Scene, optical: OpticalParams, centres: np.ndarray, radius_m: float, chunk: int = 128, *, shadow: bool = False
+    scene: Scene,
+    optical: OpticalParams,
+    centres: np.ndarray,
+    radius_m: float,
+    chunk: int = 128,
+    *,
+    shadow: bool = False,
 ) -> np.ndarray:
     """Expected touch counts (S, Z, B) of a unit contact at each of ``centres`` (K, 2): (K, S, Z, B).
 
@@ -104,7 +110,11 @@ def response_matrix(
     p0 = _params_with_optics(proto, optical, opts.jnp_dtype)
     if shadow:
         p0 = p0.replace(touch_strength=np.zeros(1))
-        ref = np.asarray(build_model(base, opts, components=tuple(c for c in comps if c != "shadowing"))(_params_with_optics(base, optical, opts.jnp_dtype)))
+        ref = np.asarray(
+            build_model(base, opts, components=tuple(c for c in comps if c != "shadowing"))(
+                _params_with_optics(base, optical, opts.jnp_dtype)
+            )
+        )
     f = jax.jit(jax.vmap(lambda xy: model(p0.replace(touch_xy_m=xy[None, :]))))
     out = np.concatenate([np.asarray(f(jnp.asarray(centres[i : i + chunk]))) for i in range(0, len(centres), chunk)])
     return np.minimum(out - ref[None], 0.0) if shadow else out
@@ -113,7 +123,9 @@ def response_matrix(
 class Reconstructor:
     """Precomputed model-based reconstruction of one scene (see :func:`build_reconstructor`)."""
 
-    def __init__(self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: ReconstructOptions, n_baseline: int):
+    def __init__(
+        self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: ReconstructOptions, n_baseline: int
+    ):
         self.scene, self.options = scene, options
         self.grid = Grid.for_scene(scene, options.cell_m)
         all_centres = self.grid.centres().reshape(-1, 2)

@@ -12,10 +12,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import math
+
 from ..model import ModelOptions, Params, build_model, sample_counts
+from ..model.geometry import zone_edges
 from ..scene import Scene, Touch
 
-__all__ = ["random_contacts", "simulate_contacts"]
+__all__ = ["random_contacts", "shadowed", "simulate_contacts"]
 
 
 def simulate_contacts(
@@ -82,3 +85,22 @@ def random_contacts(
         out[c, :, :2] = pts
         out[c, :, 2] = rng.uniform(*strength, n_contacts)
     return out
+
+
+def shadowed(scene, contacts: np.ndarray) -> np.ndarray:
+    """(N,) True where every sensor that sees contact i has another contact nearer to it in the same zone."""
+    sm = scene.sensor
+    edges = zone_edges(sm.fov_deg, sm.zones)
+    out = np.ones(len(contacts), bool)
+    seen_any = np.zeros(len(contacts), bool)
+    for s in scene.sensors:
+        d = contacts[:, :2] - np.array(s.position_m)
+        dist = np.hypot(d[:, 0], d[:, 1])
+        rel = (np.arctan2(d[:, 1], d[:, 0]) - math.radians(s.direction_deg) + np.pi) % (2 * np.pi) - np.pi
+        zone = np.searchsorted(edges[:, 1], rel)
+        inside = (rel >= edges[0, 0]) & (rel < edges[-1, 1])
+        for i in np.flatnonzero(inside):
+            seen_any[i] = True
+            blocked = np.any(inside & (zone == zone[i]) & (dist < dist[i] - 0.01))
+            out[i] &= blocked
+    return out & seen_any

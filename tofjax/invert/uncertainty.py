@@ -36,8 +36,15 @@ def samples_from_calibration(calibration: dict | str | Path, n: int = 200, seed:
         params, labels = data["parameters"], list(data["covariance"]["labels"])
         cov = np.asarray(data["covariance"]["matrix"], float)
     except (KeyError, TypeError) as e:
-        raise InversionError(f"calibration has no parameters/covariance ({e}): write it with `tofjax calibrate`") from None
-    mean = np.array([float(np.ravel(params[k]["value"])[0]) if k in params else float(np.ravel(data["fixed"][k])[0]) for k in PARAMETERS])
+        raise InversionError(
+            f"calibration has no parameters/covariance ({e}): write it with `tofjax calibrate`"
+        ) from None
+    mean = np.array(
+        [
+            float(np.ravel(params[k]["value"])[0]) if k in params else float(np.ravel(data["fixed"][k])[0])
+            for k in PARAMETERS
+        ]
+    )
     idx = [labels.index(k) if k in labels else -1 for k in PARAMETERS]
     sub = np.zeros((3, 3))
     for a, i in enumerate(idx):
@@ -122,7 +129,9 @@ def propagate(
                 "nearest_seeing_sensor_m": float(dist[seen].min()) if seen.any() else float("nan"),
                 "strength": t["strength"],
                 "strength_rel_std": float(st.std() / max(abs(st.mean()), 1e-30)) if len(st) > 1 else float("nan"),
-                "strength_interval95": [float(x) for x in np.percentile(st, [2.5, 97.5])] if len(st) else [float("nan")] * 2,
+                "strength_interval95": [float(x) for x in np.percentile(st, [2.5, 97.5])]
+                if len(st)
+                else [float("nan")] * 2,
                 "position_std_cm": float(100 * np.sqrt(pos.var(0).sum())) if len(pos) > 1 else float("nan"),
                 "found_fraction": len(st) / len(samples),
             }
