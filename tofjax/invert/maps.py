@@ -94,6 +94,8 @@ class MapOperator(eqx.Module):
     index: jax.Array  # (P, J) int32 into the flattened (S*Z*B) histogram
     weight: jax.Array  # (P, J)
     coverage: jax.Array  # (P,) number of sensors that see each pixel
+    buckets: tuple  # ((idx (P_k, J_k), weight (P_k, J_k)), ...): pixels grouped by pairs read
+    inverse: jax.Array  # (P,) position of each pixel in the concatenated buckets
     ny: int = eqx.field(static=True)
     nx: int = eqx.field(static=True)
     clip_negative: bool = eqx.field(static=True)
@@ -104,12 +106,17 @@ class MapOperator(eqx.Module):
         flat = h.reshape(*lead, -1)
         if self.clip_negative:
             flat = jnp.maximum(flat, 0.0)
-        if lead:
-            # Frames on the fast axis: each gather reads a contiguous row of frames.
-            rows = flat.reshape(-1, flat.shape[-1]).T  # (SZB, F)
-            m = jnp.einsum("pjf,pj->fp", rows[self.index], self.weight)
-            return m.reshape(*lead, self.ny, self.nx)
-        return jnp.sum(flat[self.index] * self.weight, axis=-1).reshape(self.ny, self.nx)
+        rows = flat.reshape(-1, flat.shape[-1]) if lead else flat[None]  # (F, S*Z*B)
+        # Pixels are bucketed by how many (bin, weight) pairs they read; each bucket is a short
+        # unrolled loop of gathers (one per slot), which XLA fuses without an (P, J, F) temporary.
+        parts = []
+        for idx, w in self.buckets:
+            acc = rows[:, idx[:, 0]] * w[None, :, 0]
+            for j in range(1, idx.shape[1]):
+                acc = acc + rows[:, idx[:, j]] * w[None, :, j]
+            parts.append(acc)
+        m = jnp.concatenate(parts, axis=-1)[:, self.inverse]
+        return m.reshape(*lead, self.ny, self.nx) if lead else m.reshape(self.ny, self.nx)
 
     def std(self, variance):
         """Per-pixel standard deviation of the map of independent bins with ``variance`` (S, Z, B)
@@ -177,15 +184,37 @@ def build_map_operator(
     coverage = seen.sum(-1)
     if options.combine == "mean":
         wt = wt / np.maximum(coverage, 1.0)[:, None, None]
+    idx, wt = idx.reshape(P, J * S), wt.reshape(P, J * S)
+    buckets, inverse = _buckets(idx, wt, dtype)
     op = MapOperator(
-        index=jnp.asarray(idx.reshape(P, J * S), jnp.int32),
-        weight=jnp.asarray(wt.reshape(P, J * S), dtype),
+        buckets=buckets,
+        inverse=jnp.asarray(inverse, jnp.int32),
+        index=jnp.asarray(idx, jnp.int32),
+        weight=jnp.asarray(wt, dtype),
         coverage=jnp.asarray(coverage, dtype),
         ny=grid.ny,
         nx=grid.nx,
         clip_negative=options.clip_negative,
     )
     return op, grid
+
+
+def _buckets(idx: np.ndarray, wt: np.ndarray, dtype, step: int = 4):
+    """Group pixels by their number of non-zero pairs (rounded up to ``step``), non-zero first."""
+    nz = wt != 0
+    count = nz.sum(1)
+    order = np.argsort(~nz, axis=1, kind="stable")
+    idx, wt = np.take_along_axis(idx, order, 1), np.take_along_axis(wt, order, 1)
+    width = np.maximum(step * np.ceil(count / step), step).astype(int)
+    perm, buckets = [], []
+    for J in np.unique(width):
+        px = np.flatnonzero(width == J)
+        perm.append(px)
+        buckets.append((jnp.asarray(idx[px, :J], jnp.int32), jnp.asarray(wt[px, :J], dtype)))
+    perm = np.concatenate(perm)
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(len(perm))
+    return tuple(buckets), inverse
 
 
 def dense_map_matrix(op: MapOperator, n_in: int) -> np.ndarray:
