@@ -133,7 +133,7 @@ def test_sparse_map_equals_dense_reference(scene):
         h = rng.normal(size=(4, *scene.shape))
         ref = (np.maximum(h.reshape(4, -1), 0) @ M.T).reshape(4, grid.ny, grid.nx)
         np.testing.assert_allclose(np.asarray(op(h)), ref, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(op(h[2])), ref[2], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(op(h[2])), ref[2], rtol=1e-10, atol=1e-12)  # one frame, no batch axis
     # A pixel outside every field of view reads nothing; inside, weights sum to 1 (mean).
     op, grid = build_map_operator(scene, options=MapOptions(resolution_m=0.02), dtype=jnp.float64)
     w = np.asarray(op.weight).sum(-1)

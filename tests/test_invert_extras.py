@@ -37,7 +37,7 @@ def test_dynamic_baseline_follows_ambient_drift(scene, base):
     F = 60
     lam0 = expected_counts(scene.without_touches())
     touch = simulate_contacts(scene, np.array([[[0.15, 0.2, 1.0]]]), noise=False)[0] - lam0
-    lam = lam0[None] + np.linspace(0, 40, F)[:, None, None, None]  # ambient light rises by 60 counts/bin
+    lam = lam0[None] + np.linspace(0, 30, F)[:, None, None, None]  # ambient light rises by 30 counts/bin
     lam[25:35] += touch
     H = np.asarray(jax.vmap(sample_counts)(jax.random.split(jax.random.key(0), F), lam))
     touching = np.zeros(F, bool)
@@ -56,7 +56,7 @@ def test_dynamic_baseline_follows_ambient_drift(scene, base):
     static = [d.touches for d in inv.process(H).detections]
     false_dyn = sum(bool(t) for t, k in zip(found, touching) if not k)
     false_static = sum(bool(t) for t, k in zip(static, touching) if not k)
-    assert false_dyn <= 1 < 10 < false_static
+    assert false_dyn <= 3 and false_static >= 15
     for t in np.array(found, dtype=object)[touching]:
         assert match(np.array([[u["x_m"], u["y_m"]] for u in t]), np.array([[0.15, 0.2]]))[0] == 1
     # The final baseline sits at the drifted level (within the moving average's lag).
@@ -113,7 +113,8 @@ def test_uncertainty_far_contacts_most_sensitive(scene, base, tmp_path):
     assert np.allclose(s.std(0), [0.01, 0.1, 0.0], atol=0.01)
 
 
-def test_model_reconstruction_recovers_contacts(scene, base):
+@pytest.mark.parametrize("shadow", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_model_reconstruction_recovers_contacts(scene, base, shadow):
     C = np.array(
         [
             [[0.08, 0.15, 1.0], [0.15, 0.15, 1.0], [0.22, 0.15, 1.0]],
@@ -121,7 +122,8 @@ def test_model_reconstruction_recovers_contacts(scene, base):
         ]
     )
     H = simulate_contacts(scene, C, seed=5)
-    ro = ReconstructOptions(cell_m=0.015, iterations=200)  # coarse: a fast build for the test
+    # Coarse and without the shadow columns: a fast build for the test (the slow test has them).
+    ro = ReconstructOptions(cell_m=0.01, iterations=200, shadow=shadow)
     inv = build_inverter(scene, base, InvertOptions(method="model", reconstruct=ro), n_baseline=30)
     res = inv.process(H)
     for det, c in zip(res.detections, C):
@@ -144,9 +146,9 @@ def test_eval_study_fast(tmp_path):
     cfg = study.EvalConfig(
         methods=("baseline", "full"),
         baseline_frames=20,
-        single_grid=3,
+        single_grid=2,
         multi_counts=(6,),
-        multi_configs=6,
+        multi_configs=4,
         resolution_m=0.005,
         shapes=(str(ROOT / "configs" / "touch-ring.toml"),),
     )
@@ -156,7 +158,7 @@ def test_eval_study_fast(tmp_path):
     assert r["scenarios"]["single"]["methods"]["full"]["recall"] == 1.0
     assert r["shapes"]["touch-ring"]["full"]["shape_recall"] > 0.8
     assert json.loads((tmp_path / "eval_touch.json").read_text())["data"] == "simulated"
-    assert "| 6 contacts (6 configs) | full |" in (tmp_path / "eval_touch.md").read_text()
+    assert "| 6 contacts (4 configs) | full |" in (tmp_path / "eval_touch.md").read_text()
     for f in ("fig5_single.png", "fig6_multi.png", "fig7_shapes.png", "metrics.png"):
         assert (tmp_path / f).stat().st_size > 5000
 
@@ -172,7 +174,7 @@ def test_eval_study_full(tmp_path):
 
 def test_bench_runs(tmp_path):
     bench = _load("bench_invert")
-    r = bench.run(tmp_path, resolution_m=0.01, batch=8, repeats=2)
+    r = bench.run(tmp_path, resolution_m=0.02, batch=4, repeats=1)
     assert r["float32_max_rel_error"] < 1e-3
     assert r["numpy_vs_jax_max_rel_diff"] < 1e-3
     assert (tmp_path / "bench_invert.json").exists()
