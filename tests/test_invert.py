@@ -196,6 +196,22 @@ def test_detect_json_schema(captures, capsys):
         xs = sorted(t["x_m"] for t in strongest)
         assert np.allclose(xs, [0.08, 0.15, 0.22], atol=0.01) and all(abs(t["y_m"] - 0.15) < 0.01 for t in strongest)
     assert "no calibration given" in capsys.readouterr().err
+    dyn = captures / "dyn.json"
+    assert (
+        main(
+            [
+                "detect",
+                str(captures / "touch.h5"),
+                "--baseline",
+                str(captures / "base.h5"),
+                "--json",
+                str(dyn),
+                "--dynamic-baseline",
+            ]
+        )
+        == 0
+    )
+    assert [len(f["touches"]) >= 3 for f in json.loads(dyn.read_text())["frames"]] == [True, True]
 
 
 def test_process_writes_maps(captures):

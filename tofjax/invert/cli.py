@@ -34,8 +34,30 @@ def _run(a, *, want_detect: bool):
         touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
     for w in caught:
         print(f"tofjax {a.command}: warning: {w.message}", file=sys.stderr)
+    if a.method == "model":
+        print(
+            f"tofjax {a.command}: building the model-based reconstruction (the forward model's response "
+            "at every cell; tens of seconds) ...",
+            file=sys.stderr,
+            flush=True,
+        )
     inv = build_inverter(base.scene, base.mean(), _options(a), optical, n_baseline=base.n_frames)
-    res = inv.process(touch.histograms, detect=want_detect or bool(getattr(a, "png", None)))
+    if a.dynamic_baseline:
+        from .baseline import run_dynamic
+        from .correction import InversionError
+        from .pipeline import ProcessResult
+
+        if a.method not in ("baseline", "full"):
+            raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
+        dyn = run_dynamic(inv, touch.histograms)
+        res = ProcessResult(dyn.maps, dyn.ok, inv.grid, a.method, dyn.detections(inv), dyn.noise[-1])
+        print(
+            f"tofjax {a.command}: dynamic baseline: {int(dyn.no_touch.sum())} of {len(dyn.ok)} frames classified "
+            "no-touch updated it",
+            file=sys.stderr,
+        )
+    else:
+        res = inv.process(touch.histograms, detect=want_detect or bool(getattr(a, "png", None)))
     bad = int((~res.ok).sum())
     if bad:
         print(
@@ -94,6 +116,11 @@ def _common(s):
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")
     s.add_argument("--relative", type=float, default=0.3, help="detection threshold, fraction of the map maximum (0.3)")
     s.add_argument("--n-sigma", type=float, default=6.0, help="detection threshold in per-pixel noise (6)")
+    s.add_argument(
+        "--dynamic-baseline",
+        action="store_true",
+        help="update the baseline online from frames classified no-touch (slow drift; frames in order)",
+    )
 
 
 def register(sub) -> None:
