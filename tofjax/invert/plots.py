@@ -52,11 +52,13 @@ def plot_map(tactile_map, grid: Grid, scene: Scene, path, *, detection=None, tru
     return _save(fig, path)
 
 
-def plot_map_grid(rows: list[list[dict]], grid: Grid, scene: Scene, path, *, col_titles=None, row_titles=None) -> Path:
+def plot_map_grid(
+    rows: list[list[dict]], grid: Grid, scene: Scene, path, *, col_titles=None, row_titles=None, size: float = 2.3
+) -> Path:
     """A table of maps: ``rows[i][j]`` is a dict with ``map`` and optional ``detection``, ``truth``
     and ``grid`` (default ``grid``)."""
     nr, nc = len(rows), len(rows[0])
-    fig, axs = plt.subplots(nr, nc, figsize=(2.3 * nc, 2.3 * nr), squeeze=False)
+    fig, axs = plt.subplots(nr, nc, figsize=(size * nc, size * nr), squeeze=False)
     for i, row in enumerate(rows):
         for j, cell in enumerate(row):
             draw_map(axs[i, j], cell["map"], cell.get("grid", grid), scene, cell.get("detection"), cell.get("truth"))
