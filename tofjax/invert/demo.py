@@ -43,7 +43,7 @@ def run(out_dir: str | Path, baseline: Capture, *, seed: int = 0) -> list[str]:
         six,
         out / "tactile_map.png",
         col_titles=["baseline removal only", "full (Algorithm 1)"],
-        size=4.5,,
+        size=4.5,
     )
     lines.append(
         f"touch inversion: {len(SIX_CONTACTS)} contacts (simulated), tactile maps in {path.name} (crosses: detections, dashed: truth)"
