@@ -60,7 +60,7 @@ class ReconstructOptions:
     shadow: bool = True
     sum_cells: bool = True
     min_strength: float = 0.3
-    edge_exclusion_m: float = 0.008
+    edge_exclusion_m: float = 0.012
     dtype: str = "float32"
 
     def __post_init__(self):
