@@ -59,7 +59,7 @@ class ReconstructOptions:
     iterations: int = 300
     shadow: bool = True
     sum_cells: bool = True
-    min_strength: float = 0.3
+    min_strength: float = 0.2
     edge_exclusion_m: float = 0.012
     dtype: str = "float32"
 
