@@ -192,7 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     # Subcommands of the packages built on the foundation, each registered by its own module.
     from .force.cli import register as register_force  # train, predict, table, force-data (issue 5)
     from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
+    from .invert.cli import register as register_invert  # process, detect (issue 4)
 
+    register_invert(sub)
     register_force(sub)
     register_hw(sub)
     return p

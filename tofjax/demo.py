@@ -127,6 +127,10 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     from .force.demo import run as force_demo
 
     lines += ["", *force_demo(out, seed=seed)]
+    print("[+] touch inversion: tactile maps and detections ...", flush=True)
+    from .invert.demo import run as invert_demo
+
+    lines += invert_demo(out, baseline, seed=seed + 2)
     summary = out / "summary.txt"
     summary.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -1,0 +1,274 @@
+"""Touch inversion: correction (Algorithm 1), maps (Eq. 8), detection, commands."""
+
+import json
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tofjax import load_scene
+from tofjax.capture import write_capture
+from tofjax.cli import main
+from tofjax.invert import (
+    CorrectionOptions,
+    InversionError,
+    InvertOptions,
+    MapOptions,
+    OpticalParams,
+    build_corrector,
+    build_inverter,
+    build_map_operator,
+    match,
+)
+from tofjax.invert.maps import dense_map_matrix
+from tofjax.invert.synth import random_contacts, simulate_contacts
+from tofjax.simulate import expected_counts, simulate
+
+NEAR_FAR = np.array(
+    [
+        [[0.14, 0.07, 1.0]],  # ~7 cm from S0/S1... near
+        [[0.09, 0.20, 1.0]],  # mid
+        [[0.27, 0.27, 1.0]],  # far corner: ~36 cm from S0
+        [[0.20, 0.25, 1.0]],
+    ]
+)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_scene("optoskin")
+
+
+@pytest.fixture(scope="module")
+def baseline(scene):
+    return expected_counts(scene.without_touches())
+
+
+@pytest.fixture(scope="module")
+def single_clean(scene):
+    return simulate_contacts(scene, NEAR_FAR, noise=False)
+
+
+@pytest.fixture(scope="module")
+def single_noisy(scene):
+    return simulate_contacts(scene, NEAR_FAR, seed=1)
+
+
+def test_masks_zero_impossible_bins(scene, baseline):
+    c = build_corrector(scene, baseline, options=CorrectionOptions(method="full"), dtype=jnp.float64)
+    mask = np.asarray(c.mask)
+    r = np.asarray(c.range_m)
+    dr = 0.5 * OpticalParams.from_scene(scene).c1 * scene.sensor.bin_width_s
+    assert not mask[r + 0.5 * dr <= 0].any()  # before the light enters
+    assert not mask[r > 0.43 + 3 * dr].any()  # beyond the farthest edge of a 30 x 30 cm slab
+    assert mask[(r > 0.02) & (r < 0.2)].all()  # where contacts can be
+    # Zone-specific far edge: some zone's edge is much nearer than the diagonal.
+    assert mask.sum(-1).min() < mask.sum(-1).max() - 5
+    rng = np.random.default_rng(0)
+    h = rng.uniform(0, 1e6, (3, *scene.shape))
+    for m in ("raw", "decay", "baseline", "full"):
+        cm = build_corrector(scene, baseline, options=CorrectionOptions(method=m), dtype=jnp.float64)
+        out, ok = cm(h)
+        assert ok.all()
+        assert np.all(np.asarray(out)[:, ~mask] == 0.0)
+
+
+def test_no_nan_or_inf_at_extremes(scene, baseline):
+    paper = load_scene("optoskin-paper")  # mu_t = 74 /m: a gain of e^60 at the far edge before the cap
+    for sc in (scene, paper):
+        base = expected_counts(sc.without_touches())
+        inv = build_inverter(sc, base, InvertOptions(maps=MapOptions(resolution_m=0.01)))
+        c = inv.corrector
+        assert np.isfinite(np.asarray(c.gain)).all()
+        r0 = sc.waveguide.near_field
+        assert float(np.max(np.asarray(c.gain) * np.asarray(sc.gains())[:, None, None])) <= 1e5 * r0**2 * (1 + 1e-5)
+        frames = np.stack(
+            [
+                np.zeros(sc.shape),
+                np.full(sc.shape, 1e9),  # above saturation: flagged
+                np.full(sc.shape, sc.sensor.saturation_counts - 1),
+                np.where(np.arange(sc.shape[-1]) == 50, np.nan, base),  # a NaN bin: flagged
+                base,
+            ]
+        )
+        maps, ok = inv.maps(frames)
+        assert np.isfinite(maps).all()
+        assert ok.tolist() == [True, False, True, False, True]
+        assert np.all(maps[~ok] == 0)
+        res = inv.process(frames)
+        assert res.detections[1].touches == []
+
+
+def test_single_contact_recovered_within_1cm_near_and_far(scene, single_noisy):
+    base = simulate(scene.without_touches(), 30, 0)
+    inv = build_inverter(scene, base.mean(), InvertOptions(method="full"), n_baseline=30)
+    res = inv.process(single_noisy)
+    for det, truth in zip(res.detections, NEAR_FAR):
+        assert len(det.touches) >= 1
+        best = det.touches[0]  # the strongest
+        err = math.hypot(best["x_m"] - truth[0, 0], best["y_m"] - truth[0, 1])
+        assert err < 0.01, (truth, det.touches)
+        assert len(det.touches) == 1, det.touches
+
+
+def test_decay_correction_makes_strength_distance_independent(scene, baseline, single_clean):
+    full = build_corrector(scene, baseline, options=CorrectionOptions(method="full"), dtype=jnp.float64)
+    only = build_corrector(scene, baseline, options=CorrectionOptions(method="baseline"), dtype=jnp.float64)
+    sf = np.asarray(full(single_clean)[0]).clip(0).sum((-1, -2))  # (C, S): per sensor, over zones and bins
+    sb = np.asarray(only(single_clean)[0]).clip(0).sum((-1, -2))
+    # The sensor that sees each contact best (largest share of its angular width).
+    ratio_full = sf.max(1).max() / sf.max(1).min()
+    ratio_base = sb.max(1).max() / sb.max(1).min()
+    assert ratio_base > 5.0  # baseline removal alone: near contacts dominate
+    assert ratio_full < 1.5  # decay corrected: strength ~1 everywhere
+    assert np.allclose(sf.max(1), 1.0, atol=0.3)
+
+
+def test_sparse_map_equals_dense_reference(scene):
+    rng = np.random.default_rng(1)
+    for opts in (MapOptions(resolution_m=0.02), MapOptions(resolution_m=0.015, combine="sum", angular="zone")):
+        op, grid = build_map_operator(scene, options=opts, dtype=jnp.float64)
+        M = dense_map_matrix(op, int(np.prod(scene.shape)))
+        h = rng.normal(size=(4, *scene.shape))
+        ref = (np.maximum(h.reshape(4, -1), 0) @ M.T).reshape(4, grid.ny, grid.nx)
+        np.testing.assert_allclose(np.asarray(op(h)), ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(op(h[2])), ref[2], rtol=1e-10, atol=1e-12)  # one frame, no batch axis
+    # A pixel outside every field of view reads nothing; inside, weights sum to 1 (mean).
+    op, grid = build_map_operator(scene, options=MapOptions(resolution_m=0.02), dtype=jnp.float64)
+    w = np.asarray(op.weight).sum(-1)
+    cov = np.asarray(op.coverage)
+    assert np.allclose(w[cov > 0], 1.0) and np.all(w[cov == 0] == 0)
+
+
+def test_multi_touch_full_beats_baseline(scene):
+    C = random_contacts(scene, 6, 6, seed=3)
+    H = simulate_contacts(scene, C, seed=4)
+    base = simulate(scene.without_touches(), 30, 0).mean()
+    recall = {}
+    for m in ("baseline", "full"):
+        res = build_inverter(scene, base, InvertOptions(method=m), n_baseline=30).process(H)
+        recall[m] = sum(match(d.positions(), c[:, :2])[0] for d, c in zip(res.detections, C)) / C[..., 0].size
+    assert recall["full"] >= 0.85
+    assert recall["full"] > recall["baseline"] + 0.2
+
+
+def test_calibration_json(scene, tmp_path):
+    cal = {
+        "parameters": {"n1": {"value": 1.45, "stderr": 0.01}, "gain": {"value": [120.0] * 6, "stderr": [1.0] * 6}},
+        "fixed": {"mu_s_per_m": 0.5},
+    }
+    p = tmp_path / "cal.json"
+    p.write_text(json.dumps(cal))
+    o = OpticalParams.from_calibration(p, scene)
+    assert o.n1 == 1.45 and o.mu_s_per_m == 0.5 and o.gain == (120.0,) * 6
+    assert o.mu_a_per_m == scene.waveguide.mu_a_per_m
+    bad = dict(cal, parameters={"gain": {"value": [1.0, 2.0]}})
+    with pytest.raises(InversionError, match="2 values for 6 sensors"):
+        OpticalParams.from_calibration(bad, scene)
+    with pytest.raises(InversionError, match="not a calibration"):
+        OpticalParams.from_calibration({"x": 1}, scene)
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory, scene):
+    d = tmp_path_factory.mktemp("inv")
+    write_capture(d / "base.h5", simulate(scene.without_touches(), 10, 0))
+    write_capture(d / "touch.h5", simulate(load_scene("configs/touch-three-line.toml"), 2, 1))
+    write_capture(d / "soft.h5", simulate(load_scene("softskin"), 1, 0))
+    return d
+
+
+def test_detect_json_schema(captures, capsys):
+    out = captures / "touches.json"
+    rc = main(["detect", str(captures / "touch.h5"), "--baseline", str(captures / "base.h5"), "--json", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert set(data) == {"frames"}
+    assert [f["index"] for f in data["frames"]] == [0, 1]
+    for f in data["frames"]:
+        assert set(f) == {"index", "touches"}
+        assert len(f["touches"]) >= 3
+        for t in f["touches"]:
+            assert set(t) == {"x_m", "y_m", "strength"}
+            assert all(isinstance(v, float) and math.isfinite(v) for v in t.values())
+        strongest = sorted(f["touches"], key=lambda t: -t["strength"])[:3]
+        xs = sorted(t["x_m"] for t in strongest)
+        assert np.allclose(xs, [0.08, 0.15, 0.22], atol=0.01) and all(abs(t["y_m"] - 0.15) < 0.01 for t in strongest)
+    assert "no calibration given" in capsys.readouterr().err
+    dyn = captures / "dyn.json"
+    assert (
+        main(
+            [
+                "detect",
+                str(captures / "touch.h5"),
+                "--baseline",
+                str(captures / "base.h5"),
+                "--json",
+                str(dyn),
+                "--dynamic-baseline",
+            ]
+        )
+        == 0
+    )
+    assert [len(f["touches"]) >= 3 for f in json.loads(dyn.read_text())["frames"]] == [True, True]
+
+
+def test_process_writes_maps(captures):
+    import h5py
+
+    out = captures / "maps.h5"
+    rc = main(
+        [
+            "process",
+            str(captures / "touch.h5"),
+            "--baseline",
+            str(captures / "base.h5"),
+            "--out",
+            str(out),
+            "--png",
+            str(captures / "png"),
+            "--method",
+            "baseline",
+        ]
+    )
+    assert rc == 0
+    with h5py.File(out) as f:
+        assert f["maps"].shape == (2, 120, 120) and f.attrs["method"] == "baseline"
+        assert f["ok"][:].all()
+    assert (captures / "png" / "map_0001.png").exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["detect", "{d}/soft.h5", "--baseline", "{d}/base.h5", "--json", "{d}/x.json"], "not the same setup"),
+        (["detect", "{d}/touch.h5", "--baseline", "{d}/nope.h5", "--json", "{d}/x.json"], "no such file"),
+        (
+            [
+                "process",
+                "{d}/touch.h5",
+                "--baseline",
+                "{d}/base.h5",
+                "--calibration",
+                "{d}/touch.h5",
+                "--out",
+                "{d}/m.h5",
+            ],
+            "not valid JSON",
+        ),
+    ],
+)
+def test_cli_errors_are_one_line(captures, capsys, args, message):
+    rc = main([a.format(d=captures) for a in args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len([e for e in err if "warning" not in e]) == 1 and message in err[-1]
+
+
+def test_different_scene_same_shape_is_an_error(scene):
+    from tofjax.invert.correction import check_compatible
+
+    other = scene.replace(waveguide=scene.waveguide.__class__(**{**scene.waveguide.__dict__, "n1": 1.5}))
+    with pytest.raises(InversionError, match="different scenes"):
+        check_compatible(other, scene)

@@ -1,0 +1,136 @@
+"""``tofjax process`` and ``tofjax detect``: thin wrappers over :mod:`tofjax.invert.pipeline`.
+
+Without ``--calibration`` the scene's stated optics are used and a warning says so
+(simulated captures carry the truth in their scene; a real device needs a calibration).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def _options(a):
+    from .detect import DetectOptions
+    from .maps import MapOptions
+    from .pipeline import InvertOptions
+
+    return InvertOptions(
+        method=a.method,
+        maps=MapOptions(resolution_m=a.resolution_mm / 1000.0),
+        detect=DetectOptions(relative=a.relative, n_sigma=a.n_sigma),
+    )
+
+
+def _run(a, *, want_detect: bool):
+    from .pipeline import build_inverter, load_inputs
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
+    for w in caught:
+        print(f"tofjax {a.command}: warning: {w.message}", file=sys.stderr)
+    if a.method == "model":
+        print(
+            f"tofjax {a.command}: building the model-based reconstruction (the forward model's response "
+            "at every cell; tens of seconds) ...",
+            file=sys.stderr,
+            flush=True,
+        )
+    inv = build_inverter(base.scene, base.mean(), _options(a), optical, n_baseline=base.n_frames)
+    if a.dynamic_baseline:
+        from .baseline import run_dynamic
+        from .correction import InversionError
+        from .pipeline import ProcessResult
+
+        if a.method not in ("baseline", "full"):
+            raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
+        dyn = run_dynamic(inv, touch.histograms)
+        res = ProcessResult(dyn.maps, dyn.ok, inv.grid, a.method, dyn.detections(inv), dyn.noise[-1])
+        print(
+            f"tofjax {a.command}: dynamic baseline: {int(dyn.no_touch.sum())} of {len(dyn.ok)} frames classified "
+            "no-touch updated it",
+            file=sys.stderr,
+        )
+    else:
+        res = inv.process(touch.histograms, detect=want_detect or bool(getattr(a, "png", None)))
+    bad = int((~res.ok).sum())
+    if bad:
+        print(
+            f"tofjax {a.command}: warning: {bad} of {len(res.ok)} frames have NaN or saturated bins; "
+            "flagged (ok = false) and left out",
+            file=sys.stderr,
+        )
+    return touch, base, optical, inv, res
+
+
+def _cmd_process(a) -> int:
+    from .pipeline import write_maps
+
+    touch, base, optical, inv, res = _run(a, want_detect=True)
+    write_maps(a.out, res, base.scene, optical)
+    msg = f"wrote {a.out}: {len(res.maps)} maps of {inv.grid.ny} x {inv.grid.nx} px ({a.method})"
+    if a.png:
+        from .plots import plot_map
+
+        for i, (m, det) in enumerate(zip(res.maps, res.detections)):
+            plot_map(
+                m,
+                inv.grid,
+                touch.scene,
+                Path(a.png) / f"map_{i:04d}.png",
+                detection=det,
+                title=f"frame {i}, {a.method}",
+            )
+        msg += f"; PNGs in {a.png}/"
+    print(msg)
+    return 0
+
+
+def _cmd_detect(a) -> int:
+    touch, base, optical, inv, res = _run(a, want_detect=True)
+    data = res.touches_json()
+    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.json).write_text(json.dumps(data, indent=1))
+    n = sum(len(f["touches"]) for f in data["frames"])
+    print(f"wrote {a.json}: {n} touches in {len(data['frames'])} frames ({a.method})")
+    for f in data["frames"][:10]:
+        pts = ", ".join(f"({t['x_m'] * 100:.1f}, {t['y_m'] * 100:.1f}) cm s={t['strength']:.2f}" for t in f["touches"])
+        print(f"  frame {f['index']}: {pts or 'no touch'}")
+    return 0
+
+
+def _common(s):
+    from .pipeline import ALL_METHODS
+
+    s.add_argument("touch", help="touch capture (.h5)")
+    s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
+    s.add_argument(
+        "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
+    )
+    s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
+    s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")
+    s.add_argument("--relative", type=float, default=0.3, help="detection threshold, fraction of the map maximum (0.3)")
+    s.add_argument("--n-sigma", type=float, default=6.0, help="detection threshold in per-pixel noise (6)")
+    s.add_argument(
+        "--dynamic-baseline",
+        action="store_true",
+        help="update the baseline online from frames classified no-touch (slow drift; frames in order)",
+    )
+
+
+def register(sub) -> None:
+    s = sub.add_parser("process", help="correct touch histograms and write tactile maps (seed 000 Alg. 1, Eq. 8)")
+    _common(s)
+    s.add_argument("--out", required=True, help="output maps (.h5)")
+    s.add_argument("--png", help="folder for one PNG per frame")
+    s.set_defaults(func=_cmd_process)
+
+    s = sub.add_parser("detect", help="detect touches (positions, strengths) and write them as JSON")
+    _common(s)
+    s.add_argument("--json", required=True, help="output JSON: {frames: [{index, touches: [{x_m, y_m, strength}]}]}")
+    s.set_defaults(func=_cmd_detect)

@@ -1,0 +1,78 @@
+"""Figures of tactile maps: one map with its detections, and a grid of maps (seed 000 Fig. 5-7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..scene import Scene  # noqa: E402
+from .detect import Detection  # noqa: E402
+from .maps import Grid  # noqa: E402
+
+__all__ = ["draw_map", "plot_map", "plot_map_grid"]
+
+
+def draw_map(
+    ax, tactile_map, grid: Grid, scene: Scene, detection: Detection | None = None, truth=None, title=None, equalize=True
+):
+    m = np.asarray(tactile_map, float)
+    vmax = m.max() if equalize and m.max() > 0 else None
+    ax.imshow(m, origin="lower", extent=grid.extent, cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
+    for s in scene.sensors:
+        ax.plot(*s.position_m, "s", color="#4fc3f7", ms=5, mec="k", clip_on=False)
+    if truth is not None:
+        for x, y in np.asarray(truth).reshape(-1, 2):
+            ax.add_patch(plt.Circle((x, y), 0.02, fill=False, ec="#00e676", lw=1.0, ls="--"))
+    if detection is not None:
+        if detection.labels is not None and detection.labels.any():
+            ax.contour(
+                grid.x, grid.y, (detection.labels > 0).astype(float), levels=[0.5], colors="#29b6f6", linewidths=0.8
+            )
+        p = detection.positions()
+        if len(p):
+            ax.plot(p[:, 0], p[:, 1], "x", color="#00e5ff", ms=7, mew=1.6)
+    ax.set_xlim(0, grid.nx * grid.dx)
+    ax.set_ylim(0, grid.ny * grid.dy)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if title:
+        ax.set_title(title, fontsize=9)
+
+
+def plot_map(tactile_map, grid: Grid, scene: Scene, path, *, detection=None, truth=None, title=None) -> Path:
+    """One map with its detections (crosses), contact areas (outlines) and the truth (dashed 2 cm circles)."""
+    fig, ax = plt.subplots(figsize=(4.6, 4.6))
+    draw_map(ax, tactile_map, grid, scene, detection, truth, title)
+    return _save(fig, path)
+
+
+def plot_map_grid(
+    rows: list[list[dict]], grid: Grid, scene: Scene, path, *, col_titles=None, row_titles=None, size: float = 2.3
+) -> Path:
+    """A table of maps: ``rows[i][j]`` is a dict with ``map`` and optional ``detection``, ``truth``
+    and ``grid`` (default ``grid``)."""
+    nr, nc = len(rows), len(rows[0])
+    fig, axs = plt.subplots(nr, nc, figsize=(size * nc, size * nr), squeeze=False)
+    for i, row in enumerate(rows):
+        for j, cell in enumerate(row):
+            draw_map(axs[i, j], cell["map"], cell.get("grid", grid), scene, cell.get("detection"), cell.get("truth"))
+            if i == 0 and col_titles:
+                axs[i, j].set_title(col_titles[j], fontsize=9)
+        if row_titles:
+            axs[i, 0].set_ylabel(row_titles[i], fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
