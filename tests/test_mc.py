@@ -18,7 +18,7 @@ from tofjax.scene import scene_from_dict
 ROOT = Path(__file__).parents[1]
 
 
-def strip_scene(length=0.2, n1=1.4, mu_s=0.0, mu_a=0.0, fov=1.0, zones=1, touches=(), n_bins=64, bin_s=1e-10):
+def strip_scene(length=0.2, n1=1.4, mu_s=0.0, mu_a=0.0, fov=1.0, zones=1, touches=(), n_bins=128, bin_s=5e-11):
     """A long strip with one sensor in the middle of its short edge, looking along it."""
     return scene_from_dict(
         {
@@ -41,14 +41,14 @@ def test_fresnel_limits():
 
 def test_energy_is_conserved_with_closed_edges():
     """mu_a = 0, mirror edges, no roulette: all weight is detected, escaped through the faces, late or left."""
-    sc = strip_scene(length=0.1, mu_s=20.0, fov=30.0, zones=3)
-    r = run_mc(sc, MCOptions(photons=3000, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
+    sc = strip_scene(length=0.1, mu_s=20.0, fov=30.0)
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
     lg = r.ledger
     assert lg["absorbed"] == 0 and lg["edge_loss"] == 0 and lg["contact_loss"] == 0 and lg["roulette"] == 0
     assert sum(lg.values()) == pytest.approx(1.0, abs=1e-9)
     assert lg["detected"] > 0 and lg["escaped"] > 0 and lg["late"] > 0
     # without scattering nothing leaves the guide: detected + late + left is all of it
-    r0 = run_mc(strip_scene(length=0.1, fov=30.0), MCOptions(photons=2000, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
+    r0 = run_mc(strip_scene(length=0.1, fov=30.0), MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
     assert r0.ledger["escaped"] == 0.0
     assert r0.ledger["detected"] + r0.ledger["late"] + r0.ledger["remaining"] == pytest.approx(1.0, abs=1e-12)
 
@@ -57,7 +57,7 @@ def test_beer_lambert_along_a_straight_path():
     """mu_s = 0, n1 -> 1 (straight, in-plane), absorbing edges: what reaches the far edge is exp(-mu_a L)."""
     mu_a, length = 5.0, 0.2
     sc = strip_scene(length=length, n1=1.0001, mu_a=mu_a, fov=0.5)
-    r = run_mc(sc, MCOptions(photons=500, edges="absorb", dtype="float64"))
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="absorb", dtype="float64"))
     assert r.ledger["edge_loss"] == pytest.approx(math.exp(-mu_a * length), rel=2e-4)
     assert r.ledger["absorbed"] == pytest.approx(1 - math.exp(-mu_a * length), rel=2e-4)
 
@@ -66,10 +66,10 @@ def test_beer_lambert_along_a_straight_path():
 def test_far_edge_returns_at_two_d_n1_over_c(n1):
     """A mirror edge at distance D facing the sensor: the return peaks at t_e + 2 D n1 / c."""
     length = 0.1
-    sc = strip_scene(length=length, n1=n1, fov=0.5, bin_s=5e-11, n_bins=128)
-    r = run_mc(sc, MCOptions(photons=4000, edges="specular", edge_reflectance=1.0, quadrature=8, dtype="float64"))
+    sc = strip_scene(length=length, n1=n1, fov=0.5)
+    r = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="specular", edge_reflectance=1.0, dtype="float64"))
     assert r.ledger["detected"] > 0.95
-    h = sc.sensor.bin_width_s / 8
+    h = sc.sensor.bin_width_s / 4
     nodes = r.nodes[0].sum(0)
     t_peak = (np.argmax(nodes) + 0.5) * h
     expected = sc.sensor.emission_time + 2 * length * n1 / SPEED_OF_LIGHT_M_PER_S
@@ -81,8 +81,8 @@ def test_far_edge_returns_at_two_d_n1_over_c(n1):
 
 def test_contact_sends_light_back_and_shadows():
     touch = {"position_m": [0.08, 0.05], "radius_m": 0.008, "strength": 1.0}
-    base = strip_scene(length=0.2, fov=10.0, zones=1, n_bins=64)
-    opts = MCOptions(photons=20000, edges="specular", edge_reflectance=1.0)
+    base = strip_scene(length=0.2, fov=10.0)
+    opts = MCOptions(photons=16384, batch=2048, edges="specular", edge_reflectance=1.0, dtype="float64")
     r0 = run_mc(base, opts)
     r1 = run_mc(base.replace(touches=(scene_from_dict({**json.loads(base.to_json()), "touches": [touch]}).touches)), opts)
     assert r1.ledger["contact_loss"] == 0  # albedo 1
@@ -97,10 +97,10 @@ def test_contact_sends_light_back_and_shadows():
 
 
 def test_reproducible_and_batch_independent():
-    sc = strip_scene(mu_s=5.0, mu_a=1.0, fov=20.0, zones=2)
-    a = run_mc(sc, MCOptions(photons=3000, seed=3, batch=1024))
-    b = run_mc(sc, MCOptions(photons=3000, seed=3, batch=4096))
-    c = run_mc(sc, MCOptions(photons=3000, seed=4, batch=4096))
+    sc = strip_scene(mu_s=5.0, mu_a=1.0, fov=20.0)
+    a = run_mc(sc, MCOptions(photons=4096, seed=3, batch=1024, dtype="float64"))
+    b = run_mc(sc, MCOptions(photons=4096, seed=3, batch=2048, dtype="float64"))
+    c = run_mc(sc, MCOptions(photons=4096, seed=4, batch=2048, dtype="float64"))
     np.testing.assert_allclose(a.nodes, b.nodes, rtol=1e-5, atol=1e-9)
     assert not np.allclose(a.nodes, c.nodes)
     assert np.all(np.isfinite(a.counts)) and a.counts.shape == sc.shape
@@ -133,7 +133,11 @@ print(json.dumps({{"devices": [one.devices, two.devices], "n": jax.device_count(
 
 def test_sharded_over_two_devices_matches_one():
     sc = strip_scene(mu_s=5.0, mu_a=1.0, fov=20.0, zones=2)
+    import tempfile
+
+    cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
+               JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(scene=sc.to_json())], env=env,
                          capture_output=True, text=True, timeout=120)

@@ -253,43 +253,55 @@ def _lambertian(nx, ny, nz, tx, ty, tz, u1, u2):
 
 
 class _Static:
-    """Everything a batch needs, as Python numbers and small arrays (closed over by the jit)."""
+    """A run's settings, split into what shapes the program (``key``: hashable, compiled once per
+    value) and the physics (``dyn``: arrays passed at run time, so another scene with the same
+    shapes reuses the compiled program)."""
 
     def __init__(self, scene: Scene, opts: MCOptions):
         wg, sm = scene.waveguide, scene.sensor
         self.S, self.Z, self.B = scene.shape
         self.q = opts.quadrature
         self.K = self.B * self.q
-        self.lx, self.ly = (float(v) for v in wg.size_m)
-        self.d = float(wg.thickness_m)
-        self.n1 = float(wg.n1)
-        self.mu_s = float(wg.mu_s_per_m)
-        self.mu_a = float(wg.mu_a_per_m)
-        self.c1 = SPEED_OF_LIGHT_M_PER_S / self.n1
-        self.h = float(sm.bin_width_s) / self.q
-        self.t_e = float(sm.emission_time)
-        # packets later than the window (plus a few nodes of B-spline support) are stopped
-        self.L_max = max((self.B * sm.bin_width_s + 2 * self.h - self.t_e) * self.c1, 0.0)
-        self.fov = math.radians(sm.fov_deg)
-        self.edges = zone_edges(sm.fov_deg, sm.zones)
-        self.sensor_xy = np.array([s.position_m for s in scene.sensors], float)
-        self.sensor_dir = np.radians([s.direction_deg for s in scene.sensors])
+        n1 = float(wg.n1)
+        c1 = SPEED_OF_LIGHT_M_PER_S / n1
+        h = float(sm.bin_width_s) / self.q
+        t_e = float(sm.emission_time)
         el = scene.contact_elements()
-        self.contacts = el[:, :3].astype(float)
         albedo = np.clip(el[:, 3], 0.0, 1.0) if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
-        self.albedo = albedo.astype(float)
-        self.contact_n = float(opts.contact_n)
-        self.g = float(opts.g)
+        self.n_contacts = len(el)
         self.edge_mode = opts.edges
-        self.edge_R = float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance)
-        self.half_ap = 0.5 * float(opts.aperture_m)
-        self.cos_guided = math.sqrt(max(1.0 - 1.0 / self.n1**2, 0.0))  # |u_z| below this is guided
         self.max_events = int(opts.max_events)
-        self.roulette_w = float(opts.roulette_weight)
-        self.roulette_p = float(opts.roulette_survival)
+        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events)
+        self.dyn = {
+            "lx": wg.size_m[0], "ly": wg.size_m[1], "d": wg.thickness_m, "n1": n1,
+            "mu_s": wg.mu_s_per_m, "mu_a": wg.mu_a_per_m, "c1": c1, "h": h, "t_e": t_e,
+            # packets later than the window (plus two nodes of B-spline support) are stopped
+            "L_max": max((self.B * sm.bin_width_s + 2 * h - t_e) * c1, 0.0),
+            "fov": math.radians(sm.fov_deg),
+            "sensor_xy": np.array([s.position_m for s in scene.sensors], float),
+            "sensor_dir": np.radians([s.direction_deg for s in scene.sensors]),
+            "contacts": el[:, :3].astype(float).reshape(-1, 3),
+            "albedo": albedo.astype(float),
+            "contact_n": opts.contact_n, "g": opts.g,
+            "edge_R": float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance),
+            "half_ap": 0.5 * opts.aperture_m,
+            "cos_guided": math.sqrt(max(1.0 - 1.0 / n1**2, 0.0)),  # |u_z| below this is guided
+            "roulette_w": opts.roulette_weight, "roulette_p": opts.roulette_survival,
+        }
+
+    def arrays(self, dtype):
+        return {k: jnp.asarray(v, dtype) for k, v in self.dyn.items()}
 
 
-def _emit(st: _Static, idx, keys, dtype):
+class _View:
+    """Attribute access to the static shapes and the traced physics inside the kernel."""
+
+    def __init__(self, st: _Static, ph: dict):
+        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events")})
+        self.__dict__.update(ph)
+
+
+def _emit(st: _View, idx, keys, dtype):
     """Initial packets for global photon indices ``idx`` (sensor = idx mod S)."""
     s = idx % st.S
     u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
@@ -304,7 +316,7 @@ def _emit(st: _Static, idx, keys, dtype):
     )
 
 
-def _transport(st: _Static, idx, valid, seed_key, dtype):
+def _transport(st: _View, idx, valid, seed_key, dtype):
     """Follow one batch of packets to the end. Returns (tally (S*Z*K,), ledger (8,), events)."""
     keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(idx)
     p = _emit(st, idx, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
@@ -315,11 +327,11 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
     inf = f(jnp.inf)
     sxy = jnp.asarray(st.sensor_xy, dtype)
     sdir = jnp.asarray(st.sensor_dir, dtype)
-    has_contacts = st.contacts.shape[0] > 0
+    has_contacts = st.n_contacts > 0
     if has_contacts:
-        cxy = jnp.asarray(st.contacts[:, :2], dtype)
-        crad = jnp.asarray(st.contacts[:, 2], dtype)
-        calb = jnp.asarray(st.albedo, dtype)
+        cxy = st.contacts[:, :2]
+        crad = st.contacts[:, 2]
+        calb = st.albedo
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
     ledger0 = jnp.zeros((len(LEDGER),), dtype)
     tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
@@ -330,7 +342,8 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
-        s_scat = -jnp.log1p(-u[:, 0]) / st.mu_s if st.mu_s > 0 else jnp.full_like(x, inf)
+        scatters = st.mu_s > 0
+        s_scat = jnp.where(scatters, -jnp.log1p(-u[:, 0]) / jnp.where(scatters, st.mu_s, 1.0), inf)
         tx = jnp.where(ux > 1e-12, (st.lx - x) / jnp.where(ux > 1e-12, ux, 1.0),
                        jnp.where(ux < -1e-12, -x / jnp.where(ux < -1e-12, ux, 1.0), inf))
         ty = jnp.where(uy > 1e-12, (st.ly - y) / jnp.where(uy > 1e-12, uy, 1.0),
@@ -382,7 +395,7 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
             nuz = jnp.where(is_cont, az_, nuz)
         R_air = R_air_of(uz)
         keep = jnp.where(R_air >= 1.0, 1.0, R_air**k_faces)
-        att = jnp.exp(-st.mu_a * s) if st.mu_a > 0 else jnp.ones_like(s)
+        att = jnp.exp(-st.mu_a * s)
         w_new = w * att * keep
         absorbed = w * (1.0 - att)
         escaped = w * att * (1.0 - keep)
@@ -419,6 +432,7 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
         zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
         tau = st.t_e + L_new / st.c1
         uu = tau / st.h - 0.5
+        uu = jnp.where(det, uu, -10.0)  # keep int conversion finite for packets not detected
         centre = jnp.round(uu)
         dd = uu - centre
         ic = centre.astype(jnp.int32)
@@ -450,16 +464,13 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
         wn = jnp.where(refl, w_new * edge_R, jnp.where(cn, c_w, w_new))
         edge_loss = jnp.where(refl, w_new * (1.0 - edge_R), 0.0)
         still = alive & ~late & ~det & (wn > 0)
-        # Russian roulette
-        if st.roulette_w > 0:
-            low = still & (wn < st.roulette_w)
-            survive = u[:, 5] < st.roulette_p
-            rw = jnp.where(low, jnp.where(survive, wn / st.roulette_p, 0.0), wn)
-            roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
-            wn = rw
-            still = still & ~(low & ~survive)
-        else:
-            roulette = jnp.zeros_like(wn)
+        # Russian roulette (never triggers with roulette_w = 0)
+        low = still & (wn < st.roulette_w)
+        survive = u[:, 5] < st.roulette_p
+        rw = jnp.where(low, jnp.where(survive, wn / st.roulette_p, 0.0), wn)
+        roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
+        wn = rw
+        still = still & ~(low & ~survive)
         A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
         ledger = ledger + jnp.stack([
             jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
@@ -480,16 +491,25 @@ def _transport(st: _Static, idx, valid, seed_key, dtype):
     return tally, ledger, events
 
 
-def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, dtype):
-    """jit(shard_map(...)): (batches, n_batch) global indices + validity -> summed tallies."""
-    ndev = mesh.devices.size
+_COMPILED: dict = {}
 
-    def local(idx, valid, seed):
+
+def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):
+    """Compiled ``shard_map``: (per_call, n_batch) global indices + validity -> summed tallies.
+
+    Cached by the program's shapes, so runs that differ only in physics reuse it.
+    Returns (executable, compile seconds: 0 when cached)."""
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name)
+    if cache_key in _COMPILED:
+        return _COMPILED[cache_key], 0.0
+
+    def local(idx, valid, seed, ph):
         key = jax.random.wrap_key_data(seed)
+        view = _View(st, ph)
 
         def one(carry, xs):
             t, l, e = carry
-            ti, li, ei = _transport(st, xs[0], xs[1], key, dtype)
+            ti, li, ei = _transport(view, xs[0], xs[1], key, dtype)
             return (t + ti, l + li, e + ei), None
 
         init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER),), dtype), jnp.zeros((), jnp.int32))
@@ -497,10 +517,16 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, dtype):
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
-        local, mesh=mesh, in_specs=(P(None, "photons"), P(None, "photons"), P()), out_specs=(P(), P(), P()), check_vma=False,
+        local,
+        mesh=mesh,
+        in_specs=(P(None, "photons"), P(None, "photons"), P(), P()),
+        out_specs=(P(), P(), P()),
+        check_vma=False,
     )
-    assert n_batch % ndev == 0
-    return jax.jit(sm)
+    t0 = time.perf_counter()
+    exe = jax.jit(sm).lower(*args).compile()
+    _COMPILED[cache_key] = exe
+    return exe, time.perf_counter() - t0
 
 
 def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
@@ -525,8 +551,9 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
     n_batch = min(options.batch, total)
     n_batch = -(-n_batch // ndev) * ndev
     n_batches = -(-total // n_batch)
-    per_call = max(1, min(n_batches, 8))  # batches per compiled call: bounded memory, a progress tick each
-    fn = _chunk_fn(st, mesh, n_batch, dtype)
+    # batches per compiled call (a progress tick each); two values only, so few programs are compiled
+    per_call = 8 if n_batches >= 32 else 1
+    ph = st.arrays(dtype)
     sharding = NamedSharding(mesh, P(None, "photons"))
     seed = jax.random.key_data(jax.random.key(options.seed))
     tally = np.zeros(st.S * st.Z * st.K)
@@ -541,19 +568,17 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
         idx = np.arange(c0 * n_batch, (c0 + per_call) * n_batch, dtype=np.int64).reshape(per_call, n_batch)
         valid = idx < total
         idx = np.where(valid, idx, 0).astype(np.int32)
-        args = (jax.device_put(idx, sharding), jax.device_put(valid, sharding), seed)
-        t0 = time.perf_counter()
+        args = (jax.device_put(idx, sharding), jax.device_put(valid, sharding), seed, ph)
         if c0 == 0:
-            fn = fn.lower(*args).compile()
-            compile_s = time.perf_counter() - t0
-            t0 = time.perf_counter()
+            fn, compile_s = _chunk_fn(st, mesh, n_batch, per_call, dtype, args)
+        t0 = time.perf_counter()
         t, lg, ev = jax.block_until_ready(fn(*args))
         t_run += time.perf_counter() - t0
         tally += np.asarray(t, np.float64)
         ledger += np.asarray(lg, np.float64)
         events += int(ev)
     nodes = tally.reshape(st.S, st.Z, st.K) / options.photons
-    kernels = bin_kernels(st.h, st.B, st.q, jnp.asarray(scene.sensor.pulse_sigma_s, dtype),
+    kernels = bin_kernels(st.dyn["h"], st.B, st.q, jnp.asarray(scene.sensor.pulse_sigma_s, dtype),
                           jnp.asarray(scene.sensor.pulse_tail_s, dtype), dtype)
     fraction = np.asarray(apply_kernels(jnp.asarray(nodes, dtype), kernels, st.B, st.q), np.float64)
     scale = options.counts_per_gain_m2
