@@ -42,13 +42,13 @@ def test_fresnel_limits():
 def test_energy_is_conserved_with_closed_edges():
     """mu_a = 0, mirror edges, no roulette: all weight is detected, escaped through the faces, late or left."""
     sc = strip_scene(length=0.1, mu_s=20.0, fov=30.0)
-    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, nee=False, dtype="float64"))
     lg = r.ledger
     assert lg["absorbed"] == 0 and lg["edge_loss"] == 0 and lg["contact_loss"] == 0 and lg["roulette"] == 0
     assert sum(lg.values()) == pytest.approx(1.0, abs=1e-9)
     assert lg["detected"] > 0 and lg["escaped"] > 0 and lg["late"] > 0
     # without scattering nothing leaves the guide: detected + late + left is all of it
-    r0 = run_mc(strip_scene(length=0.1, fov=30.0), MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, dtype="float64"))
+    r0 = run_mc(strip_scene(length=0.1, fov=30.0), MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, nee=False, dtype="float64"))
     assert r0.ledger["escaped"] == 0.0
     assert r0.ledger["detected"] + r0.ledger["late"] + r0.ledger["remaining"] == pytest.approx(1.0, abs=1e-12)
 
@@ -57,7 +57,7 @@ def test_beer_lambert_along_a_straight_path():
     """mu_s = 0, n1 -> 1 (straight, in-plane), absorbing edges: what reaches the far edge is exp(-mu_a L)."""
     mu_a, length = 5.0, 0.2
     sc = strip_scene(length=length, n1=1.0001, mu_a=mu_a, fov=0.5)
-    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="absorb", dtype="float64"))
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="absorb", nee=False, dtype="float64"))
     assert r.ledger["edge_loss"] == pytest.approx(math.exp(-mu_a * length), rel=2e-4)
     assert r.ledger["absorbed"] == pytest.approx(1 - math.exp(-mu_a * length), rel=2e-4)
 
@@ -67,7 +67,7 @@ def test_far_edge_returns_at_two_d_n1_over_c(n1):
     """A mirror edge at distance D facing the sensor: the return peaks at t_e + 2 D n1 / c."""
     length = 0.1
     sc = strip_scene(length=length, n1=n1, fov=0.5)
-    r = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="specular", edge_reflectance=1.0, dtype="float64"))
+    r = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="specular", edge_reflectance=1.0, aperture_m=5e-3, nee=False, dtype="float64"))
     assert r.ledger["detected"] > 0.95
     h = sc.sensor.bin_width_s / 4
     nodes = r.nodes[0].sum(0)
@@ -82,7 +82,7 @@ def test_far_edge_returns_at_two_d_n1_over_c(n1):
 def test_contact_sends_light_back_and_shadows():
     touch = {"position_m": [0.08, 0.05], "radius_m": 0.008, "strength": 1.0}
     base = strip_scene(length=0.2, fov=10.0)
-    opts = MCOptions(photons=16384, batch=2048, edges="specular", edge_reflectance=1.0, dtype="float64")
+    opts = MCOptions(photons=16384, batch=2048, edges="specular", edge_reflectance=1.0, nee=False, dtype="float64")
     r0 = run_mc(base, opts)
     r1 = run_mc(base.replace(touches=(scene_from_dict({**json.loads(base.to_json()), "touches": [touch]}).touches)), opts)
     assert r1.ledger["contact_loss"] == 0  # albedo 1
@@ -94,6 +94,21 @@ def test_contact_sends_light_back_and_shadows():
     assert r1.fraction[0, 0, near].sum() > 5 * max(r0.fraction[0, 0, near].sum(), 1e-9)  # the contact returns light
     assert r1.fraction[0, 0, far].sum() < 0.9 * r0.fraction[0, 0, far].sum()  # and shadows the far edge
     assert r1.ledger["escaped"] > r0.ledger["escaped"]  # frustrated TIR: light leaves the guide
+
+
+def test_next_event_estimation_agrees_with_analog_detection():
+    """The variance-reduced estimator and plain counting of packets at the aperture agree."""
+    sc = strip_scene(length=0.1, mu_s=10.0, mu_a=1.0, fov=170.0)
+    analog = run_mc(sc, MCOptions(photons=30720, batch=2048, nee=False, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    nee = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    a, b = analog.fraction[0, 0], nee.fraction[0, 0]
+    assert b.sum() == pytest.approx(a.sum(), rel=0.08)
+    mean_t = lambda f: np.sum(f * np.arange(f.size)) / np.sum(f)  # noqa: E731
+    assert mean_t(b) == pytest.approx(mean_t(a), abs=0.5)  # bins
+    # and NEE is far less noisy per packet: compare two seeds
+    nee2 = run_mc(sc, MCOptions(photons=4096, batch=2048, seed=1, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    spread = np.linalg.norm(nee2.fraction - nee.fraction) / np.linalg.norm(nee.fraction)
+    assert spread < 0.1
 
 
 def test_reproducible_and_batch_independent():

@@ -96,6 +96,14 @@ class MCOptions:
       ``= gain x detected fraction x counts_per_gain_m2``); default ``1 / (aperture x
       thickness)``. The absolute efficiency is a convention: comparisons with the analytic
       model profile the gain, as calibration does.
+    - ``nee``: next-event estimation (default on): after every diffuse event (volume
+      scattering, a diffuse edge, a contact's diffuse return) the expected direct flight to
+      the own sensor's aperture is scored, integrated over elevation with ``nee_points``
+      nodes across the guided band (and a quarter as many outside it) and ``nee_aperture``
+      pieces of the aperture (the field of view limits the angle of arrival); packets then reach
+      the aperture unscored unless their last event was specular. Unbiased up to that
+      elevation quadrature and the expected (not sampled) number of frustrating bounces
+      under a contact on the direct flight; orders of magnitude less noise per photon.
     - ``dtype``: ``"float32"`` (default, fast) or ``"float64"``.
     - ``devices``: how many devices to shard the photons over (default: all).
     """
@@ -108,12 +116,15 @@ class MCOptions:
     edge_reflectance: float | None = None
     contact_n: float = 1.45
     contact_albedo: float | None = None
-    aperture_m: float = 5e-3
+    aperture_m: float = 1e-3
     quadrature: int = 4
     max_events: int = 4000
     roulette_weight: float = 1e-3
     roulette_survival: float = 0.1
     counts_per_gain_m2: float | None = None
+    nee: bool = True
+    nee_points: int = 6
+    nee_aperture: int = 4
     dtype: str = "float32"
     devices: int | None = None
 
@@ -144,6 +155,10 @@ class MCOptions:
             raise ConfigError(f"roulette_survival: must be in (0, 1], got {self.roulette_survival!r}")
         if self.counts_per_gain_m2 is not None and not self.counts_per_gain_m2 > 0:
             raise ConfigError(f"counts_per_gain_m2: must be > 0, got {self.counts_per_gain_m2!r}")
+        if self.nee_points < 1:
+            raise ConfigError(f"nee_points: must be >= 1, got {self.nee_points!r}")
+        if self.nee_aperture < 1:
+            raise ConfigError(f"nee_aperture: must be >= 1, got {self.nee_aperture!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
         if self.devices is not None and self.devices < 1:
@@ -252,6 +267,19 @@ def _lambertian(nx, ny, nz, tx, ty, tz, u1, u2):
     return cos_t * nx + c * tx + s * bx, cos_t * ny + c * ty + s * by, cos_t * nz + c * tz + s * bz
 
 
+def _inward_normals(scene: Scene) -> np.ndarray:
+    """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis."""
+    lx, ly = scene.waveguide.size_m
+    out = []
+    for sp in scene.sensors:
+        x, y = sp.position_m
+        a = math.radians(sp.direction_deg)
+        cands = [(abs(x), (1.0, 0.0)), (abs(x - lx), (-1.0, 0.0)), (abs(y), (0.0, 1.0)), (abs(y - ly), (0.0, -1.0))]
+        near = [nrm for dist, nrm in cands if dist <= 1e-6] or [min(cands)[1]]
+        out.append(max(near, key=lambda nrm: nrm[0] * math.cos(a) + nrm[1] * math.sin(a)))
+    return np.array(out, float)
+
+
 class _Static:
     """A run's settings, split into what shapes the program (``key``: hashable, compiled once per
     value) and the physics (``dyn``: arrays passed at run time, so another scene with the same
@@ -271,7 +299,10 @@ class _Static:
         self.n_contacts = len(el)
         self.edge_mode = opts.edges
         self.max_events = int(opts.max_events)
-        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events)
+        self.nee = bool(opts.nee)
+        self.nee_points = int(opts.nee_points)
+        self.nee_aperture = int(opts.nee_aperture)
+        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture)
         self.dyn = {
             "lx": wg.size_m[0], "ly": wg.size_m[1], "d": wg.thickness_m, "n1": n1,
             "mu_s": wg.mu_s_per_m, "mu_a": wg.mu_a_per_m, "c1": c1, "h": h, "t_e": t_e,
@@ -280,6 +311,7 @@ class _Static:
             "fov": math.radians(sm.fov_deg),
             "sensor_xy": np.array([s.position_m for s in scene.sensors], float),
             "sensor_dir": np.radians([s.direction_deg for s in scene.sensors]),
+            "sensor_normal": _inward_normals(scene),
             "contacts": el[:, :3].astype(float).reshape(-1, 3),
             "albedo": albedo.astype(float),
             "contact_n": opts.contact_n, "g": opts.g,
@@ -297,7 +329,7 @@ class _View:
     """Attribute access to the static shapes and the traced physics inside the kernel."""
 
     def __init__(self, st: _Static, ph: dict):
-        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events")})
+        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture")})
         self.__dict__.update(ph)
 
 
@@ -312,8 +344,89 @@ def _emit(st: _View, idx, keys, dtype):
     return dict(
         x=xy[:, 0], y=xy[:, 1], z=u[:, 2] * st.d,
         ux=v * jnp.cos(az), uy=v * jnp.sin(az), uz=uz,
-        L=jnp.zeros_like(uz), w=jnp.ones_like(uz), s=s,
+        L=jnp.zeros_like(uz), w=jnp.ones_like(uz), s=s, diffuse=jnp.zeros(uz.shape, bool),
     )
+
+
+def _deposit(tally, st, base, tau, w):
+    """Add weights ``w`` at times ``tau`` (same shape) to rows ``base`` of the node grid (quadratic B-spline)."""
+    base, tau, w = (jnp.ravel(jnp.broadcast_to(v, jnp.broadcast_shapes(base.shape, tau.shape, w.shape))) for v in (base, tau, w))
+    uu = tau / st.h - 0.5
+    uu = jnp.where((w != 0) & jnp.isfinite(uu), jnp.clip(uu, -10.0, st.K + 10.0), -10.0)
+    centre = jnp.round(uu)
+    dd = uu - centre
+    ic = centre.astype(jnp.int32)
+    for off, wt in ((-1, 0.5 * (0.5 - dd) ** 2), (0, 0.75 - dd**2), (1, 0.5 * (0.5 + dd) ** 2)):
+        node = ic + off
+        inside = (node >= 0) & (node < st.K)
+        tally = tally.at[jnp.where(inside, base + node, 0)].add(jnp.where(inside, w * wt, 0.0))
+    return tally
+
+
+def _nee_nodes(st, M: int, dtype):
+    """Quadrature in mu = sin(elevation): M points over the guided band, M/2 over the rest."""
+    cg = st.cos_guided
+    g = (jnp.arange(M, dtype=dtype) + 0.5) / M * 2.0 - 1.0
+    m2 = max(M // 4, 1)
+    o = (jnp.arange(m2, dtype=dtype) + 0.5) / m2
+    mu = jnp.concatenate([cg * g, cg + (1.0 - cg) * o, -(cg + (1.0 - cg) * o)])
+    dmu = jnp.concatenate([jnp.full((M,), 2.0 * cg / M, dtype), jnp.full((2 * m2,), (1.0 - cg) / m2, dtype)])
+    return mu, dmu
+
+
+def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
+    """Direct flight from event points to the own sensor's aperture (next-event estimation).
+
+    For each event (n,) and elevation node (M,): the solid-angle weight ``dphi dmu`` of the
+    aperture, the transmission (Fresnel at the faces for non-guided elevations, attenuation
+    by mu_s + mu_a, frustration under contacts) and the path length. Returns the outgoing
+    directions (n, M, 3) for the phase function, weights (n, M), path (n, M), zone (n,) and
+    a mask (n,) of events the sensor can see. ``offset`` and ``half`` select a piece of the
+    aperture (its centre along the edge and half-width): the field of view is a condition on
+    the angle of arrival, which differs across a wide aperture.
+    """
+    sn = st.sensor_normal[sensor]
+    half = st.half_ap if half is None else half
+    sp = st.sensor_xy[sensor] + offset * jnp.stack([-sn[:, 1], sn[:, 0]], -1)  # this piece of the aperture
+    dx, dy = sp[:, 0] - x, sp[:, 1] - y
+    rho = jnp.sqrt(dx**2 + dy**2)
+    ok = rho > 1e-9
+    rho_ = jnp.where(ok, rho, 1.0)
+    ex, ey = dx / rho_, dy / rho_
+    # exact in-plane angle subtended by the aperture (a segment along the edge), facing side only
+    tx, ty = -sn[:, 1] * half, sn[:, 0] * half
+    ax_, ay_, bx_, by_ = dx + tx, dy + ty, dx - tx, dy - ty
+    facing = (ex * sn[:, 0] + ey * sn[:, 1]) < 0
+    dphi = jnp.where(facing, jnp.abs(jnp.arctan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
+    rel = jnp.mod(jnp.arctan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
+    seen = ok & (jnp.abs(rel) < 0.5 * st.fov)
+    zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
+    c = jnp.sqrt(jnp.clip(1.0 - mu**2, 1e-12, 1.0))  # (M,)
+    path = rho_[:, None] / c[None, :]
+    zu = z[:, None] + mu[None, :] * path
+    k = jnp.abs(jnp.floor(zu / st.d))
+    R = fresnel_reflectance(st.n1, jnp.asarray(1.0, dtype), mu)[None, :]
+    T = jnp.where(R >= 1.0, 1.0, R**k) * jnp.exp(-(st.mu_s + st.mu_a) * path)
+    if st.n_contacts:
+        cxy, crad = st.contacts[:, :2], st.contacts[:, 2]
+        px, py = x[:, None] - cxy[None, :, 0], y[:, None] - cxy[None, :, 1]
+        b = px * ex[:, None] + py * ey[:, None]
+        cc = px**2 + py**2 - crad[None, :] ** 2
+        disc = jnp.maximum(b**2 - cc, 0.0)
+        t0 = jnp.clip(-b - jnp.sqrt(disc), 0.0, rho_[:, None])
+        t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None])
+        chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # (n, N) in-plane length under each contact
+        hits = chord[:, :, None] * (jnp.abs(mu) / (2.0 * st.d * c))[None, None, :]  # expected top hits
+        Rc = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        T = T * jnp.prod(jnp.where(Rc >= 1.0, 1.0, Rc**hits), axis=1)
+    weight = (dphi[:, None] * dmu[None, :]) * T
+    omega = jnp.stack([c[None, :] * ex[:, None], c[None, :] * ey[:, None], jnp.broadcast_to(mu[None, :], path.shape)], -1)
+    return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
+
+
+def _hg_pdf(g, cos_t):
+    """Henyey-Greenstein phase function per steradian."""
+    return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
 
 
 def _transport(st: _View, idx, valid, seed_key, dtype):
@@ -333,6 +446,8 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         crad = st.contacts[:, 2]
         calb = st.albedo
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
+    if st.nee:
+        mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
     ledger0 = jnp.zeros((len(LEDGER),), dtype)
     tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
 
@@ -429,19 +544,11 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
             ex, ey, ez = ux, uy, nuz
             edge_R = 0.0
         # tally detections: zone by angle of return, time on the node grid (quadratic B-spline)
+        # (with next-event estimation, a packet whose last event was diffuse was already scored)
         zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
-        tau = st.t_e + L_new / st.c1
-        uu = tau / st.h - 0.5
-        uu = jnp.where(det, uu, -10.0)  # keep int conversion finite for packets not detected
-        centre = jnp.round(uu)
-        dd = uu - centre
-        ic = centre.astype(jnp.int32)
-        base = (p["s"] * st.Z + zone) * st.K
         wd = jnp.where(det, w_new, 0.0)
-        for off, wt in ((-1, 0.5 * (0.5 - dd) ** 2), (0, 0.75 - dd**2), (1, 0.5 * (0.5 + dd) ** 2)):
-            node = ic + off
-            inside = (node >= 0) & (node < st.K)
-            tally = tally.at[jnp.where(inside, base + node, 0)].add(jnp.where(inside, wd * wt, 0.0))
+        score = wd if not st.nee else jnp.where(p["diffuse"], 0.0, wd)
+        tally = _deposit(tally, st, (p["s"] * st.Z + zone) * st.K, st.t_e + L_new / st.c1, score)
         # contact: Fresnel into the finger, diffuse return with its albedo
         if has_contacts:
             cn = alive & is_cont
@@ -457,6 +564,29 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         else:
             cn = jnp.zeros_like(alive)
             c_ux, c_uy, c_uz, c_w, contact_loss = ux, uy, nuz, w_new, jnp.zeros_like(w)
+        # --- next-event estimation: expected direct flight to the aperture after each diffuse event ---
+        for piece in range(st.nee_aperture if st.nee else 0):
+            half = st.half_ap / st.nee_aperture
+            offset = -st.half_ap + (2 * piece + 1) * half
+            omega, nw, npath, nzone = _nee(st, nx_, ny_, nz_, p["s"], mu_q, dmu_q, dtype, offset, half)
+            in_dir = jnp.stack([ux, uy, nuz], -1)[:, None, :]
+            phase_sc = _hg_pdf(st.g, jnp.sum(omega * in_dir, -1))
+            nwall = jnp.stack([wnx, wny, 0.0 * wnx], -1)[:, None, :]
+            phase_edge = jnp.maximum(jnp.sum(omega * nwall, -1), 0.0) / math.pi
+            w_ev = jnp.where(sc, w_new, 0.0)[:, None] * phase_sc
+            if st.edge_mode == "diffuse":
+                w_ev = w_ev + jnp.where(refl, w_new * edge_R, 0.0)[:, None] * phase_edge
+            if has_contacts:
+                phase_c = jnp.maximum(-omega[..., 2], 0.0) / math.pi
+                w_ev = w_ev + jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0)[:, None] * phase_c
+            tally = _deposit(tally, st, ((p["s"] * st.Z + nzone) * st.K)[:, None], st.t_e + (L_new[:, None] + npath) / st.c1, w_ev * nw)
+        if st.nee:
+            diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
+            if has_contacts:
+                diffuse = jnp.where(cn, into, diffuse)
+            diffuse = jnp.where(refl & (st.edge_mode == "specular"), False, diffuse)
+        else:
+            diffuse = p["diffuse"]
         # --- new state ---
         nux = jnp.where(sc, sx, jnp.where(refl, ex, jnp.where(cn, c_ux, ux)))
         nuy = jnp.where(sc, sy, jnp.where(refl, ey, jnp.where(cn, c_uy, uy)))
@@ -476,7 +606,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
             jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
             jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette),
         ])
-        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"])
+        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse)
         events = events + jnp.sum(alive, dtype=jnp.int32)
         return step + 1, p, still, tally, ledger, events
 
