@@ -188,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene", help="scene TOML file, or a built-in name")
     s.add_argument("--toml", action="store_true", help="print the scene with every default filled in")
     s.set_defaults(func=_cmd_scene)
+
+    from .mc.cli import register as register_mc  # tofjax mc, prune, bench tradeoff (issue 7)
+
+    register_mc(sub)
     return p
 
 
