@@ -29,9 +29,10 @@ followed event by event, all packets of a batch at once (vectorised):
   grid of ``quadrature`` time nodes per bin and convolved with the scene's pulse
   (exact bin integration, :mod:`tofjax.model.pulse`), as in the analytic model.
 * **Emission.** From the sensor's point on the edge, uniformly over the slab's
-  thickness, the azimuth uniform over the field of view and the direction uniform
-  over the guided band (``|u_z| < sqrt(1 - 1/n1^2)``, light launched into total
-  internal reflection).
+  thickness, the azimuth uniform over the field of view and ``u_z`` uniform up to the
+  beam's elevation half-angle refracted at the edge (``sin(a) / n1``; by default the
+  beam is round, ``a = fov / 2``), never beyond the guided band
+  ``|u_z| < sqrt(1 - 1/n1^2)`` (light launched into total internal reflection).
 * Packets end when detected, when their path exceeds the histogram's time window
   (*late*), or by Russian roulette at low weight (unbiased; off with
   ``roulette_weight = 0``, which makes the weight ledger exact).
@@ -96,6 +97,9 @@ class MCOptions:
       ``= gain x detected fraction x counts_per_gain_m2``); default ``1 / (aperture x
       thickness)``. The absolute efficiency is a convention: comparisons with the analytic
       model profile the gain, as calibration does.
+    - ``launch_elevation_deg``: half-angle (in air) of the emitted beam out of the plane;
+      default: the same as in the plane (half the field of view: a round beam). Refracted
+      into the guide at the edge and capped at the guided band (90 fills the band).
     - ``nee``: next-event estimation (default on): after every diffuse event (volume
       scattering, a diffuse edge, a contact's diffuse return) the expected direct flight to
       the own sensor's aperture is scored, integrated over elevation with ``nee_points``
@@ -122,6 +126,7 @@ class MCOptions:
     roulette_weight: float = 1e-3
     roulette_survival: float = 0.1
     counts_per_gain_m2: float | None = None
+    launch_elevation_deg: float | None = None
     nee: bool = True
     nee_points: int = 6
     nee_aperture: int = 4
@@ -155,6 +160,8 @@ class MCOptions:
             raise ConfigError(f"roulette_survival: must be in (0, 1], got {self.roulette_survival!r}")
         if self.counts_per_gain_m2 is not None and not self.counts_per_gain_m2 > 0:
             raise ConfigError(f"counts_per_gain_m2: must be > 0, got {self.counts_per_gain_m2!r}")
+        if self.launch_elevation_deg is not None and not 0.0 < self.launch_elevation_deg <= 90.0:
+            raise ConfigError(f"launch_elevation_deg: must be in (0, 90], got {self.launch_elevation_deg!r}")
         if self.nee_points < 1:
             raise ConfigError(f"nee_points: must be >= 1, got {self.nee_points!r}")
         if self.nee_aperture < 1:
@@ -267,6 +274,14 @@ def _lambertian(nx, ny, nz, tx, ty, tz, u1, u2):
     return cos_t * nx + c * tx + s * bx, cos_t * ny + c * ty + s * by, cos_t * nz + c * tz + s * bz
 
 
+def _launch_uz(opts: "MCOptions", fov_deg: float, n1: float) -> float:
+    """Largest |u_z| of launched light: the beam's elevation half-angle in air refracted at the edge,
+    never beyond the guided band."""
+    guided = math.sqrt(max(1.0 - 1.0 / n1**2, 0.0))
+    half = 0.5 * fov_deg if opts.launch_elevation_deg is None else opts.launch_elevation_deg
+    return min(math.sin(math.radians(half)) / n1, guided)
+
+
 def _inward_normals(scene: Scene) -> np.ndarray:
     """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis."""
     lx, ly = scene.waveguide.size_m
@@ -318,6 +333,7 @@ class _Static:
             "edge_R": float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance),
             "half_ap": 0.5 * opts.aperture_m,
             "cos_guided": math.sqrt(max(1.0 - 1.0 / n1**2, 0.0)),  # |u_z| below this is guided
+            "launch_uz": _launch_uz(opts, sm.fov_deg, n1),
             "roulette_w": opts.roulette_weight, "roulette_p": opts.roulette_survival,
         }
 
@@ -339,7 +355,7 @@ def _emit(st: _View, idx, keys, dtype):
     u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
     xy = jnp.asarray(st.sensor_xy, dtype)[s]
     az = jnp.asarray(st.sensor_dir, dtype)[s] + (u[:, 0] - 0.5) * st.fov
-    uz = (2.0 * u[:, 1] - 1.0) * st.cos_guided
+    uz = (2.0 * u[:, 1] - 1.0) * st.launch_uz
     v = jnp.sqrt(1.0 - uz**2)
     return dict(
         x=xy[:, 0], y=xy[:, 1], z=u[:, 2] * st.d,
