@@ -694,7 +694,9 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
     mesh = photon_mesh(options.devices)
     ndev = mesh.devices.size
     total = options.photons * st.S
-    n_batch = min(options.batch, total)
+    # batch sizes in a few power-of-two buckets (at least 4096), so that runs of different photon
+    # counts share one compiled program; unused lanes start dead
+    n_batch = min(options.batch, max(4096, 1 << (total - 1).bit_length()))
     n_batch = -(-n_batch // ndev) * ndev
     n_batches = -(-total // n_batch)
     # batches per compiled call (a progress tick each); two values only, so few programs are compiled
