@@ -26,7 +26,7 @@ import pytest
 
 from tofjax import ConfigError, ModelOptions, Params, build_model, load_scene
 from tofjax.cli import main
-from tofjax.fit.calibrate import CalibrationError, Calibrator, FitConfig
+from tofjax.fit.calibrate import CalibrationError, Calibrator
 from tofjax.mc import MCOptions, run_mc
 from tofjax.scene import SensorModel, Touch, scene_from_dict
 from tofjax.simulate import simulate

@@ -61,7 +61,6 @@ from jax.sharding import PartitionSpec as P
 from ..config import ConfigError
 from ..errors import UserError
 from ..model.components import SPEED_OF_LIGHT_M_PER_S
-from ..model.geometry import zone_edges
 from ..model.pulse import apply_kernels, bin_kernels
 from ..scene import Scene
 
@@ -449,7 +448,6 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
     """Follow one batch of packets to the end. Returns (tally (S*Z*K,), ledger (8,), events)."""
     keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(idx)
     p = _emit(st, idx, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
-    n = idx.shape[0]
     alive = valid
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     d = f(st.d)
