@@ -193,10 +193,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .force.cli import register as register_force  # train, predict, table, force-data (issue 5)
     from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
     from .invert.cli import register as register_invert  # process, detect (issue 4)
+    from .mc.cli import register as register_mc  # mc, prune, bench tradeoff (issue 7)
 
     register_invert(sub)
     register_force(sub)
     register_hw(sub)
+    register_mc(sub)
     return p
 
 

@@ -1,0 +1,164 @@
+"""Monte Carlo photon transport (tofjax.mc): physics limits, reproducibility, sharding."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tofjax.config import ConfigError
+from tofjax.mc import MCOptions, fresnel_reflectance, run_mc
+from tofjax.model import SPEED_OF_LIGHT_M_PER_S
+from tofjax.scene import scene_from_dict
+
+ROOT = Path(__file__).parents[1]
+
+
+def strip_scene(length=0.2, n1=1.4, mu_s=0.0, mu_a=0.0, fov=1.0, zones=1, touches=(), n_bins=128, bin_s=5e-11):
+    """A long strip with one sensor in the middle of its short edge, looking along it."""
+    return scene_from_dict(
+        {
+            "waveguide": {"size_m": [length, 0.1], "thickness_m": 0.004, "n1": n1, "mu_s_per_m": mu_s, "mu_a_per_m": mu_a},
+            "sensor": {"bin_width_s": bin_s, "n_bins": n_bins, "zones": zones, "fov_deg": fov, "emission_time_s": 5e-10},
+            "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}],
+            "touches": list(touches),
+        }
+    )
+
+
+def test_fresnel_limits():
+    assert float(fresnel_reflectance(1.4, 1.0, 1.0)) == pytest.approx(((1.4 - 1) / 2.4) ** 2, rel=1e-6)
+    crit = math.sqrt(1 - 1 / 1.4**2)  # cos of the incidence angle at the critical angle
+    assert float(fresnel_reflectance(1.4, 1.0, 0.99 * crit)) == 1.0  # total internal reflection
+    assert float(fresnel_reflectance(1.4, 1.0, 1.01 * crit)) < 1.0
+    assert float(fresnel_reflectance(1.4, 1.4, 0.3)) == pytest.approx(0.0, abs=1e-12)  # index matched
+    assert float(fresnel_reflectance(1.0, 1.4, 0.0)) == 1.0  # grazing
+
+
+def test_energy_is_conserved_with_closed_edges():
+    """mu_a = 0, mirror edges, no roulette: all weight is detected, escaped through the faces, late or left."""
+    sc = strip_scene(length=0.1, mu_s=20.0, fov=30.0)
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, nee=False, dtype="float64"))
+    lg = r.ledger
+    assert lg["absorbed"] == 0 and lg["edge_loss"] == 0 and lg["contact_loss"] == 0 and lg["roulette"] == 0
+    assert sum(lg.values()) == pytest.approx(1.0, abs=1e-9)
+    assert lg["detected"] > 0 and lg["escaped"] > 0 and lg["late"] > 0
+    # without scattering nothing leaves the guide: detected + late + left is all of it
+    r0 = run_mc(strip_scene(length=0.1, fov=30.0), MCOptions(photons=2048, batch=2048, edges="specular", edge_reflectance=1.0, roulette_weight=0.0, nee=False, dtype="float64"))
+    assert r0.ledger["escaped"] == 0.0
+    assert r0.ledger["detected"] + r0.ledger["late"] + r0.ledger["remaining"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_beer_lambert_along_a_straight_path():
+    """mu_s = 0, n1 -> 1 (straight, in-plane), absorbing edges: what reaches the far edge is exp(-mu_a L)."""
+    mu_a, length = 5.0, 0.2
+    sc = strip_scene(length=length, n1=1.0001, mu_a=mu_a, fov=0.5)
+    r = run_mc(sc, MCOptions(photons=2048, batch=2048, edges="absorb", nee=False, dtype="float64"))
+    assert r.ledger["edge_loss"] == pytest.approx(math.exp(-mu_a * length), rel=2e-4)
+    assert r.ledger["absorbed"] == pytest.approx(1 - math.exp(-mu_a * length), rel=2e-4)
+
+
+@pytest.mark.parametrize("n1", [1.2, 1.4, 2.0])
+def test_far_edge_returns_at_two_d_n1_over_c(n1):
+    """A mirror edge at distance D facing the sensor: the return peaks at t_e + 2 D n1 / c."""
+    length = 0.1
+    sc = strip_scene(length=length, n1=n1, fov=0.5)
+    r = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="specular", edge_reflectance=1.0, aperture_m=5e-3, nee=False, dtype="float64"))
+    assert r.ledger["detected"] > 0.95
+    h = sc.sensor.bin_width_s / 4
+    nodes = r.nodes[0].sum(0)
+    t_peak = (np.argmax(nodes) + 0.5) * h
+    expected = sc.sensor.emission_time + 2 * length * n1 / SPEED_OF_LIGHT_M_PER_S
+    assert abs(t_peak - expected) <= 1.5 * h
+    # guided light at an elevation arrives later, never earlier
+    first = (np.nonzero(nodes > 1e-6)[0][0] + 0.5) * h
+    assert first >= expected - 2 * h
+
+
+def test_contact_sends_light_back_and_shadows():
+    touch = {"position_m": [0.08, 0.05], "radius_m": 0.008, "strength": 1.0}
+    base = strip_scene(length=0.2, fov=10.0)
+    opts = MCOptions(photons=16384, batch=2048, edges="specular", edge_reflectance=1.0, nee=False, dtype="float64",
+                     launch_elevation_deg=90.0)  # fill the guided band: steep light bounces often enough to meet the contact
+    r0 = run_mc(base, opts)
+    r1 = run_mc(base.replace(touches=(scene_from_dict({**json.loads(base.to_json()), "touches": [touch]}).touches)), opts)
+    assert r1.ledger["contact_loss"] == 0  # albedo 1
+    t_touch = base.sensor.emission_time + 2 * 0.08 * 1.4 / SPEED_OF_LIGHT_M_PER_S
+    t_end = base.sensor.emission_time + 2 * 0.2 * 1.4 / SPEED_OF_LIGHT_M_PER_S
+    b = lambda t: int(t / base.sensor.bin_width_s)  # noqa: E731
+    near = slice(b(t_touch) - 1, b(t_touch) + 3)
+    far = slice(b(t_end) - 1, b(t_end) + 4)
+    assert r1.fraction[0, 0, near].sum() > 5 * max(r0.fraction[0, 0, near].sum(), 1e-9)  # the contact returns light
+    assert r1.fraction[0, 0, far].sum() < 0.9 * r0.fraction[0, 0, far].sum()  # and shadows the far edge
+    assert r1.ledger["escaped"] > r0.ledger["escaped"]  # frustrated TIR: light leaves the guide
+
+
+def test_next_event_estimation_agrees_with_analog_detection():
+    """The variance-reduced estimator and plain counting of packets at the aperture agree."""
+    sc = strip_scene(length=0.1, mu_s=10.0, mu_a=1.0, fov=170.0)
+    analog = run_mc(sc, MCOptions(photons=30720, batch=2048, nee=False, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    nee = run_mc(sc, MCOptions(photons=4096, batch=2048, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    a, b = analog.fraction[0, 0], nee.fraction[0, 0]
+    assert b.sum() == pytest.approx(a.sum(), rel=0.08)
+    mean_t = lambda f: np.sum(f * np.arange(f.size)) / np.sum(f)  # noqa: E731
+    assert mean_t(b) == pytest.approx(mean_t(a), abs=0.5)  # bins
+    # and NEE is far less noisy per packet: compare two seeds
+    nee2 = run_mc(sc, MCOptions(photons=4096, batch=2048, seed=1, edges="absorb", aperture_m=4e-3, dtype="float64"))
+    spread = np.linalg.norm(nee2.fraction - nee.fraction) / np.linalg.norm(nee.fraction)
+    assert spread < 0.1
+
+
+def test_reproducible_and_batch_independent():
+    sc = strip_scene(mu_s=5.0, mu_a=1.0, fov=20.0)
+    a = run_mc(sc, MCOptions(photons=4096, seed=3, batch=1024, dtype="float64"))
+    b = run_mc(sc, MCOptions(photons=4096, seed=3, batch=2048, dtype="float64"))
+    c = run_mc(sc, MCOptions(photons=4096, seed=4, batch=2048, dtype="float64"))
+    np.testing.assert_allclose(a.nodes, b.nodes, rtol=1e-5, atol=1e-9)
+    assert not np.allclose(a.nodes, c.nodes)
+    assert np.all(np.isfinite(a.counts)) and a.counts.shape == sc.shape
+
+
+def test_bad_options_are_user_errors():
+    with pytest.raises(ConfigError, match="photons"):
+        MCOptions(photons=0)
+    with pytest.raises(ConfigError, match="anisotropy"):
+        MCOptions(g=1.0)
+    with pytest.raises(ConfigError, match="edges"):
+        MCOptions(edges="sticky")
+    with pytest.raises(ConfigError, match="devices"):
+        run_mc(strip_scene(), MCOptions(photons=10, devices=64))
+
+
+_SHARD_SCRIPT = """
+import json, jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+from tofjax.mc import MCOptions, run_mc
+from tofjax.scene import scene_from_dict
+sc = scene_from_dict(json.loads('''{scene}'''))
+one = run_mc(sc, MCOptions(photons=3000, batch=2000, devices=1))
+two = run_mc(sc, MCOptions(photons=3000, batch=2000))
+print(json.dumps({{"devices": [one.devices, two.devices], "n": jax.device_count(),
+  "max_rel": float(np.max(np.abs(one.nodes - two.nodes)) / np.max(np.abs(one.nodes))),
+  "ledger": [one.ledger["detected"], two.ledger["detected"]]}}))
+"""
+
+
+def test_sharded_over_two_devices_matches_one():
+    sc = strip_scene(mu_s=5.0, mu_a=1.0, fov=20.0, zones=2)
+    import tempfile
+
+    cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
+               JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
+               PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(scene=sc.to_json())], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["n"] == 2 and res["devices"] == [1, 2]
+    assert res["max_rel"] < 1e-5
+    assert res["ledger"][0] == pytest.approx(res["ledger"][1], rel=1e-5)

@@ -1,0 +1,745 @@
+"""Time-resolved Monte Carlo photon transport in the waveguide: the reference for the analytic model.
+
+Photon packets (a weight each) start at a sensor on the edge of the slab and are
+followed event by event, all packets of a batch at once (vectorised):
+
+* **Faces.** The slab ``0 <= z <= d`` has air (n = 1) on both faces. Between events a
+  packet's polar angle does not change, so its bounces are folded analytically: the
+  slab is "unfolded" along z, the number ``k`` of face hits on the way is counted and
+  the weight is multiplied by the Fresnel reflectance ``R^k`` (1 under total internal
+  reflection), the rest is tallied as *escaped through the faces*. A guided packet
+  therefore costs one event per scattering, edge or contact, not one per bounce.
+* **Contacts** are disks on the top face (z = d) where the outer index is the
+  finger's (``contact_n``): the first top-face hit inside a disk is an event. With
+  the Fresnel reflectance for ``n1 -> contact_n`` the packet reflects; otherwise it
+  enters the finger and is scattered back into the slab diffusely (Lambertian), its
+  weight multiplied by the contact's albedo (its ``strength``, at most 1). Contacts
+  thus frustrate total internal reflection, send light back, and shadow what lies
+  behind them, with no further assumption.
+* **Volume.** Free paths are exponential with ``mu_s``; scattering follows
+  Henyey-Greenstein with anisotropy ``g``. Absorption multiplies the weight by
+  ``exp(-mu_a s)`` along each path (weight, not survival, so there is no absorption
+  noise).
+* **Lateral edges** reflect diffusely (Lambertian, a cut edge), specularly, or absorb,
+  with reflectance ``edge_reflectance`` (default: the scene's ``end_reflectance``).
+* **Detection.** A packet reaching the edge within ``aperture_m / 2`` of its own sensor
+  and arriving within the sensor's field of view is detected: its angle of return
+  (the direction it came from, relative to the optical axis) picks the zone, its path
+  length ``L`` the arrival time ``t_e + L n1 / c``. Detected weight is deposited on a
+  grid of ``quadrature`` time nodes per bin and convolved with the scene's pulse
+  (exact bin integration, :mod:`tofjax.model.pulse`), as in the analytic model.
+* **Emission.** From the sensor's point on the edge, uniformly over the slab's
+  thickness, the azimuth uniform over the field of view and ``u_z`` uniform up to the
+  beam's elevation half-angle refracted at the edge (``sin(a) / n1``; by default the
+  beam is round, ``a = fov / 2``), never beyond the guided band
+  ``|u_z| < sqrt(1 - 1/n1^2)`` (light launched into total internal reflection).
+* Packets end when detected, when their path exceeds the histogram's time window
+  (*late*), or by Russian roulette at low weight (unbiased; off with
+  ``roulette_weight = 0``, which makes the weight ledger exact).
+
+Every packet draws its random numbers from its own key, ``fold_in(seed, global
+index)`` then ``fold_in(., event)``: the result depends on the seed and the photon
+count only, not on the batch size or how many devices share the work. Photons are
+sharded over a 1-D device mesh (axis ``"photons"``) with :func:`jax.shard_map`;
+each device tallies its packets and the tallies are summed across devices.
+
+Units: SI; weights are fractions of one emitted packet.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from ..config import ConfigError
+from ..errors import UserError
+from ..model.components import SPEED_OF_LIGHT_M_PER_S
+from ..model.pulse import apply_kernels, bin_kernels
+from ..scene import Scene
+
+__all__ = ["LEDGER", "MCOptions", "MCResult", "fresnel_reflectance", "photon_mesh", "run_mc"]
+
+#: Where the emitted weight ends up (``MCResult.ledger``); they sum to the photons emitted.
+LEDGER = ("detected", "escaped", "edge_loss", "absorbed", "contact_loss", "late", "remaining", "roulette")
+
+_EDGES = ("diffuse", "specular", "absorb")
+
+
+@dataclass(frozen=True)
+class MCOptions:
+    """Settings of a Monte Carlo run (all frozen; ``photons`` is the accuracy knob).
+
+    - ``photons``: packets emitted per sensor. Noise falls as ``1/sqrt(photons)``.
+    - ``batch``: packets followed at once (memory is ``O(batch)``); rounded up to a
+      multiple of the device count. Does not change the result.
+    - ``seed``: the same seed and photon count give the same tallies.
+    - ``g``: Henyey-Greenstein anisotropy of volume scattering (0 isotropic).
+    - ``edges``: lateral edges ``"diffuse"`` (Lambertian), ``"specular"`` or ``"absorb"``.
+    - ``edge_reflectance``: reflectance of the lateral edges (default: the scene's
+      ``end_reflectance``).
+    - ``contact_n``: refractive index of what touches (skin ~1.45).
+    - ``contact_albedo``: diffuse albedo of every contact (default: each contact's
+      ``strength``, clipped to 1).
+    - ``aperture_m``: width of the receiver window on the edge around each sensor.
+    - ``quadrature``: time nodes per bin of the tally grid.
+    - ``max_events``: events per batch before the remaining packets are stopped (tallied
+      as ``remaining``).
+    - ``roulette_weight``, ``roulette_survival``: Russian roulette below this weight (0: off).
+    - ``counts_per_gain_m2``: counts per unit gain per detected fraction (expected counts
+      ``= gain x detected fraction x counts_per_gain_m2``); default ``1 / (aperture x
+      thickness)``. The absolute efficiency is a convention: comparisons with the analytic
+      model profile the gain, as calibration does.
+    - ``launch_elevation_deg``: half-angle (in air) of the emitted beam out of the plane;
+      default: the same as in the plane (half the field of view: a round beam). Refracted
+      into the guide at the edge and capped at the guided band (90 fills the band).
+    - ``nee``: next-event estimation (default on): after every diffuse event (volume
+      scattering, a diffuse edge, a contact's diffuse return) the expected direct flight to
+      the own sensor's aperture is scored, integrated over elevation with ``nee_points``
+      nodes across the guided band (and a quarter as many outside it) and ``nee_aperture``
+      pieces of the aperture (the field of view limits the angle of arrival); packets then reach
+      the aperture unscored unless their last event was specular. Unbiased up to that
+      elevation quadrature and the expected (not sampled) number of frustrating bounces
+      under a contact on the direct flight; orders of magnitude less noise per photon.
+    - ``dtype``: ``"float32"`` (default, fast) or ``"float64"``.
+    - ``devices``: how many devices to shard the photons over (default: all).
+    """
+
+    photons: int = 100_000
+    batch: int = 32_768
+    seed: int = 0
+    g: float = 0.0
+    edges: str = "diffuse"
+    edge_reflectance: float | None = None
+    contact_n: float = 1.45
+    contact_albedo: float | None = None
+    aperture_m: float = 1e-3
+    quadrature: int = 4
+    max_events: int = 4000
+    roulette_weight: float = 1e-3
+    roulette_survival: float = 0.1
+    counts_per_gain_m2: float | None = None
+    launch_elevation_deg: float | None = None
+    nee: bool = True
+    nee_points: int = 6
+    nee_aperture: int = 4
+    dtype: str = "float32"
+    devices: int | None = None
+
+    def __post_init__(self):
+        if self.photons < 1:
+            raise ConfigError(f"photons: must be >= 1, got {self.photons!r}")
+        if self.batch < 1:
+            raise ConfigError(f"batch: must be >= 1, got {self.batch!r}")
+        if not -1.0 < self.g < 1.0:
+            raise ConfigError(f"g: the Henyey-Greenstein anisotropy must be in (-1, 1), got {self.g!r}")
+        if self.edges not in _EDGES:
+            raise ConfigError(f"edges: must be one of {', '.join(_EDGES)}, got {self.edges!r}")
+        if self.edge_reflectance is not None and not 0.0 <= self.edge_reflectance <= 1.0:
+            raise ConfigError(f"edge_reflectance: must be in [0, 1], got {self.edge_reflectance!r}")
+        if not self.contact_n >= 1.0:
+            raise ConfigError(f"contact_n: a refractive index must be >= 1, got {self.contact_n!r}")
+        if self.contact_albedo is not None and not 0.0 <= self.contact_albedo <= 1.0:
+            raise ConfigError(f"contact_albedo: must be in [0, 1], got {self.contact_albedo!r}")
+        if not self.aperture_m > 0:
+            raise ConfigError(f"aperture_m: must be > 0, got {self.aperture_m!r}")
+        if self.quadrature < 1:
+            raise ConfigError(f"quadrature: must be >= 1, got {self.quadrature!r}")
+        if self.max_events < 1:
+            raise ConfigError(f"max_events: must be >= 1, got {self.max_events!r}")
+        if not 0.0 <= self.roulette_weight < 1.0:
+            raise ConfigError(f"roulette_weight: must be in [0, 1), got {self.roulette_weight!r}")
+        if not 0.0 < self.roulette_survival <= 1.0:
+            raise ConfigError(f"roulette_survival: must be in (0, 1], got {self.roulette_survival!r}")
+        if self.counts_per_gain_m2 is not None and not self.counts_per_gain_m2 > 0:
+            raise ConfigError(f"counts_per_gain_m2: must be > 0, got {self.counts_per_gain_m2!r}")
+        if self.launch_elevation_deg is not None and not 0.0 < self.launch_elevation_deg <= 90.0:
+            raise ConfigError(f"launch_elevation_deg: must be in (0, 90], got {self.launch_elevation_deg!r}")
+        if self.nee_points < 1:
+            raise ConfigError(f"nee_points: must be >= 1, got {self.nee_points!r}")
+        if self.nee_aperture < 1:
+            raise ConfigError(f"nee_aperture: must be >= 1, got {self.nee_aperture!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
+        if self.devices is not None and self.devices < 1:
+            raise ConfigError(f"devices: must be >= 1, got {self.devices!r}")
+
+    @property
+    def jnp_dtype(self):
+        if self.dtype == "float64" and not jax.config.jax_enable_x64:
+            raise ConfigError("dtype: float64 requested but JAX runs in 32-bit mode; call tofjax.enable_x64() first")
+        return jnp.float64 if self.dtype == "float64" else jnp.float32
+
+
+@dataclass
+class MCResult:
+    """A finished Monte Carlo run.
+
+    - ``counts``: (sensors, zones, bins) expected counts of the transported light
+      (no light-entry peak, no ambient), scaled to each sensor's gain.
+    - ``fraction``: the same per emitted packet (detected fraction per bin).
+    - ``nodes``: detected fraction on the time nodes before the pulse, (S, Z, bins x quadrature).
+    - ``ledger``: where the emitted weight went, as fractions of the emitted weight
+      (keys :data:`LEDGER`; they sum to 1 up to rounding).
+    - ``photons``: packets per sensor; ``events``: packet-events processed; ``seconds``: wall time
+      (compilation included in ``compile_seconds`` and excluded from ``seconds``).
+    """
+
+    counts: np.ndarray
+    fraction: np.ndarray
+    nodes: np.ndarray
+    ledger: dict[str, float]
+    photons: int
+    events: int
+    seconds: float
+    compile_seconds: float
+    devices: int
+    options: MCOptions = field(repr=False)
+
+    @property
+    def events_per_second(self) -> float:
+        return self.events / max(self.seconds, 1e-12)
+
+
+def fresnel_reflectance(n_in, n_out, cos_i):
+    """Unpolarised Fresnel reflectance from index ``n_in`` into ``n_out`` at incidence cosine ``cos_i``.
+
+    1 beyond the critical angle (total internal reflection) and at grazing incidence.
+    """
+    cos_i = jnp.clip(jnp.abs(cos_i), 0.0, 1.0)
+    sin_i2 = 1.0 - cos_i**2
+    sin_t2 = (n_in / n_out) ** 2 * sin_i2
+    tir = sin_t2 >= 1.0
+    cos_t = jnp.sqrt(jnp.clip(1.0 - sin_t2, 0.0, 1.0))
+    a_s, b_s = n_in * cos_i - n_out * cos_t, n_in * cos_i + n_out * cos_t
+    a_p, b_p = n_in * cos_t - n_out * cos_i, n_in * cos_t + n_out * cos_i
+    safe = ~tir & (b_s > 0) & (b_p > 0)
+    rs = jnp.where(safe, a_s / jnp.where(safe, b_s, 1.0), 1.0) ** 2
+    rp = jnp.where(safe, a_p / jnp.where(safe, b_p, 1.0), 1.0) ** 2
+    return jnp.where(tir, 1.0, jnp.clip(0.5 * (rs + rp), 0.0, 1.0))
+
+
+def photon_mesh(devices: int | None = None) -> Mesh:
+    """A 1-D mesh over ``devices`` (default: all) with the axis ``"photons"``."""
+    devs = jax.devices()
+    if devices is not None:
+        if devices > len(devs):
+            raise ConfigError(f"devices: {devices} requested but JAX sees {len(devs)}")
+        devs = devs[:devices]
+    return Mesh(np.array(devs), ("photons",))
+
+
+# ---- the transport kernel ---------------------------------------------------------------
+
+
+def _hg_cos(g, u):
+    """Henyey-Greenstein: cosine of the scattering angle from a uniform ``u``."""
+    small = jnp.abs(g) < 1e-4
+    gs = jnp.where(small, 0.5, g)
+    frac = (1.0 - gs**2) / (1.0 - gs + 2.0 * gs * u)
+    c = (1.0 + gs**2 - frac**2) / (2.0 * gs)
+    return jnp.clip(jnp.where(small, 2.0 * u - 1.0, c), -1.0, 1.0)
+
+
+def _rotate(ux, uy, uz, cos_t, phi):
+    """New direction at polar angle acos(cos_t), azimuth phi about (ux, uy, uz)."""
+    sin_t = jnp.sqrt(jnp.clip(1.0 - cos_t**2, 0.0, 1.0))
+    cp, sp = jnp.cos(phi), jnp.sin(phi)
+    near_pole = jnp.abs(uz) > 0.99999
+    den = jnp.sqrt(jnp.clip(1.0 - uz**2, 1e-20, None))
+    nx = sin_t * (ux * uz * cp - uy * sp) / den + ux * cos_t
+    ny = sin_t * (uy * uz * cp + ux * sp) / den + uy * cos_t
+    nz = -sin_t * cp * den + uz * cos_t
+    sign = jnp.sign(uz) + (uz == 0)
+    px, py, pz = sin_t * cp, sin_t * sp, sign * cos_t
+    nx, ny, nz = jnp.where(near_pole, px, nx), jnp.where(near_pole, py, ny), jnp.where(near_pole, pz, nz)
+    norm = jnp.sqrt(nx**2 + ny**2 + nz**2)
+    return nx / norm, ny / norm, nz / norm
+
+
+def _lambertian(nx, ny, nz, tx, ty, tz, u1, u2):
+    """Cosine-weighted direction about the unit normal n (t a unit tangent, n x t the other)."""
+    cos_t = jnp.sqrt(u1)
+    sin_t = jnp.sqrt(1.0 - u1)
+    phi = 2.0 * math.pi * u2
+    bx, by, bz = ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx
+    c, s = sin_t * jnp.cos(phi), sin_t * jnp.sin(phi)
+    return cos_t * nx + c * tx + s * bx, cos_t * ny + c * ty + s * by, cos_t * nz + c * tz + s * bz
+
+
+def _launch_uz(opts: "MCOptions", fov_deg: float, n1: float) -> float:
+    """Largest |u_z| of launched light: the beam's elevation half-angle in air refracted at the edge,
+    never beyond the guided band."""
+    guided = math.sqrt(max(1.0 - 1.0 / n1**2, 0.0))
+    half = 0.5 * fov_deg if opts.launch_elevation_deg is None else opts.launch_elevation_deg
+    return min(math.sin(math.radians(half)) / n1, guided)
+
+
+def _inward_normals(scene: Scene) -> np.ndarray:
+    """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis."""
+    lx, ly = scene.waveguide.size_m
+    out = []
+    for sp in scene.sensors:
+        x, y = sp.position_m
+        a = math.radians(sp.direction_deg)
+        cands = [(abs(x), (1.0, 0.0)), (abs(x - lx), (-1.0, 0.0)), (abs(y), (0.0, 1.0)), (abs(y - ly), (0.0, -1.0))]
+        near = [nrm for dist, nrm in cands if dist <= 1e-6] or [min(cands)[1]]
+        out.append(max(near, key=lambda nrm: nrm[0] * math.cos(a) + nrm[1] * math.sin(a)))
+    return np.array(out, float)
+
+
+class _Static:
+    """A run's settings, split into what shapes the program (``key``: hashable, compiled once per
+    value) and the physics (``dyn``: arrays passed at run time, so another scene with the same
+    shapes reuses the compiled program)."""
+
+    def __init__(self, scene: Scene, opts: MCOptions):
+        wg, sm = scene.waveguide, scene.sensor
+        self.S, self.Z, self.B = scene.shape
+        self.q = opts.quadrature
+        self.K = self.B * self.q
+        n1 = float(wg.n1)
+        c1 = SPEED_OF_LIGHT_M_PER_S / n1
+        h = float(sm.bin_width_s) / self.q
+        t_e = float(sm.emission_time)
+        el = scene.contact_elements()
+        albedo = np.clip(el[:, 3], 0.0, 1.0) if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+        self.n_contacts = len(el)
+        self.edge_mode = opts.edges
+        self.max_events = int(opts.max_events)
+        self.nee = bool(opts.nee)
+        self.nee_points = int(opts.nee_points)
+        self.nee_aperture = int(opts.nee_aperture)
+        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture)
+        self.dyn = {
+            "lx": wg.size_m[0], "ly": wg.size_m[1], "d": wg.thickness_m, "n1": n1,
+            "mu_s": wg.mu_s_per_m, "mu_a": wg.mu_a_per_m, "c1": c1, "h": h, "t_e": t_e,
+            # packets later than the window (plus two nodes of B-spline support) are stopped
+            "L_max": max((self.B * sm.bin_width_s + 2 * h - t_e) * c1, 0.0),
+            "fov": math.radians(sm.fov_deg),
+            "sensor_xy": np.array([s.position_m for s in scene.sensors], float),
+            "sensor_dir": np.radians([s.direction_deg for s in scene.sensors]),
+            "sensor_normal": _inward_normals(scene),
+            "contacts": el[:, :3].astype(float).reshape(-1, 3),
+            "albedo": albedo.astype(float),
+            "contact_n": opts.contact_n, "g": opts.g,
+            "edge_R": float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance),
+            "half_ap": 0.5 * opts.aperture_m,
+            "cos_guided": math.sqrt(max(1.0 - 1.0 / n1**2, 0.0)),  # |u_z| below this is guided
+            "launch_uz": _launch_uz(opts, sm.fov_deg, n1),
+            "roulette_w": opts.roulette_weight, "roulette_p": opts.roulette_survival,
+        }
+
+    def arrays(self, dtype):
+        return {k: jnp.asarray(v, dtype) for k, v in self.dyn.items()}
+
+
+class _View:
+    """Attribute access to the static shapes and the traced physics inside the kernel."""
+
+    def __init__(self, st: _Static, ph: dict):
+        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture")})
+        self.__dict__.update(ph)
+
+
+def _emit(st: _View, idx, keys, dtype):
+    """Initial packets for global photon indices ``idx`` (sensor = idx mod S)."""
+    s = idx % st.S
+    u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
+    xy = jnp.asarray(st.sensor_xy, dtype)[s]
+    az = jnp.asarray(st.sensor_dir, dtype)[s] + (u[:, 0] - 0.5) * st.fov
+    uz = (2.0 * u[:, 1] - 1.0) * st.launch_uz
+    v = jnp.sqrt(1.0 - uz**2)
+    return dict(
+        x=xy[:, 0], y=xy[:, 1], z=u[:, 2] * st.d,
+        ux=v * jnp.cos(az), uy=v * jnp.sin(az), uz=uz,
+        L=jnp.zeros_like(uz), w=jnp.ones_like(uz), s=s, diffuse=jnp.zeros(uz.shape, bool),
+    )
+
+
+def _deposit(tally, st, base, tau, w):
+    """Add weights ``w`` at times ``tau`` (same shape) to rows ``base`` of the node grid (quadratic B-spline)."""
+    base, tau, w = (jnp.ravel(jnp.broadcast_to(v, jnp.broadcast_shapes(base.shape, tau.shape, w.shape))) for v in (base, tau, w))
+    uu = tau / st.h - 0.5
+    uu = jnp.where((w != 0) & jnp.isfinite(uu), jnp.clip(uu, -10.0, st.K + 10.0), -10.0)
+    centre = jnp.round(uu)
+    dd = uu - centre
+    ic = centre.astype(jnp.int32)
+    for off, wt in ((-1, 0.5 * (0.5 - dd) ** 2), (0, 0.75 - dd**2), (1, 0.5 * (0.5 + dd) ** 2)):
+        node = ic + off
+        inside = (node >= 0) & (node < st.K)
+        tally = tally.at[jnp.where(inside, base + node, 0)].add(jnp.where(inside, w * wt, 0.0))
+    return tally
+
+
+def _nee_nodes(st, M: int, dtype):
+    """Quadrature in mu = sin(elevation): M points over the guided band, M/2 over the rest."""
+    cg = st.cos_guided
+    g = (jnp.arange(M, dtype=dtype) + 0.5) / M * 2.0 - 1.0
+    m2 = max(M // 4, 1)
+    o = (jnp.arange(m2, dtype=dtype) + 0.5) / m2
+    mu = jnp.concatenate([cg * g, cg + (1.0 - cg) * o, -(cg + (1.0 - cg) * o)])
+    dmu = jnp.concatenate([jnp.full((M,), 2.0 * cg / M, dtype), jnp.full((2 * m2,), (1.0 - cg) / m2, dtype)])
+    return mu, dmu
+
+
+def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
+    """Direct flight from event points to the own sensor's aperture (next-event estimation).
+
+    For each event (n,) and elevation node (M,): the solid-angle weight ``dphi dmu`` of the
+    aperture, the transmission (Fresnel at the faces for non-guided elevations, attenuation
+    by mu_s + mu_a, frustration under contacts) and the path length. Returns the outgoing
+    directions (n, M, 3) for the phase function, weights (n, M), path (n, M), zone (n,) and
+    a mask (n,) of events the sensor can see. ``offset`` and ``half`` select a piece of the
+    aperture (its centre along the edge and half-width): the field of view is a condition on
+    the angle of arrival, which differs across a wide aperture.
+    """
+    sn = st.sensor_normal[sensor]
+    half = st.half_ap if half is None else half
+    sp = st.sensor_xy[sensor] + offset * jnp.stack([-sn[:, 1], sn[:, 0]], -1)  # this piece of the aperture
+    dx, dy = sp[:, 0] - x, sp[:, 1] - y
+    rho = jnp.sqrt(dx**2 + dy**2)
+    ok = rho > 1e-9
+    rho_ = jnp.where(ok, rho, 1.0)
+    ex, ey = dx / rho_, dy / rho_
+    # exact in-plane angle subtended by the aperture (a segment along the edge), facing side only
+    tx, ty = -sn[:, 1] * half, sn[:, 0] * half
+    ax_, ay_, bx_, by_ = dx + tx, dy + ty, dx - tx, dy - ty
+    facing = (ex * sn[:, 0] + ey * sn[:, 1]) < 0
+    dphi = jnp.where(facing, jnp.abs(jnp.arctan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
+    rel = jnp.mod(jnp.arctan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
+    seen = ok & (jnp.abs(rel) < 0.5 * st.fov)
+    zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
+    c = jnp.sqrt(jnp.clip(1.0 - mu**2, 1e-12, 1.0))  # (M,)
+    path = rho_[:, None] / c[None, :]
+    zu = z[:, None] + mu[None, :] * path
+    k = jnp.abs(jnp.floor(zu / st.d))
+    R = fresnel_reflectance(st.n1, jnp.asarray(1.0, dtype), mu)[None, :]
+    T = jnp.where(R >= 1.0, 1.0, R**k) * jnp.exp(-(st.mu_s + st.mu_a) * path)
+    if st.n_contacts:
+        cxy, crad = st.contacts[:, :2], st.contacts[:, 2]
+        px, py = x[:, None] - cxy[None, :, 0], y[:, None] - cxy[None, :, 1]
+        b = px * ex[:, None] + py * ey[:, None]
+        cc = px**2 + py**2 - crad[None, :] ** 2
+        disc = jnp.maximum(b**2 - cc, 0.0)
+        t0 = jnp.clip(-b - jnp.sqrt(disc), 0.0, rho_[:, None])
+        t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None])
+        chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # (n, N) in-plane length under each contact
+        hits = chord[:, :, None] * (jnp.abs(mu) / (2.0 * st.d * c))[None, None, :]  # expected top hits
+        Rc = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        T = T * jnp.prod(jnp.where(Rc >= 1.0, 1.0, Rc**hits), axis=1)
+    weight = (dphi[:, None] * dmu[None, :]) * T
+    omega = jnp.stack([c[None, :] * ex[:, None], c[None, :] * ey[:, None], jnp.broadcast_to(mu[None, :], path.shape)], -1)
+    return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
+
+
+def _hg_pdf(g, cos_t):
+    """Henyey-Greenstein phase function per steradian."""
+    return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
+
+
+def _transport(st: _View, idx, valid, seed_key, dtype):
+    """Follow one batch of packets to the end. Returns (tally (S*Z*K,), ledger (8,), events)."""
+    keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(idx)
+    p = _emit(st, idx, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
+    alive = valid
+    f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+    d = f(st.d)
+    inf = f(jnp.inf)
+    sxy = jnp.asarray(st.sensor_xy, dtype)
+    sdir = jnp.asarray(st.sensor_dir, dtype)
+    has_contacts = st.n_contacts > 0
+    if has_contacts:
+        cxy = st.contacts[:, :2]
+        crad = st.contacts[:, 2]
+        calb = st.albedo
+    R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
+    if st.nee:
+        mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
+    ledger0 = jnp.zeros((len(LEDGER),), dtype)
+    tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
+
+    def body(carry):
+        step, p, alive, tally, ledger, events = carry
+        u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, step), (6,), dtype))(keys)
+        x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
+        az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
+        # --- candidate distances ---
+        scatters = st.mu_s > 0
+        s_scat = jnp.where(scatters, -jnp.log1p(-u[:, 0]) / jnp.where(scatters, st.mu_s, 1.0), inf)
+        tx = jnp.where(ux > 1e-12, (st.lx - x) / jnp.where(ux > 1e-12, ux, 1.0),
+                       jnp.where(ux < -1e-12, -x / jnp.where(ux < -1e-12, ux, 1.0), inf))
+        ty = jnp.where(uy > 1e-12, (st.ly - y) / jnp.where(uy > 1e-12, uy, 1.0),
+                       jnp.where(uy < -1e-12, -y / jnp.where(uy < -1e-12, uy, 1.0), inf))
+        s_edge = jnp.maximum(jnp.minimum(tx, ty), 0.0)
+        hit_x = tx <= ty
+        s_late = jnp.maximum(st.L_max - L, 0.0)
+        if has_contacts:
+            # first top-face hit inside any contact disk
+            s0 = jnp.where(uz > 0, (d - z) / az_, (z + d) / az_)
+            delta = 2.0 * d / az_
+            dx, dy = x[:, None] - cxy[None, :, 0], y[:, None] - cxy[None, :, 1]
+            a = (ux**2 + uy**2)[:, None]
+            b = 2.0 * (dx * ux[:, None] + dy * uy[:, None])
+            cc = dx**2 + dy**2 - crad[None, :] ** 2
+            disc = b**2 - 4.0 * a * cc
+            vertical = a < 1e-14
+            sq = jnp.sqrt(jnp.maximum(disc, 0.0))
+            a_ = jnp.where(vertical, 1.0, a)
+            sa = jnp.where(vertical, jnp.where(cc <= 0, -inf, inf), (-b - sq) / (2.0 * a_))
+            sb = jnp.where(vertical, jnp.where(cc <= 0, inf, -inf), (-b + sq) / (2.0 * a_))
+            kc = jnp.maximum(jnp.ceil((jnp.maximum(sa, 0.0) - s0[:, None]) / delta[:, None]), 0.0)
+            kc = jnp.where(jnp.isfinite(kc), kc, 0.0)
+            s_hit = s0[:, None] + kc * delta[:, None]
+            ok = (disc >= 0) | vertical
+            s_hit = jnp.where(ok & (s_hit <= sb) & (s_hit >= 0), s_hit, inf)
+            j = jnp.argmin(s_hit, axis=1)
+            s_cont = jnp.take_along_axis(s_hit, j[:, None], 1)[:, 0]
+            k_cont = jnp.take_along_axis(kc, j[:, None], 1)[:, 0]
+        else:
+            s_cont = jnp.full_like(x, inf)
+        cand = jnp.stack([s_late, s_scat, s_edge, s_cont], 1)
+        kind = jnp.argmin(cand, axis=1)  # 0 late, 1 scatter, 2 edge, 3 contact
+        s = jnp.min(cand, axis=1)
+        s = jnp.where(jnp.isfinite(s), s, 0.0)
+        # --- move, folding face bounces ---
+        nx_ = jnp.clip(x + ux * s, 0.0, st.lx)
+        ny_ = jnp.clip(y + uy * s, 0.0, st.ly)
+        zu = z + uz * s
+        k_faces = jnp.abs(jnp.floor(zu / d))
+        m = jnp.mod(zu, 2.0 * d)
+        flip = m > d
+        nz_ = jnp.clip(jnp.where(flip, 2.0 * d - m, m), 0.0, d)
+        nuz = jnp.where(flip, -jnp.abs(uz), jnp.abs(uz))
+        is_cont = kind == 3
+        if has_contacts:
+            k_faces = jnp.where(is_cont, 2.0 * k_cont + (uz < 0), k_faces)
+            nz_ = jnp.where(is_cont, d, nz_)
+            nuz = jnp.where(is_cont, az_, nuz)
+        R_air = R_air_of(uz)
+        keep = jnp.where(R_air >= 1.0, 1.0, R_air**k_faces)
+        att = jnp.exp(-st.mu_a * s)
+        w_new = w * att * keep
+        absorbed = w * (1.0 - att)
+        escaped = w * att * (1.0 - keep)
+        L_new = L + s
+        # --- events ---
+        # late
+        late = alive & (kind == 0)
+        # scatter
+        sc = alive & (kind == 1)
+        ct = _hg_cos(st.g, u[:, 1])
+        sx, sy, sz = _rotate(ux, uy, nuz, ct, 2.0 * math.pi * u[:, 2])
+        # edge: detection at the own sensor or reflection
+        eg = alive & (kind == 2)
+        sp = sxy[p["s"]]
+        dist_sensor = jnp.sqrt((nx_ - sp[:, 0]) ** 2 + (ny_ - sp[:, 1]) ** 2)
+        back = jnp.arctan2(-uy, -ux) - sdir[p["s"]]
+        rel = jnp.mod(back + math.pi, 2.0 * math.pi) - math.pi
+        in_fov = jnp.abs(rel) < 0.5 * st.fov
+        det = eg & (dist_sensor <= st.half_ap) & in_fov
+        refl = eg & ~det
+        # inward normal of the wall hit and a tangent along it
+        wnx = jnp.where(hit_x, jnp.where(ux > 0, -1.0, 1.0), 0.0)
+        wny = jnp.where(hit_x, 0.0, jnp.where(uy > 0, -1.0, 1.0))
+        if st.edge_mode == "specular":
+            ex, ey, ez = jnp.where(hit_x, -ux, ux), jnp.where(hit_x, uy, -uy), nuz
+            edge_R = st.edge_R
+        elif st.edge_mode == "diffuse":
+            ex, ey, ez = _lambertian(wnx, wny, 0.0 * wnx, -wny, wnx, 0.0 * wnx, u[:, 3], u[:, 4])
+            edge_R = st.edge_R
+        else:
+            ex, ey, ez = ux, uy, nuz
+            edge_R = 0.0
+        # tally detections: zone by angle of return, time on the node grid (quadratic B-spline)
+        # (with next-event estimation, a packet whose last event was diffuse was already scored)
+        zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
+        wd = jnp.where(det, w_new, 0.0)
+        score = wd if not st.nee else jnp.where(p["diffuse"], 0.0, wd)
+        tally = _deposit(tally, st, (p["s"] * st.Z + zone) * st.K, st.t_e + L_new / st.c1, score)
+        # contact: Fresnel into the finger, diffuse return with its albedo
+        if has_contacts:
+            cn = alive & is_cont
+            Rc = fresnel_reflectance(f(st.n1), f(st.contact_n), az_)
+            mirror = u[:, 5] < Rc
+            alb = calb[j]
+            lx_, ly_, lz_ = _lambertian(0.0 * x, 0.0 * x, -jnp.ones_like(x), jnp.ones_like(x), 0.0 * x, 0.0 * x, u[:, 3], u[:, 4])
+            into = cn & ~mirror
+            c_ux, c_uy = jnp.where(into, lx_, ux), jnp.where(into, ly_, uy)
+            c_uz = jnp.where(into, lz_, -az_)
+            c_w = jnp.where(into, w_new * alb, w_new)
+            contact_loss = jnp.where(into, w_new * (1.0 - alb), 0.0)
+        else:
+            cn = jnp.zeros_like(alive)
+            c_ux, c_uy, c_uz, c_w, contact_loss = ux, uy, nuz, w_new, jnp.zeros_like(w)
+        # --- next-event estimation: expected direct flight to the aperture after each diffuse event ---
+        for piece in range(st.nee_aperture if st.nee else 0):
+            half = st.half_ap / st.nee_aperture
+            offset = -st.half_ap + (2 * piece + 1) * half
+            omega, nw, npath, nzone = _nee(st, nx_, ny_, nz_, p["s"], mu_q, dmu_q, dtype, offset, half)
+            in_dir = jnp.stack([ux, uy, nuz], -1)[:, None, :]
+            phase_sc = _hg_pdf(st.g, jnp.sum(omega * in_dir, -1))
+            nwall = jnp.stack([wnx, wny, 0.0 * wnx], -1)[:, None, :]
+            phase_edge = jnp.maximum(jnp.sum(omega * nwall, -1), 0.0) / math.pi
+            w_ev = jnp.where(sc, w_new, 0.0)[:, None] * phase_sc
+            if st.edge_mode == "diffuse":
+                w_ev = w_ev + jnp.where(refl, w_new * edge_R, 0.0)[:, None] * phase_edge
+            if has_contacts:
+                phase_c = jnp.maximum(-omega[..., 2], 0.0) / math.pi
+                w_ev = w_ev + jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0)[:, None] * phase_c
+            tally = _deposit(tally, st, ((p["s"] * st.Z + nzone) * st.K)[:, None], st.t_e + (L_new[:, None] + npath) / st.c1, w_ev * nw)
+        if st.nee:
+            diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
+            if has_contacts:
+                diffuse = jnp.where(cn, into, diffuse)
+            diffuse = jnp.where(refl & (st.edge_mode == "specular"), False, diffuse)
+        else:
+            diffuse = p["diffuse"]
+        # --- new state ---
+        nux = jnp.where(sc, sx, jnp.where(refl, ex, jnp.where(cn, c_ux, ux)))
+        nuy = jnp.where(sc, sy, jnp.where(refl, ey, jnp.where(cn, c_uy, uy)))
+        nuz2 = jnp.where(sc, sz, jnp.where(refl, ez, jnp.where(cn, c_uz, nuz)))
+        wn = jnp.where(refl, w_new * edge_R, jnp.where(cn, c_w, w_new))
+        edge_loss = jnp.where(refl, w_new * (1.0 - edge_R), 0.0)
+        still = alive & ~late & ~det & (wn > 0)
+        # Russian roulette (never triggers with roulette_w = 0)
+        low = still & (wn < st.roulette_w)
+        survive = u[:, 5] < st.roulette_p
+        rw = jnp.where(low, jnp.where(survive, wn / st.roulette_p, 0.0), wn)
+        roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
+        wn = rw
+        still = still & ~(low & ~survive)
+        A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
+        ledger = ledger + jnp.stack([
+            jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
+            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette),
+        ])
+        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse)
+        events = events + jnp.sum(alive, dtype=jnp.int32)
+        return step + 1, p, still, tally, ledger, events
+
+    def cond(carry):
+        step, _, alive, *_ = carry
+        return (step < st.max_events) & jnp.any(alive)
+
+    step, p, alive, tally, ledger, events = jax.lax.while_loop(
+        cond, body, (jnp.int32(1), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32))
+    )
+    ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(alive, p["w"], 0.0)))
+    return tally, ledger, events
+
+
+_COMPILED: dict = {}
+
+
+def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):
+    """Compiled ``shard_map``: (per_call, n_batch) global indices + validity -> summed tallies.
+
+    Cached by the program's shapes, so runs that differ only in physics reuse it.
+    Returns (executable, compile seconds: 0 when cached)."""
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name)
+    if cache_key in _COMPILED:
+        return _COMPILED[cache_key], 0.0
+
+    def local(idx, valid, seed, ph):
+        key = jax.random.wrap_key_data(seed)
+        view = _View(st, ph)
+
+        def one(carry, xs):
+            t, l, e = carry
+            ti, li, ei = _transport(view, xs[0], xs[1], key, dtype)
+            return (t + ti, l + li, e + ei), None
+
+        init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER),), dtype), jnp.zeros((), jnp.int32))
+        (t, l, e), _ = jax.lax.scan(one, init, (idx, valid))
+        return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
+
+    sm = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(P(None, "photons"), P(None, "photons"), P(), P()),
+        out_specs=(P(), P(), P()),
+        check_vma=False,
+    )
+    t0 = time.perf_counter()
+    exe = jax.jit(sm).lower(*args).compile()
+    _COMPILED[cache_key] = exe
+    return exe, time.perf_counter() - t0
+
+
+def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
+    """Monte Carlo expected histograms of ``scene`` (transported light only).
+
+    **Arguments:**
+
+    - ``scene``: the scene (waveguide, sensors, contacts, pulse, gain).
+    - ``options``: :class:`MCOptions` (photon count, seed, physics switches).
+    - ``progress``: show a progress bar over batches.
+
+    **Returns:** an :class:`MCResult`. The same seed and photon count give the same
+    tallies on any number of devices and any batch size (to float rounding).
+    """
+    if not isinstance(scene, Scene):
+        raise UserError(f"scene: expected a Scene, got {type(scene).__name__}")
+    dtype = options.jnp_dtype
+    st = _Static(scene, options)
+    mesh = photon_mesh(options.devices)
+    ndev = mesh.devices.size
+    total = options.photons * st.S
+    # batch sizes in a few power-of-two buckets (at least 4096), so that runs of different photon
+    # counts share one compiled program; unused lanes start dead
+    n_batch = min(options.batch, max(4096, 1 << (total - 1).bit_length()))
+    n_batch = -(-n_batch // ndev) * ndev
+    n_batches = -(-total // n_batch)
+    # batches per compiled call (a progress tick each); two values only, so few programs are compiled
+    per_call = 8 if n_batches >= 32 else 1
+    ph = st.arrays(dtype)
+    sharding = NamedSharding(mesh, P(None, "photons"))
+    seed = jax.random.key_data(jax.random.key(options.seed))
+    tally = np.zeros(st.S * st.Z * st.K)
+    ledger = np.zeros(len(LEDGER))
+    events = 0
+    compile_s = 0.0
+    t_run = 0.0
+    from tqdm import tqdm
+
+    calls = range(0, n_batches, per_call)
+    for c0 in tqdm(calls, desc="monte carlo", unit="call", disable=not progress):
+        idx = np.arange(c0 * n_batch, (c0 + per_call) * n_batch, dtype=np.int64).reshape(per_call, n_batch)
+        valid = idx < total
+        idx = np.where(valid, idx, 0).astype(np.int32)
+        args = (jax.device_put(idx, sharding), jax.device_put(valid, sharding), seed, ph)
+        if c0 == 0:
+            fn, compile_s = _chunk_fn(st, mesh, n_batch, per_call, dtype, args)
+        t0 = time.perf_counter()
+        t, lg, ev = jax.block_until_ready(fn(*args))
+        t_run += time.perf_counter() - t0
+        tally += np.asarray(t, np.float64)
+        ledger += np.asarray(lg, np.float64)
+        events += int(ev)
+    nodes = tally.reshape(st.S, st.Z, st.K) / options.photons
+    kernels = bin_kernels(st.dyn["h"], st.B, st.q, jnp.asarray(scene.sensor.pulse_sigma_s, dtype),
+                          jnp.asarray(scene.sensor.pulse_tail_s, dtype), dtype)
+    fraction = np.asarray(apply_kernels(jnp.asarray(nodes, dtype), kernels, st.B, st.q), np.float64)
+    scale = options.counts_per_gain_m2
+    if scale is None:
+        scale = 1.0 / (options.aperture_m * scene.waveguide.thickness_m)
+    counts = scene.gains()[:, None, None] * fraction * scale
+    return MCResult(
+        counts=counts,
+        fraction=fraction,
+        nodes=nodes,
+        ledger={k: float(v) / total for k, v in zip(LEDGER, ledger)},
+        photons=options.photons,
+        events=events,
+        seconds=t_run,
+        compile_seconds=compile_s,
+        devices=ndev,
+        options=options,
+    )
