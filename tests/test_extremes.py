@@ -13,11 +13,12 @@ far corner, float32 and float64). This module adds what that does not cover:
   contacts at a sensor and at the far edge, both dtypes): finite tallies, conserved weight;
 * physically impossible inputs: a clear one-line error naming the key.
 
-The touch correction and tactile maps (tofjax.invert) join this sweep after that package is
-merged: see the section at the end.
+* the touch correction, tactile maps and detection (tofjax.invert) with the optics at the
+  corners of the sweep, on frames from 0 to 1e9 counts and contacts at a sensor and the far edge.
 """
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -210,6 +211,32 @@ def test_impossible_mc_and_contact_inputs():
 
 
 # ---- touch correction and tactile maps (tofjax.invert) -------------------------------------
-# Reserved for the lead after merging the inversion package: run the correction and the maps
-# over the same extremes as above (DECADES x INDICES, edge_contacts(scene) for contacts at a
-# sensor and at the far edge, counts 0 to 1e9, float32 and float64) and assert finite output.
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_correction_maps_and_detection_over_the_extremes(optoskin, dtype):
+    """Algorithm 1, the Eq. 8 maps and detection with the optics at the corners of the sweep
+    (mu_s, mu_a in {0, 1e3} /m, n1 in {1.0001, 3.5}), on frames of 0 counts, of 1e9 counts
+    (saturated: flagged), of the baseline, and of contacts at a sensor and at the far edge:
+    finite gains, finite maps, saturated frames flagged and zero, detections finite."""
+    from tofjax.invert import InvertOptions, MapOptions, OpticalParams, build_inverter
+    from tofjax.simulate import expected_counts
+
+    options = InvertOptions(maps=MapOptions(resolution_m=0.01), dtype=dtype)
+    touched = optoskin.replace(touches=edge_contacts(optoskin))
+    for mu_s, mu_a, n1 in ((0.0, 0.0, 1.0001), (1e3, 0.0, 3.5), (0.0, 1e3, 1.4), (1e3, 1e3, 1.0001), (0.6, 0.14, 3.5)):
+        base_scene = with_waveguide(optoskin, mu_s_per_m=mu_s, mu_a_per_m=mu_a, n1=n1)
+        base = expected_counts(base_scene)
+        touch = expected_counts(with_waveguide(touched, mu_s_per_m=mu_s, mu_a_per_m=mu_a, n1=n1))
+        assert np.isfinite(base).all() and np.isfinite(touch).all()
+        inv = build_inverter(base_scene, base, options, OpticalParams.from_scene(base_scene), n_baseline=100)
+        assert np.isfinite(np.asarray(inv.corrector.gain)).all(), (mu_s, mu_a, n1)
+        assert np.isfinite(inv.noise).all()
+        frames = np.stack([np.zeros(optoskin.shape), np.full(optoskin.shape, 1e9), base, touch])
+        res = inv.process(frames)
+        assert np.isfinite(res.maps).all(), (mu_s, mu_a, n1, dtype)
+        assert res.ok.tolist() == [True, False, True, True]
+        assert np.all(res.maps[1] == 0) and res.detections[1].touches == []
+        for det in res.detections:
+            for t in det.touches:
+                assert all(math.isfinite(t[k]) for k in ("x_m", "y_m", "strength"))
