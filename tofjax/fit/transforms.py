@@ -39,6 +39,13 @@ class Transform:
         f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return np.log(f) - np.log1p(-f)
 
+    def unconstrain(self, x):
+        """:meth:`to_unconstrained` in JAX (jit- and grad-safe), for the compiled fit."""
+        if self.kind == "log":
+            return jnp.log(jnp.maximum(x, 1e-12 * self.scale) / self.scale)
+        f = jnp.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
+        return jnp.log(f) - jnp.log1p(-f)
+
     def derivative(self, u):
         """dx/du at ``u``: carries standard errors from u to physical units."""
         if self.kind == "log":
