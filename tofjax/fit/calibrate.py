@@ -703,7 +703,11 @@ def _initial_params(capture: Capture, scene: Scene, base: Params, reference=None
 def _covariance(problem: _Problem, params: Params, hessian, dphys, u_flat) -> tuple[np.ndarray, list[str], dict, dict, dict]:
     """Laplace covariance of every free parameter (linear ones included) from ``J^T J`` of the
     full residuals at the optimum, carried to physical units with ``dphys``."""
-    u = problem.pack(params, problem.free)
+    u_sizes = {k: int(np.size(getattr(params, k))) for k in problem.free if k not in problem.JOINT}
+    if all(j in problem.free for j in problem.JOINT):
+        u_sizes |= {"extinction": 1, "albedo": 1}
+    else:
+        u_sizes |= {k: 1 for k in problem.JOINT if k in problem.free}
     cov_u = np.linalg.pinv(np.asarray(hessian, np.float64), hermitian=True)
     d = np.asarray(dphys, np.float64)  # d physical / d unconstrained
     cov = d @ cov_u @ d.T
@@ -720,15 +724,16 @@ def _covariance(problem: _Problem, params: Params, hessian, dphys, u_flat) -> tu
         # (log, logit), so it respects bounds; its width there is the delta method's.
         t = problem.transforms[k]
         w = t.to_unconstrained(x)
-        sw = stderr[k] / np.maximum(np.asarray(t.derivative(w)), 1e-300)
-        interval[k] = (np.asarray(t.to_physical(w - 1.96 * sw)), np.asarray(t.to_physical(w + 1.96 * sw)))
+        sw = stderr[k] / np.maximum(t.derivative_np(w), 1e-300)
+        interval[k] = (t.to_physical_np(w - 1.96 * sw), t.to_physical_np(w + 1.96 * sw))
         labels += [k] if shape == () else [f"{k}[{i}]" for i in range(n)]
         pos += n
     pos = 0
     su_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    for k in sorted(u):  # ravel_pytree orders dict keys sorted
-        n = int(np.size(u[k]))
-        u_stderr[k] = su_flat[pos : pos + n].reshape(np.shape(u[k]))
+    for k in sorted(u_sizes):  # ravel_pytree orders dict keys sorted
+        n = u_sizes[k]
+        shape = () if k in ("extinction", "albedo") else np.shape(getattr(params, k))
+        u_stderr[k] = su_flat[pos : pos + n].reshape(shape)
         pos += n
     return cov, labels, stderr, interval, u_stderr
 
