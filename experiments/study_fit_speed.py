@@ -1,14 +1,19 @@
 """Study: calibration speed against accuracy, and against scipy's least_squares.
 
-On simulated baselines of one scene, every fit setting of the config (solver,
-tolerances, the loss stopping rule, float32 / float64) is compiled once and timed
-warm on the same captures. Its error is measured against a tight reference fit of
-each capture (in units of the reference's Laplace standard errors: the error the
-setting adds on top of the statistical one) and against the truth. The same
-profiled residuals and Jacobian then go through ``scipy.optimize.least_squares``
-from the same start, and the warm solve times are compared side by side.
+1. Fit settings. On simulated baselines of one scene, every fit setting of the config
+   (solver, tolerances, the loss stopping rule, the Gauss-Newton fast path, float32 /
+   float64, quadrature) is compiled once (the compile time is recorded) and timed warm on
+   the same captures: the whole fit (start, solve, covariance) and the solve alone. Its
+   error is measured against a tight reference fit of each capture (in units of the
+   reference's Laplace standard errors: the error the setting adds on top of the
+   statistical one) and against the truth.
+2. The usual tool. The same profiled residuals and JAX Jacobian go through
+   ``scipy.optimize.least_squares`` from the same start as tofjax's default; the warm solve
+   times are measured side by side, interleaved, on the same captures.
+3. emcee steps against interval accuracy. One posterior run on a small scene; the 95%
+   intervals from its first N steps are compared with those from the whole chain.
 
-Writes ``fit_speed.json``, ``fit_speed.md`` and ``fit_speed.png`` (time against error).
+Writes ``fit_speed.json``, ``fit_speed.md`` and ``fit_speed.png``.
 
     python experiments/study_fit_speed.py --config configs/studies/fit_speed.toml --out out/fit_speed
 """
@@ -18,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import platform
 import time
 from dataclasses import dataclass
@@ -31,10 +37,11 @@ from tqdm import tqdm
 import tofjax
 from tofjax.config import from_dict, load_toml
 from tofjax.fit.calibrate import Calibrator, FitConfig, _initial_params
-from tofjax.scene import load_scene
+from tofjax.scene import SensorModel, load_scene
 from tofjax.simulate import simulate
 
 TARGETS = ("n1", "mu_s_per_m", "mu_a_per_m")
+LINEAR = ("gain", "ambient_counts", "crosstalk_counts")
 
 
 @dataclass(frozen=True)
@@ -46,20 +53,42 @@ class Setting:
     rtol: float = 1e-7
     atol: float = 1e-7
     loss_tol: float = 1e-3
+    gauss_newton_first: int = 10
     dtype: str = "float64"
     quadrature: int = 2
 
 
 @dataclass(frozen=True)
+class EmceeStudy:
+    """Posterior on a small scene (``sensors`` of the scene, ``zones``, ``bins``)."""
+
+    sensors: int = 3
+    zones: int = 3
+    bins: int = 96
+    frames: int = 60
+    max_steps: int = 3000
+    walkers: int = 32
+    steps: tuple[int, ...] = (250, 500, 1000, 2000)
+    seed: int = 7
+
+
+@dataclass(frozen=True)
 class FitSpeedConfig:
+    """``sensors``, ``zones``, ``bins``: cut the scene down (0 = as it is; tests use a small one)."""
+
     scene: str = "optoskin"
+    sensors: int = 0
+    zones: int = 0
+    bins: int = 0
     frames: int = 100
     captures: int = 5
     seed: int = 100
+    repeats: int = 3
     settings: tuple[Setting, ...] = (Setting("default"),)
     scipy_methods: tuple[str, ...] = ("trf", "lm")
     scipy_jacobians: tuple[str, ...] = ("jax", "2-point")
     scipy_tol: float = 1e-8
+    emcee: EmceeStudy | None = EmceeStudy()
 
 
 def _fit_config(s: Setting, **over) -> FitConfig:
@@ -69,7 +98,7 @@ def _fit_config(s: Setting, **over) -> FitConfig:
 
 def _errors(res, ref, truth) -> dict:
     """Error of a fit against the reference fit (in its standard errors) and the truth."""
-    names = [k for k in ref.free if k not in ("gain", "ambient_counts", "crosstalk_counts")]
+    names = [k for k in ref.free if k not in LINEAR]
     z = {k: float(np.max(np.abs(np.ravel(res.values[k]) - np.ravel(ref.values[k])) / np.ravel(ref.stderr[k]))) for k in names}
     mu_t = float(res.values["mu_s_per_m"] + res.values["mu_a_per_m"])
     return {
@@ -80,135 +109,257 @@ def _errors(res, ref, truth) -> dict:
     }
 
 
-def _time_solve(calibrator, cap) -> tuple[float, np.ndarray, object]:
-    """Warm time of the solve alone (start from the data, no covariance), and its end point."""
+def _start(calibrator: Calibrator, cap):
     problem = calibrator._problem
     problem.set_data(cap.mean(), cap.n_frames)
     base = calibrator.base_params()
-    start = problem.profile_jit(_initial_params(cap, calibrator.scene, base), problem.data, problem.sigma)
+    ref = problem.reference_estimates(calibrator.scene, base, cap.n_frames)
+    return _initial_params(cap, calibrator.scene, base, ref), base
+
+
+def _solve_runner(calibrator: Calibrator):
+    """The compiled solve of ``calibrator``'s setting without the covariance (what scipy is
+    compared with): start from the data, solve, profile the end point."""
     cfg = calibrator.config
-    run = problem.solver_for(problem.nonlinear, cfg.make_solver(), cfg.max_steps, cfg.solver == "poisson-deviance", cfg.loss_tol)
-    args = (start, problem.data, problem.sigma, problem.pack(base))
-    u0 = problem.pack(start)
-    t = time.perf_counter()
-    out = jax.block_until_ready(run(u0, args))
-    dt = time.perf_counter() - t
-    return dt, np.asarray(jax.flatten_util.ravel_pytree(out.value)[0]), (start, args, u0)
+    problem = calibrator._problem
+    gn = min(cfg.gauss_newton_first if cfg.solver in ("levenberg-marquardt", "dogleg") else 0, cfg.max_steps)
+    return problem.core_for(
+        problem.nonlinear, cfg.make_solver(), cfg.max_steps, cfg.solver == "poisson-deviance", cfg.loss_tol, False, gn
+    )
 
 
-def _scipy_solve(problem, start_args, method: str, tol: float, jacobian: str) -> tuple[float, np.ndarray, int]:
-    """The same profiled residuals (jitted JAX) through scipy.optimize.least_squares, with
-    the JAX Jacobian (``jacobian = "jax"``) or scipy's own finite differences (``"2-point"``)."""
+def _time_solve(calibrator: Calibrator, cap, repeats: int) -> tuple[float, object]:
+    """Median warm time of the solve alone (start from the data included), and its end point."""
+    run = _solve_runner(calibrator)
+    problem = calibrator._problem
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        start, base = _start(calibrator, cap)
+        out = jax.block_until_ready(run(start, problem.data, problem.sigma, base))
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), out
+
+
+def _scipy_problem(calibrator: Calibrator):
+    """Jitted residuals and JAX Jacobian of the same profiled problem, for scipy (compiled once)."""
+    problem = calibrator._problem
+    base = calibrator.base_params()
+    u = problem.pack(base)
+    _, unravel = jax.flatten_util.ravel_pytree(u)
+    f = jax.jit(lambda x, args: problem.residuals(unravel(x), args))
+    jac = jax.jit(jax.jacfwd(lambda x, args: problem.residuals(unravel(x), args)))
+    return f, jac, unravel
+
+
+def _scipy_solve(calibrator: Calibrator, sp, cap, method: str, tol: float, jacobian: str, repeats: int):
+    """The same profiled residuals through scipy.optimize.least_squares from the same start,
+    with the JAX Jacobian (``"jax"``) or scipy's own finite differences (``"2-point"``)."""
     from scipy.optimize import least_squares
 
-    start, args, u0 = start_args
-    flat0, unravel = jax.flatten_util.ravel_pytree(u0)
-    f = jax.jit(lambda x: problem.residuals(unravel(x), args))
-    jac = jax.jit(jax.jacfwd(lambda x: problem.residuals(unravel(x), args)))
-    x0 = np.asarray(flat0, np.float64)
-    f(x0).block_until_ready()
-    jac(x0).block_until_ready()  # compile outside the timing, as for tofjax
-    t = time.perf_counter()
-    out = least_squares(
-        lambda x: np.asarray(f(x), np.float64),
-        x0,
-        jac=(lambda x: np.asarray(jac(x), np.float64)) if jacobian == "jax" else jacobian,
-        method=method,
-        xtol=tol,
-        ftol=tol,
-        gtol=tol,
-        max_nfev=2000,
-    )
-    return time.perf_counter() - t, out.x, int(out.nfev)
+    problem = calibrator._problem
+    f, jac, _ = sp
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        start, base = _start(calibrator, cap)
+        p0 = problem.profile_jit(start, problem.data, problem.sigma)
+        args = (p0, problem.data, problem.sigma, problem.pack(base))
+        x0 = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(p0))[0], np.float64)
+        out = least_squares(
+            lambda x: np.asarray(f(x, args), np.float64),
+            x0,
+            jac=(lambda x: np.asarray(jac(x, args), np.float64)) if jacobian == "jax" else jacobian,
+            method=method,
+            xtol=tol,
+            ftol=tol,
+            gtol=tol,
+            max_nfev=2000,
+        )
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), out.x, int(out.nfev)
 
 
-def run(config: FitSpeedConfig, out: Path, progress: bool = True) -> dict:
-    scene = load_scene(config.scene)
-    truth = {k: float(getattr(scene.waveguide, k)) for k in TARGETS}
-    caps = [simulate(scene, config.frames, seed=config.seed + i) for i in range(config.captures)]
+_CALIBRATORS: dict = {}
 
-    # reference: tight tolerances, no loss rule
-    ref_cal = Calibrator(scene, FitConfig(rtol=1e-10, atol=1e-10, loss_tol=0.0, max_steps=1000))
-    refs = [ref_cal.fit(c) for c in tqdm(caps, desc="reference fits", disable=not progress)]
 
+def _calibrator(scene, config: FitConfig) -> Calibrator:
+    """One calibrator (one compilation) per scene and setting."""
+    key = (id(scene), config)
+    if key not in _CALIBRATORS:
+        _CALIBRATORS[key] = Calibrator(scene, config)
+    return _CALIBRATORS[key]
+
+
+def run_settings(config: FitSpeedConfig, scene, caps, refs, truth, progress: bool) -> list[dict]:
     rows = []
     for s in tqdm(config.settings, desc="settings", disable=not progress):
-        cal = Calibrator(scene, _fit_config(s))
+        cal = _calibrator(scene, _fit_config(s))
         t = time.perf_counter()
         cal.fit(caps[0])  # compiles
         first = time.perf_counter() - t
+        _time_solve(cal, caps[0], 1)  # compiles the solve without covariance
         times, steps, errs, conv, solve_times = [], [], [], [], []
         for cap, ref in zip(caps, refs):
-            t = time.perf_counter()
-            res = cal.fit(cap)
-            times.append(time.perf_counter() - t)
+            ts = []
+            for _ in range(config.repeats):
+                t = time.perf_counter()
+                res = cal.fit(cap)
+                ts.append(time.perf_counter() - t)
+            times.append(float(np.median(ts)))
             steps.append(res.steps)
             conv.append(res.converged)
             errs.append(_errors(res, ref, truth))
-            solve_times.append(_time_solve(cal, cap)[0])
+            solve_times.append(_time_solve(cal, cap, config.repeats)[0])
         rows.append(
             {
                 "setting": dataclasses.asdict(s),
                 "first_fit_s": first,
                 "warm_fit_s_median": float(np.median(times)),
+                "warm_fit_s": times,
                 "warm_solve_s_median": float(np.median(solve_times)),
                 "steps_median": float(np.median(steps)),
+                "steps": steps,
                 "converged": int(sum(conv)),
                 "z_max_targets_median": float(np.median([e["z_max_targets"] for e in errs])),
+                "z_max_targets_max": float(np.max([e["z_max_targets"] for e in errs])),
                 "z_max_all_max": float(np.max([e["z_max_all"] for e in errs])),
                 "n1_rel_error_max": float(np.max([e["n1_rel_error"] for e in errs])),
                 "mu_t_rel_error_max": float(np.max([e["mu_t_rel_error"] for e in errs])),
             }
         )
+    return rows
 
-    # scipy against tofjax's default, side by side on the same captures and starts
-    default = Calibrator(scene, FitConfig())
+
+def run_scipy(config: FitSpeedConfig, scene, caps, refs) -> dict:
+    """tofjax's default solve and scipy's, interleaved on the same captures and starts."""
+    default = _calibrator(scene, FitConfig())
     default.fit(caps[0])
-    breakdown = []
-    comparisons = []
+    _time_solve(default, caps[0], 1)
+    sp = _scipy_problem(default)
+    methods = [f"{m} {j}" for m in config.scipy_methods for j in config.scipy_jacobians]
+    runs = []
     for cap, ref in zip(caps, refs):
-        t0 = time.perf_counter()
-        res = default.fit(cap)
-        total = time.perf_counter() - t0
-        ours, x_ours, start_args = _time_solve(default, cap)
-        breakdown.append({"fit_s": total, "solve_s": ours})
         problem = default._problem
+        ours, out = _time_solve(default, cap, config.repeats)
+        x_ours = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(out["params"]))[0])
         flat_ref = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(ref.params))[0])
-        sd = np.asarray(jax.flatten_util.ravel_pytree({k: v for k, v in ref.unconstrained_stderr.items() if k in problem.pack(ref.params)})[0])
-        row = {"tofjax_solve_s": ours, "tofjax_z_max": float(np.max(np.abs(x_ours - flat_ref) / sd))}
-        for m in (f"{m} {j}" for m in config.scipy_methods for j in config.scipy_jacobians):
-            dt, x, nfev = _scipy_solve(problem, start_args, m.split(" ")[0], config.scipy_tol, m.split(" ")[1])
+        sd = np.concatenate([np.ravel(ref.unconstrained_stderr[k]) for k in sorted(problem.pack(ref.params))])
+        row = {"tofjax_solve_s": ours, "tofjax_steps": int(out["steps"]), "tofjax_z_max": float(np.max(np.abs(x_ours - flat_ref) / sd))}
+        for m in methods:
+            method, jacobian = m.split(" ")
+            dt, x, nfev = _scipy_solve(default, sp, cap, method, config.scipy_tol, jacobian, config.repeats)
             row[f"scipy_{m}_s"] = dt
             row[f"scipy_{m}_nfev"] = nfev
             row[f"scipy_{m}_z_max"] = float(np.max(np.abs(x - flat_ref) / sd))
             row[f"scipy_{m}_vs_tofjax_z_max"] = float(np.max(np.abs(x - x_ours) / sd))
             row[f"ratio_scipy_{m}_over_tofjax"] = dt / ours
-        comparisons.append(row)
+        runs.append(row)
 
     def med(key):
-        return float(np.median([r[key] for r in comparisons]))
+        return float(np.median([r[key] for r in runs]))
 
-    scipy_summary = {
-        m: {
-            "warm_solve_s_median": med(f"scipy_{m}_s"),
-            "ratio_over_tofjax_median": med(f"ratio_scipy_{m}_over_tofjax"),
-            "z_max_vs_reference_median": med(f"scipy_{m}_z_max"),
-            "z_max_vs_tofjax_median": med(f"scipy_{m}_vs_tofjax_z_max"),
-        }
-        for m in (f"{m} {j}" for m in config.scipy_methods for j in config.scipy_jacobians)
+    return {
+        "tofjax_warm_solve_s_median": med("tofjax_solve_s"),
+        "tofjax_z_max_median": med("tofjax_z_max"),
+        "methods": {
+            m: {
+                "warm_solve_s_median": med(f"scipy_{m}_s"),
+                "nfev_median": med(f"scipy_{m}_nfev"),
+                "ratio_over_tofjax_median": med(f"ratio_scipy_{m}_over_tofjax"),
+                "z_max_vs_reference_median": med(f"scipy_{m}_z_max"),
+                "z_max_vs_tofjax_median": med(f"scipy_{m}_vs_tofjax_z_max"),
+            }
+            for m in methods
+        },
+        "runs": runs,
     }
+
+
+def small_scene(scene, sensors: int, zones: int, bins: int):
+    """The scene cut down to a few sensors, zones and bins (same physics, faster); 0 keeps it."""
+    sm = scene.sensor
+    zones, bins, sensors = zones or sm.zones, bins or sm.n_bins, sensors or len(scene.sensors)
+    if (zones, bins, sensors) == (sm.zones, sm.n_bins, len(scene.sensors)):
+        return scene
+    small = SensorModel(bin_width_s=sm.bin_width_s, n_bins=bins, zones=zones, fov_deg=sm.fov_deg * zones / sm.zones)
+    return scene.replace(sensor=small, sensors=scene.sensors[:sensors])
+
+
+def run_emcee(e: EmceeStudy, scene, progress: bool) -> dict:
+    """95% intervals from the first N steps of one chain against those from the whole chain."""
+    from tofjax.fit.posterior import PosteriorOptions, sample_posterior
+
+    small = small_scene(scene, e.sensors, e.zones, e.bins)
+    cap = simulate(small, e.frames, seed=e.seed)
+    cal = Calibrator(small)
+    fit = cal.fit(cap)
+    t = time.perf_counter()
+    post = sample_posterior(cal, cap, fit, PosteriorOptions(walkers=e.walkers, max_steps=e.max_steps, progress=progress))
+    seconds = time.perf_counter() - t
+    names = post.names
+    chain = post.chain_physical  # (steps, walkers, P)
+    cols = {k: chain[..., names.index(k)] for k in ("n1", "mu_s_per_m", "mu_a_per_m")}
+    cols["mu_t"] = cols["mu_s_per_m"] + cols["mu_a_per_m"]
+    tau = float(np.nanmax(post.tau))
+
+    def interval(x, n):
+        burn = min(int(2 * tau), n // 2)
+        s = x[burn:n].ravel()
+        return np.percentile(s, [2.5, 97.5])
+
+    full = {k: interval(v, post.steps) for k, v in cols.items()}
+    rows = []
+    for n in [n for n in e.steps if n < post.steps] + [post.steps]:
+        row = {"steps": n, "tau_multiple": n / tau}
+        for k, v in cols.items():
+            lo, hi = interval(v, n)
+            width = full[k][1] - full[k][0]
+            row[k] = {
+                "interval95": [float(lo), float(hi)],
+                "endpoint_error_over_width": float(max(abs(lo - full[k][0]), abs(hi - full[k][1])) / width),
+                "width_ratio": float((hi - lo) / width),
+            }
+        rows.append(row)
+    return {
+        "scene": f"{e.sensors} sensors x {e.zones} zones x {e.bins} bins, {e.frames} frames (simulated)",
+        "walkers": e.walkers,
+        "steps_run": post.steps,
+        "converged_50_tau": post.converged,
+        "tau_max": tau,
+        "acceptance": post.acceptance,
+        "seconds": seconds,
+        "truth": {k: float(getattr(small.waveguide, k)) for k in TARGETS},
+        "rows": rows,
+    }
+
+
+def run(config: FitSpeedConfig, out: Path, progress: bool = True) -> dict:
+    full = load_scene(config.scene)
+    scene = small_scene(full, config.sensors, config.zones, config.bins)
+    truth = {k: float(getattr(scene.waveguide, k)) for k in TARGETS}
+    caps = [simulate(scene, config.frames, seed=config.seed + i) for i in range(config.captures)]
+    # reference: Gauss-Newton run to its fixed point (12 steps, where it converges
+    # quadratically; Levenberg-Marquardt would crawl for thousands of steps to the same point)
+    ref_cal = _calibrator(scene, FitConfig(solver="gauss-newton", rtol=1e-12, atol=1e-12, loss_tol=0.0, max_steps=12))
+    refs = [ref_cal.fit(c) for c in tqdm(caps, desc="reference fits", disable=not progress)]
+    t0 = time.perf_counter()
+    rows = run_settings(config, scene, caps, refs, truth, progress)
+    scipy = run_scipy(config, scene, caps, refs)
+    emcee_part = run_emcee(config.emcee, full, progress) if config.emcee is not None else None
     result = {
         "study": "calibration speed against accuracy",
         "data": "simulated",
-        "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}, {jax.device_count()} JAX device(s): {jax.devices()[0].device_kind}",
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs shared with other jobs (load average at the end "
+        f"{os.getloadavg()[0]:.1f}), JAX {jax.__version__} on {jax.devices()[0].device_kind}",
         "config": dataclasses.asdict(config),
+        "scene": f"{config.scene}: {scene.shape[0]} sensors x {scene.shape[1]} zones x {scene.shape[2]} bins",
         "truth": truth,
+        "references": [{"steps": r.steps, "reduced_chi2": r.reduced_chi2, "final_loss": r.loss_history[-1]} for r in refs],
         "settings": rows,
-        "default_breakdown": {
-            "warm_fit_s_median": float(np.median([b["fit_s"] for b in breakdown])),
-            "warm_solve_s_median": float(np.median([b["solve_s"] for b in breakdown])),
-        },
-        "scipy": {"tofjax_warm_solve_s_median": med("tofjax_solve_s"), "methods": scipy_summary, "runs": comparisons},
+        "scipy": scipy,
+        "emcee": emcee_part,
+        "seconds": time.perf_counter() - t0,
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "fit_speed.json").write_text(json.dumps(result, indent=1))
@@ -218,38 +369,63 @@ def run(config: FitSpeedConfig, out: Path, progress: bool = True) -> dict:
 
 
 def markdown(r: dict) -> str:
+    c = r["config"]
     lines = [
-        f"# Calibration speed against accuracy ({r['data']}, {r['config']['scene']}, {r['config']['frames']} frames, "
-        f"{r['config']['captures']} captures)",
+        f"# Calibration speed against accuracy ({r['data']}, {r['scene']}, {c['frames']} frames, {c['captures']} captures)",
         "",
-        f"Machine: {r['machine']}. Times are medians of warm runs; errors are against a tight reference fit, "
-        "in units of its standard errors (z), and against the truth.",
+        f"Machine: {r['machine']}. Times are medians of {c['repeats']} warm runs per capture, then the median "
+        "over captures; errors are against a tight reference fit, in units of its standard errors (z), and "
+        "against the truth.",
         "",
-        "| setting | solver | rtol/atol | loss_tol | dtype | steps | warm fit s | warm solve s | first fit s | z (n1, mu) | z (all) | n1 rel err | mu_t rel err |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| setting | solver | GN first | loss_tol | dtype | q | steps | warm fit ms | warm solve ms | compile+first fit s "
+        "| z (n1, mu) median / max | z (all) max | n1 rel err max | mu_t rel err max | converged |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["settings"]:
         s = row["setting"]
         lines.append(
-            f"| {s['label']} | {s['solver']} | {s['rtol']:g} | {s['loss_tol']:g} | {s['dtype']} | {row['steps_median']:.0f} "
-            f"| {row['warm_fit_s_median']:.3f} | {row['warm_solve_s_median']:.3f} | {row['first_fit_s']:.1f} "
-            f"| {row['z_max_targets_median']:.3f} | {row['z_max_all_max']:.3f} | {row['n1_rel_error_max']:.2e} "
-            f"| {row['mu_t_rel_error_max']:.2e} |"
+            f"| {s['label']} | {s['solver']} | {s['gauss_newton_first']} | {s['loss_tol']:g} | {s['dtype']} | {s['quadrature']} "
+            f"| {row['steps_median']:.0f} | {1e3 * row['warm_fit_s_median']:.0f} | {1e3 * row['warm_solve_s_median']:.0f} "
+            f"| {row['first_fit_s']:.1f} | {row['z_max_targets_median']:.3f} / {row['z_max_targets_max']:.3f} "
+            f"| {row['z_max_all_max']:.3f} | {row['n1_rel_error_max']:.1e} | {row['mu_t_rel_error_max']:.1e} "
+            f"| {row['converged']}/{len(row['steps'])} |"
         )
     sc = r["scipy"]
     lines += [
         "",
-        f"## Against scipy.optimize.least_squares (same residuals, Jacobian and start; tofjax default solve "
-        f"{sc['tofjax_warm_solve_s_median']:.3f} s)",
+        "## Against scipy.optimize.least_squares",
         "",
-        "| method, Jacobian | warm solve s | scipy / tofjax time | z vs reference | z vs tofjax |",
-        "|---|---|---|---|---|",
+        f"Same profiled residuals (jitted JAX), same start, interleaved on the same captures. tofjax default solve: "
+        f"{1e3 * sc['tofjax_warm_solve_s_median']:.0f} ms (median), z vs reference {sc['tofjax_z_max_median']:.3f}.",
+        "",
+        "| method, Jacobian | warm solve ms | evaluations | scipy / tofjax time | z vs reference | z vs tofjax |",
+        "|---|---|---|---|---|---|",
     ]
     for m, v in sc["methods"].items():
         lines.append(
-            f"| {m} | {v['warm_solve_s_median']:.3f} | {v['ratio_over_tofjax_median']:.2f} | "
+            f"| {m} | {1e3 * v['warm_solve_s_median']:.0f} | {v['nfev_median']:.0f} | {v['ratio_over_tofjax_median']:.1f} | "
             f"{v['z_max_vs_reference_median']:.3f} | {v['z_max_vs_tofjax_median']:.3f} |"
         )
+    e = r.get("emcee")
+    if e:
+        lines += [
+            "",
+            "## emcee steps against interval accuracy",
+            "",
+            f"{e['scene']}, {e['walkers']} walkers, {e['steps_run']} steps in {e['seconds']:.0f} s "
+            f"(tau {e['tau_max']:.0f}, {'reached' if e['converged_50_tau'] else 'did NOT reach'} 50 tau, "
+            f"acceptance {e['acceptance']:.2f}). Error of the 95% interval's end points from the first N steps "
+            "against the whole chain's, as a fraction of the whole chain's interval width.",
+            "",
+            "| steps | x tau | n1 | mu_s + mu_a | mu_s | mu_a |",
+            "|---|---|---|---|---|---|",
+        ]
+        for row in e["rows"]:
+            lines.append(
+                f"| {row['steps']} | {row['tau_multiple']:.0f} | "
+                + " | ".join(f"{row[k]['endpoint_error_over_width']:.2f}" for k in ("n1", "mu_t", "mu_s_per_m", "mu_a_per_m"))
+                + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -259,19 +435,36 @@ def plot(r: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    n = 2 if r.get("emcee") else 1
+    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4.5))
+    ax = axes[0] if n == 2 else axes
     for row in r["settings"]:
-        ax.scatter(row["warm_solve_s_median"], max(row["z_max_targets_median"], 1e-6), s=30)
-        ax.annotate(row["setting"]["label"], (row["warm_solve_s_median"], max(row["z_max_targets_median"], 1e-6)), fontsize=7)
+        x, y = 1e3 * row["warm_solve_s_median"], max(row["z_max_targets_median"], 1e-4)
+        ax.scatter(x, y, s=30)
+        ax.annotate(row["setting"]["label"], (x, y), fontsize=7)
     for m, v in r["scipy"]["methods"].items():
-        ax.scatter(v["warm_solve_s_median"], max(v["z_max_vs_reference_median"], 1e-6), marker="x", color="k")
-        ax.annotate(f"scipy {m}", (v["warm_solve_s_median"], max(v["z_max_vs_reference_median"], 1e-6)), fontsize=7)
+        x, y = 1e3 * v["warm_solve_s_median"], max(v["z_max_vs_reference_median"], 1e-4)
+        ax.scatter(x, y, marker="x", color="k")
+        ax.annotate(f"scipy {m}", (x, y), fontsize=7)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("warm solve time [s] (median)")
+    ax.set_xlabel("warm solve time [ms] (median)")
     ax.set_ylabel("error of n1, mu_s, mu_a [reference standard errors]")
-    ax.set_title(f"Calibration: speed against accuracy ({r['data']})", fontsize=10)
+    ax.set_title(f"fit settings and scipy ({r['data']})", fontsize=10)
     ax.axhline(0.1, color="0.7", lw=0.8, ls="--")
+    if n == 2:
+        ax = axes[1]
+        e = r["emcee"]
+        steps = [row["steps"] for row in e["rows"]]
+        for k in ("n1", "mu_t", "mu_s_per_m", "mu_a_per_m"):
+            ax.plot(steps, [max(row[k]["endpoint_error_over_width"], 1e-3) for row in e["rows"]], "o-", label=k)
+        ax.axvline(50 * e["tau_max"], color="0.6", ls="--", lw=0.8, label="50 tau")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("emcee steps")
+        ax.set_ylabel("95% interval end-point error / width")
+        ax.set_title("emcee steps against interval accuracy", fontsize=10)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

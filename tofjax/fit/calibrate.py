@@ -26,7 +26,7 @@ from ..config import ConfigError, from_dict, load_toml
 from ..errors import UserError
 from ..model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
 from ..scene import Scene
-from .solve import solve_with_history
+from .solve import SolveResult, dense_jvp, solve_with_history
 from .transforms import FITTABLE, default_transforms
 
 __all__ = ["CalibrationError", "CalibrationResult", "Calibrator", "FitConfig", "calibrate", "load_fit_config"]
@@ -64,6 +64,11 @@ class FitConfig:
       this (default 1e-3: the fit is then within a few hundredths of a standard error of
       the optimum, see ``experiments/study_fit_speed.py``; the parameter tolerances
       alone take two to five times more steps in the flat mu_s / mu_a valley). 0 turns it off.
+    - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for the
+      ``levenberg-marquardt`` and ``dogleg`` solvers): from the data-driven start they reach
+      the optimum in 3-6 steps where the damped solvers crawl along the curved valleys
+      (gain against interface backscatter, end reflectance and albedo) for 20-100. Where
+      they fail, or do not lower the loss, the configured solver takes over. 0 = off.
     - ``max_steps``: per stage.
     - ``free``: which parameters to fit; the rest stay at the scene's values.
     - ``multistart``: extra starts with n1 jittered by +-10%; the best fit wins.
@@ -85,6 +90,7 @@ class FitConfig:
     atol: float = 1e-7
     loss_tol: float = 1e-3
     max_steps: int = 200
+    gauss_newton_first: int = 10
     free: tuple[str, ...] = DEFAULT_FREE
     multistart: int = 0
     multistart_seed: int = 0
@@ -106,6 +112,8 @@ class FitConfig:
                 raise ConfigError(f"{k}: must be > 0, got {getattr(self, k)!r}")
         if self.max_steps < 1:
             raise ConfigError(f"max_steps: must be >= 1, got {self.max_steps!r}")
+        if self.gauss_newton_first < 0:
+            raise ConfigError(f"gauss_newton_first: must be >= 0, got {self.gauss_newton_first!r}")
         if self.multistart < 0:
             raise ConfigError(f"multistart: must be >= 0, got {self.multistart!r}")
         if self.dtype not in ("float32", "float64"):
@@ -323,6 +331,95 @@ class _Problem:
     def unpack(self, u, base: Params) -> Params:
         return base.replace(**self.physical(u))
 
+    def pack_jax(self, params: Params, names) -> dict[str, jax.Array]:
+        """:meth:`pack` in JAX (jit-safe), in the default float precision."""
+        ft = jnp.result_type(float)
+        joint = all(j in names for j in self.JOINT)
+        u = {
+            k: self.transforms[k].unconstrain(jnp.asarray(getattr(params, k), ft))
+            for k in names
+            if not (joint and k in self.JOINT)
+        }
+        if joint:
+            mu_s = jnp.maximum(jnp.asarray(params.mu_s_per_m, ft), 1e-12)
+            mu_a = jnp.maximum(jnp.asarray(params.mu_a_per_m, ft), 1e-12)
+            u["extinction"] = jnp.log(mu_s + mu_a)
+            u["albedo"] = jnp.log(mu_s) - jnp.log(mu_a)
+        return u
+
+    def profile_parts(self, params: Params, data, sigma):
+        """Closed-form variable projection: ``(params with the best linear parameters, the
+        model at them, sum_s log det(A_s^T W A_s))``.
+
+        Per sensor the model is ``K R + x_z P_z + a_z`` (gain shared by the zones, light
+        entry and ambient per zone). The zone unknowns are eliminated with an explicit 2 x 2
+        solve per zone, then the gain from its Schur complement (a scalar per sensor): only
+        weighted sums over bins, no batched LU (whose forward-mode derivative cost many
+        times the model on CPU). One evaluation of ``linear_parts`` gives the residuals too.
+        """
+        R, P = self.model.linear_parts(params)
+        comps = self.model.components
+        w = 1.0 / sigma**2
+        fixed = jnp.zeros_like(R)
+        if "gain" not in self.linear:
+            fixed = fixed + params.gain[:, None, None] * R
+        if "crosstalk" in comps and "crosstalk_counts" not in self.linear:
+            fixed = fixed + params.crosstalk_counts[..., None] * P
+        if "ambient" in comps and "ambient_counts" not in self.linear:
+            fixed = fixed + params.ambient_counts[..., None]
+        y = data - fixed
+        basis = []
+        if "crosstalk_counts" in self.linear:
+            basis.append(P)
+        if "ambient_counts" in self.linear:
+            basis.append(jnp.ones_like(R))
+
+        def ip(a, b):  # weighted inner product over bins: (S, Z)
+            return jnp.sum(w * a * b, axis=-1)
+
+        logdet = jnp.zeros((), R.dtype)
+        m = len(basis)
+        if m == 1:
+            g = ip(basis[0], basis[0])
+            g = g + 1e-12 * g + jnp.finfo(R.dtype).tiny
+            ginv = [[1.0 / g]]
+            logdet = logdet + jnp.sum(jnp.log(g))
+        elif m == 2:
+            a, b, c = ip(basis[0], basis[0]), ip(basis[0], basis[1]), ip(basis[1], basis[1])
+            ridge = 1e-12 * (a + c) + jnp.finfo(R.dtype).tiny
+            a, c = a + ridge, c + ridge
+            det = a * c - b * b
+            ginv = [[c / det, -b / det], [-b / det, a / det]]
+            logdet = logdet + jnp.sum(jnp.log(det))
+
+        def zone_coefs(v):
+            proj = [ip(bi, v) for bi in basis]
+            return [sum(ginv[i][j] * proj[j] for j in range(m)) for i in range(m)]
+
+        def q_ip(u, v):  # <u, (I - projection onto the zone basis) v>
+            out = ip(u, v)
+            if m:
+                cv = zone_coefs(v)
+                out = out - sum(ip(u, basis[i]) * cv[i] for i in range(m))
+            return out
+
+        out, fitted = {}, fixed
+        if "gain" in self.linear:
+            rr = jnp.sum(q_ip(R, R), axis=1)  # (S,)
+            rr = rr + jnp.finfo(R.dtype).tiny
+            gain = jnp.sum(q_ip(R, y), axis=1) / rr
+            out["gain"] = gain
+            fitted = fitted + gain[:, None, None] * R
+            logdet = logdet + jnp.sum(jnp.log(rr))
+            y = y - gain[:, None, None] * R
+        if m:
+            coefs = zone_coefs(y)
+            names = [k for k in ("crosstalk_counts", "ambient_counts") if k in self.linear]
+            for k, coef, bi in zip(names, coefs, basis):
+                out[k] = coef
+                fitted = fitted + coef[..., None] * bi
+        return params.replace(**out), fitted, logdet
+
     def profile(self, params: Params, data=None, sigma=None, with_logdet: bool = False):
         """``params`` with the free linear parameters at their weighted least-squares values.
 
@@ -333,56 +430,31 @@ class _Problem:
         sigma = self.sigma if sigma is None else sigma
         if not self.linear:
             return (params, jnp.zeros((), params.n1.dtype)) if with_logdet else params
-        R, P = self.model.linear_parts(params)
-        S, Z, B = R.shape
-        eye = jnp.eye(Z, dtype=R.dtype)
-        cols, fixed = [], jnp.zeros_like(R)
-        if "gain" in self.linear:
-            cols.append(R[:, None])  # (S, 1, Z, B)
-        else:
-            fixed = fixed + params.gain[:, None, None] * R
-        if "crosstalk_counts" in self.linear:
-            cols.append(eye[None, :, :, None] * P[:, None])  # (S, Z, Z, B): column z lives in zone z
-        elif "crosstalk" in self.model.components:
-            fixed = fixed + params.crosstalk_counts[..., None] * P
-        if "ambient_counts" in self.linear:
-            cols.append(jnp.broadcast_to(eye[None, :, :, None], (S, Z, Z, B)))
-        elif "ambient" in self.model.components:
-            fixed = fixed + params.ambient_counts[..., None]
-        A = jnp.concatenate(cols, axis=1).reshape(S, -1, Z * B)  # (S, C, Z B)
-        w = (1.0 / sigma**2).reshape(S, 1, Z * B)
-        y = (data - fixed).reshape(S, Z * B)
-        normal = jnp.einsum("scn,sdn->scd", A * w, A)
-        ridge = 1e-12 * jnp.trace(normal, axis1=1, axis2=2)[:, None, None] * jnp.eye(A.shape[1], dtype=A.dtype)
-        coef = jnp.linalg.solve(normal + ridge, jnp.einsum("scn,sn->sc", A * w, y)[..., None])[..., 0]
-        out, i = {}, 0
-        if "gain" in self.linear:
-            out["gain"] = coef[:, 0]
-            i = 1
-        if "crosstalk_counts" in self.linear:
-            out["crosstalk_counts"] = coef[:, i : i + Z]
-            i += Z
-        if "ambient_counts" in self.linear:
-            out["ambient_counts"] = coef[:, i : i + Z]
-        if with_logdet:
-            return params.replace(**out), jnp.sum(jnp.linalg.slogdet(normal + ridge)[1])
-        return params.replace(**out)
+        p, _, logdet = self.profile_parts(params, data, sigma)
+        return (p, logdet) if with_logdet else p
 
     def prior_residuals(self, u, prior):
         """A weak Gaussian prior in the unconstrained space, ``(u - prior) / width``, on the
         nonlinear parameters: it keeps a parameter the data cannot pin (mu_a -> 0 in log
         space) from running off to infinity, and barely moves well-determined ones."""
         if self.prior_width <= 0:
-            return jnp.zeros((0,), self.data.dtype)
+            return jnp.zeros((0,), jnp.result_type(float))
         parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in self.linear]
-        return jnp.concatenate(parts) if parts else jnp.zeros((0,), self.data.dtype)
+        return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.result_type(float))
+
+    def _profiled_model(self, u, base, data, sigma):
+        params = self.unpack(u, base)
+        if not self.linear:
+            return params, self.model(params)
+        p, m, _ = self.profile_parts(params, data, sigma)
+        return p, m
 
     def residuals(self, u, args):
         """Profiled residuals; ``args = (base params, mean data, sigma, prior centre)``."""
         base, data, sigma, prior = args
-        params = self.profile(self.unpack(u, base), data, sigma)
-        data_part = ((self.model(params) - data) / sigma).ravel()
-        return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
+        _, m = self._profiled_model(u, base, data, sigma)
+        data_part = ((m - data) / sigma).ravel()
+        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
     def full_residuals(self, u, base, prior, data=None, sigma=None):
         """Residuals with every free parameter explicit (for the covariance), prior included.
@@ -391,77 +463,159 @@ class _Problem:
         data = self.data if data is None else data
         sigma = self.sigma if sigma is None else sigma
         data_part = ((self.model(self.unpack(u, base)) - data) / sigma).ravel()
-        return jnp.concatenate([data_part, self.prior_residuals(u, prior)])
+        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
-    def covariance_jacobian(self, params: Params, prior_params: Params) -> np.ndarray:
+    def _covariance_jacobian(self, params: Params, prior_params: Params, data, sigma):
         """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
-        ``ravel_pytree`` order). The nonlinear columns come from forward-mode AD; the
-        linear ones (gain, crosstalk, ambient: one per sensor or zone, most of the
+        ``ravel_pytree`` order), in JAX. The nonlinear columns come from forward-mode AD;
+        the linear ones (gain, crosstalk, ambient: one per sensor or zone, most of the
         columns) are written down from ``linear_parts``, which is much cheaper."""
-        u = self.pack(params, self.free)
+        u = self.pack_jax(params, self.free)
+        prior = self.pack_jax(prior_params, self.free)
         lin = {k: u[k] for k in u if k in LINEAR}
         nl = {k: u[k] for k in u if k not in LINEAR}
         f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
-        prior = self.pack(prior_params, self.free)
-        key = ("covariance", tuple(sorted(u)))
-        if key not in self._solvers:
-            self._solvers[key] = jax.jit(
-                lambda f, lin_u, base, prior, data, sigma: jax.jacfwd(
-                    lambda g: self.full_residuals({**unravel_nl(g), **lin_u}, base, prior, data, sigma)
-                )(f)
-            )
-            self._solvers[key + ("parts",)] = jax.jit(lambda p: self.model.linear_parts(p))
-        j_nl = np.asarray(self._solvers[key](f_nl, lin, params, prior, self.data, self.sigma))  # (N + priors, n_nl)
-        R, P = (np.asarray(a) for a in self._solvers[key + ("parts",)](params))
-        S, Z, B = R.shape
-        sigma = np.asarray(self.sigma)
+        j_nl = jax.jacfwd(lambda g: self.full_residuals({**unravel_nl(g), **lin}, params, prior, data, sigma))(f_nl)
         n_rows = j_nl.shape[0]
+        R, P = self.model.linear_parts(params)
+        S, Z, B = R.shape
+        ft = j_nl.dtype
+        R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
         cols, pos = {}, 0
         for k in sorted(nl):
             n = int(np.size(nl[k]))
             cols[k] = j_nl[:, pos : pos + n]
             pos += n
+        eye_s, eye_z = jnp.eye(S, dtype=ft), jnp.eye(Z, dtype=ft)
+        comps = self.model.components
         for k, uk in lin.items():
-            dxdu = np.ravel(np.asarray(self.transforms[k].derivative(uk)))
-            block = np.zeros((n_rows, dxdu.size))
-            for i in range(dxdu.size):
-                d = np.zeros((S, Z, B))
-                if k == "gain":
-                    d[i] = R[i]
-                elif k == "crosstalk_counts" and "crosstalk" in self.model.components:
-                    d[i // Z, i % Z] = P[i // Z, i % Z]
-                elif k == "ambient_counts" and "ambient" in self.model.components:
-                    d[i // Z, i % Z] = 1.0
-                block[: S * Z * B, i] = (d / sigma).ravel() * dxdu[i]
-            cols[k] = block
-        return np.concatenate([cols[k] for k in sorted(u)], axis=1)
+            dxdu = self.transforms[k].derivative(uk)
+            if k == "gain":
+                block = jnp.einsum("szb,st->szbt", R / sig, eye_s * dxdu[None, :]).reshape(S * Z * B, S)
+            elif (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
+                part = P if k == "crosstalk_counts" else jnp.ones_like(R)
+                block = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z) * dxdu[None, None, None]
+                block = block.reshape(S * Z * B, S * Z)
+            else:
+                block = jnp.zeros((S * Z * B, int(np.size(uk))), ft)
+            cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - S * Z * B, block.shape[1]), ft)])
+        return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
+
+    def covariance_jacobian(self, params: Params, prior_params: Params) -> np.ndarray:
+        """:meth:`_covariance_jacobian` at ``params`` on the current data (jitted, for tests)."""
+        key = ("covariance", self.free)
+        if key not in self._solvers:
+            self._solvers[key] = jax.jit(self._covariance_jacobian)
+        return np.asarray(self._solvers[key](params, prior_params, self.data, self.sigma))
+
+    def _laplace(self, params: Params, prior_params: Params, data, sigma):
+        """``J^T J`` of the full residuals over every free coordinate, and the Jacobian of the
+        physical values (in ``sorted(free)`` order) over those coordinates."""
+        jac = self._covariance_jacobian(params, prior_params, data, sigma)
+        u = self.pack_jax(params, self.free)
+        flat, unravel = jax.flatten_util.ravel_pytree(u)
+        names = sorted(self.free)
+
+        def phys_flat(f):
+            x = self.physical(unravel(f))
+            return jnp.concatenate([jnp.ravel(x[k]) for k in names])
+
+        return jac.T @ jac, jax.jacfwd(phys_flat)(flat), flat
 
     def deviance(self, u, args):
         """Poisson deviance per bin of the profiled model (for the minimiser option), plus the prior."""
         base, d, sigma, prior = args
-        mu = jnp.maximum(self.model(self.profile(self.unpack(u, base), d, sigma)), 1e-9)
+        _, m = self._profiled_model(u, base, d, sigma)
+        mu = jnp.maximum(m, 1e-9)
         term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
         return (2.0 * self.frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
 
-    def solver_for(self, names: tuple[str, ...], solver, max_steps: int, minimise: bool, loss_tol: float = 0.0):
-        """A jitted solve over the nonlinear parameters ``names``, compiled once and reused."""
-        key = (names, max_steps, minimise, loss_tol)
-        if key not in self._solvers:
-            target = self.deviance if minimise else self.residuals
-            # the deviance loss is chi-square per bin: the same tolerance in its units
-            tol = 2.0 * loss_tol / self.data.size if minimise else loss_tol
-            self._solvers[key] = jax.jit(
-                lambda u, args: solve_with_history(
-                    target, solver, u, args, max_steps=max_steps, minimise=minimise, loss_tol=tol
+    def core_for(
+        self, names: tuple[str, ...], solver, max_steps: int, minimise: bool, loss_tol: float, with_cov: bool, gn_first: int = 0
+    ):
+        """The whole fit from a start as one compiled function (compiled once per setting, reused
+        for every capture of the same shape): profile the start, solve (``gn_first``: a
+        Gauss-Newton fast path first), profile the end point, chi-square, and (``with_cov``)
+        what the Laplace covariance needs."""
+        key = ("core", names, repr(solver), max_steps, minimise, loss_tol, with_cov, gn_first)
+        if key in self._solvers:
+            return self._solvers[key]
+        target = self.deviance if minimise else self.residuals
+        # the deviance loss is chi-square per bin: the same tolerance in its units
+        tol = 2.0 * loss_tol / self.data.size if minimise else loss_tol
+
+        def core(start: Params, data, sigma, prior_params: Params):
+            p0 = self.profile(start, data, sigma)
+            u0 = self.pack_jax(p0, names)
+            prior = self.pack_jax(prior_params, names)
+            f0, unravel = jax.flatten_util.ravel_pytree(u0)
+            args = (p0, data, sigma, prior)
+            # the solver works on the flat vector of unconstrained coordinates
+            def flat_target(f, a):
+                return target(unravel(f), a)
+
+            fn = flat_target if minimise else dense_jvp(flat_target)
+            v0 = f0
+
+            def main(v_start):
+                return solve_with_history(fn, solver, v_start, args, max_steps=max_steps, minimise=minimise, loss_tol=tol)
+
+            if gn_first:
+                # the fast path: undamped Gauss-Newton steps from the data-driven start (the first
+                # one may overshoot along the curved valleys; the next one lands near the optimum);
+                # the configured solver runs only where they fail or do not lower the loss
+                gn = solve_with_history(
+                    fn, optx.GaussNewton(rtol=solver.rtol, atol=solver.atol), v0, args, max_steps=gn_first, loss_tol=tol
                 )
-            )
+                hist = gn.history
+                last = hist[jnp.clip(gn.steps, 0, gn_first)]
+                ok = (gn.result == optx.RESULTS.successful) & jnp.isfinite(last) & (last <= hist[0])
+                ok = ok & jnp.all(jnp.isfinite(gn.value))
+                better = jnp.isfinite(last) & (last < hist[0]) & jnp.all(jnp.isfinite(gn.value))
+                pad = jnp.full((max_steps + 1,), jnp.nan, hist.dtype)
+
+                def done(_):
+                    return gn.value, gn.result, gn.steps, jnp.concatenate([hist[: gn_first + 1], pad])
+
+                def fallback(_):
+                    o = main(jnp.where(better, gn.value, v0))
+                    return o.value, o.result, gn.steps + o.steps, jnp.concatenate([hist[: gn_first + 1], o.history])
+
+                value, result, steps, history = jax.lax.cond(ok, done, fallback, None)
+                out = SolveResult(value, result, steps, history)
+            else:
+                out = main(v0)
+            u = unravel(out.value)
+            params, m = self._profiled_model(u, p0, data, sigma)
+            res = {
+                "params": params,
+                "result": out.result,
+                "steps": out.steps,
+                "history": out.history,
+                "chi2": jnp.sum(((m - data) / sigma) ** 2),
+            }
+            if with_cov:
+                res["hessian"], res["dphys"], res["u_flat"] = self._laplace(params, prior_params, data, sigma)
+            return res
+
+        self._solvers[key] = jax.jit(core)
+        return self._solvers[key]
+
+    def reference_estimates(self, scene: Scene, base: Params, frames: int):
+        """What the start's estimators read from the model at the scene's own values (cached):
+        their bias, taken out of the estimates from data."""
+        key = ("reference", frames)
+        if key not in self._solvers:
+            ref = np.asarray(self.model_jit(base), np.float64)
+            self._solvers[key] = _edge_estimates(ref, frames, scene, float(base.pulse_tail_s))
         return self._solvers[key]
 
 
-def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
-    """A start from the data: emission time, ambient, n1 from the far-edge peak."""
+def _edge_estimates(d: np.ndarray, frames: int, scene: Scene, tau: float):
+    """Emission time, ambient per zone and n1 read off mean histograms ``d`` (S, Z, B):
+    the light-entry peak's centroid, the bins before it, and the time of the far-edge bump
+    of each zone (weighted median over zones); ``n1`` is None when no zone shows the bump."""
     sm = scene.sensor
-    d = capture.mean()
     S, Z, B = d.shape
     width = sm.bin_width_s
     total = d.sum(axis=(0, 1))
@@ -476,41 +630,67 @@ def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
         ambient = np.median(d[..., -max(B // 10, 3) :], axis=-1)
     w = np.clip(total[lo:hi] - ambient.sum(), 0, None)
     centre = (np.sum(w * (np.arange(lo, hi) + 0.5)) / max(w.sum(), 1e-12)) * width
-    tau = float(base.pulse_tail_s)
     t_e = max(centre - tau, 0.0)
     # n1: the far-edge bump of each zone, where counts rise again after the decay
+    length = _mean_ray_length(scene)  # (S, Z)
+    c = SPEED_OF_LIGHT_M_PER_S
+    a = ((t_e + 2 * length * 1.0 / c) / width).astype(int) + 1
+    b = np.minimum(((t_e + 2 * length * 3.5 / c) / width).astype(int) + 3, B - 1)
+    x = d - ambient[..., None]
+    # rise over the minimum of the four bins before (inf where there are none)
+    pad = np.concatenate([np.full((S, Z, 4), np.inf), x], axis=-1)
+    before = np.min(np.stack([pad[..., k : k + B] for k in range(4)]), axis=0)
+    rise = x - before
+    idx = np.arange(B)
+    window = (idx >= a[..., None]) & (idx < b[..., None]) & (length[..., None] > 0) & ((b - a)[..., None] >= 3)
+    rise = np.where(window & np.isfinite(rise), rise, -np.inf)
+    i = np.argmax(rise, axis=-1)  # (S, Z)
+    best = np.take_along_axis(rise, i[..., None], -1)[..., 0]
+    noise = np.sqrt(np.maximum(np.take_along_axis(d, i[..., None], -1)[..., 0], 1.0) / frames)
+    ok = np.isfinite(best) & (best >= 5 * noise)
+    if not ok.any():
+        return t_e, ambient, None
+    base_level = np.take_along_axis(before, i[..., None], -1)[..., 0]
+    j = np.clip(i[..., None] + np.arange(-1, 2), 0, B - 1)
+    valid = (i[..., None] + np.arange(-1, 2) >= 0) & (i[..., None] + np.arange(-1, 2) < B)
+    ww = np.where(valid, np.clip(np.take_along_axis(x, j, -1) - base_level[..., None], 0, None), 0.0)
+    t_peak = np.sum(ww * (j + 0.5), -1) / np.maximum(ww.sum(-1), 1e-12) * width
+    est = c * (t_peak - t_e - tau) / (2 * np.where(length > 0, length, 1.0))
+    estimates, weights = est[ok], best[ok]
+    order = np.argsort(estimates)
+    cum = np.cumsum(weights[order])
+    n1 = float(estimates[order][np.searchsorted(cum, cum[-1] / 2)])
+    return t_e, ambient, n1
+
+
+_RAY_LENGTHS: dict = {}
+
+
+def _mean_ray_length(scene: Scene) -> np.ndarray:
+    """Mean far-edge distance of each zone's rays (S, Z), cached per scene."""
     from ..model.geometry import Geometry
 
-    geom = Geometry.from_scene(scene, 8, np.float64)
-    length = np.asarray(geom.ray_length).mean(-1)  # (S, Z)
-    estimates, weights = [], []
-    for s in range(S):
-        for z in range(Z):
-            L = length[s, z]
-            if L <= 0:
-                continue
-            a = int((t_e + 2 * L * 1.0 / SPEED_OF_LIGHT_M_PER_S) / width) + 1
-            b = min(int((t_e + 2 * L * 3.5 / SPEED_OF_LIGHT_M_PER_S) / width) + 3, B - 1)
-            if b - a < 3:
-                continue
-            x = d[s, z] - ambient[s, z]
-            rise = np.array([x[i] - x[max(i - 4, 0) : i].min() for i in range(a, b)])
-            i = a + int(np.argmax(rise))
-            noise = math.sqrt(max(d[s, z, i], 1.0) / capture.n_frames)
-            if rise.max() < 5 * noise:
-                continue
-            j0, j1 = max(i - 1, 0), min(i + 2, B)
-            base_level = x[max(i - 4, 0) : i].min()
-            ww = np.clip(x[j0:j1] - base_level, 0, None)
-            t_peak = (np.sum(ww * (np.arange(j0, j1) + 0.5)) / max(ww.sum(), 1e-12)) * width
-            estimates.append(SPEED_OF_LIGHT_M_PER_S * (t_peak - t_e - tau) / (2 * L))
-            weights.append(rise.max())
-    n1 = float(base.n1)
-    if estimates:
-        order = np.argsort(estimates)
-        cum = np.cumsum(np.asarray(weights)[order])
-        n1 = float(np.asarray(estimates)[order][np.searchsorted(cum, cum[-1] / 2)])
-        n1 = float(np.clip(n1, 1.01, 3.9))
+    key = id(scene)
+    if key not in _RAY_LENGTHS or _RAY_LENGTHS[key][0] is not scene:
+        geom = Geometry.from_scene(scene, 8, np.float64)
+        _RAY_LENGTHS[key] = (scene, np.asarray(geom.ray_length).mean(-1))
+    return _RAY_LENGTHS[key][1]
+
+
+def _initial_params(capture: Capture, scene: Scene, base: Params, reference=None) -> Params:
+    """A start from the data: emission time, ambient, n1 from the far-edge peak.
+
+    ``reference``: the same estimates read from the model at ``base`` (see
+    :meth:`_Problem.reference_estimates`); their offsets from ``base`` (the estimators'
+    bias: the pulse's peak is not its mean) are taken out of the estimates from data."""
+    tau = float(base.pulse_tail_s)
+    t_e, ambient, n1 = _edge_estimates(capture.mean(), capture.n_frames, scene, tau)
+    if reference is not None:
+        ref_t_e, _, ref_n1 = reference
+        t_e = max(t_e + float(base.emission_time_s) - ref_t_e, 0.0)
+        if n1 is not None and ref_n1 is not None:
+            n1 = n1 + float(base.n1) - ref_n1
+    n1 = float(base.n1) if n1 is None else float(np.clip(n1, 1.01, 3.9))
     return base.replace(
         emission_time_s=t_e,
         ambient_counts=np.maximum(ambient, 0.1),
@@ -520,22 +700,19 @@ def _initial_params(capture: Capture, scene: Scene, base: Params) -> Params:
     )
 
 
-def _covariance(problem: _Problem, params: Params, prior_params: Params) -> tuple[np.ndarray, list[str], dict, dict, dict]:
-    """Laplace covariance of every free parameter (linear ones included) from the Jacobian
-    of the full residuals at the optimum, carried to physical units."""
-    u = problem.pack(params, problem.free)
-    flat, unravel = jax.flatten_util.ravel_pytree(u)
-    jac = problem.covariance_jacobian(params, prior_params)
-    cov_u = np.linalg.pinv(jac.T @ jac, hermitian=True)
-    names = sorted(problem.free)
-
-    def phys_flat(f):
-        x = problem.physical(unravel(f))
-        return jnp.concatenate([jnp.ravel(x[k]) for k in names])
-
-    d = np.asarray(jax.jacfwd(phys_flat)(flat))  # d physical / d unconstrained
+def _covariance(problem: _Problem, params: Params, hessian, dphys, u_flat) -> tuple[np.ndarray, list[str], dict, dict, dict]:
+    """Laplace covariance of every free parameter (linear ones included) from ``J^T J`` of the
+    full residuals at the optimum, carried to physical units with ``dphys``."""
+    u_sizes = {k: int(np.size(getattr(params, k))) for k in problem.free if k not in problem.JOINT}
+    if all(j in problem.free for j in problem.JOINT):
+        u_sizes |= {"extinction": 1, "albedo": 1}
+    else:
+        u_sizes |= {k: 1 for k in problem.JOINT if k in problem.free}
+    cov_u = np.linalg.pinv(np.asarray(hessian, np.float64), hermitian=True)
+    d = np.asarray(dphys, np.float64)  # d physical / d unconstrained
     cov = d @ cov_u @ d.T
-    x_flat = np.asarray(phys_flat(flat))
+    names = sorted(problem.free)
+    x_flat = np.concatenate([np.ravel(np.asarray(getattr(params, k), np.float64)) for k in names])
     stderr_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
     stderr, interval, u_stderr, labels, pos = {}, {}, {}, [], 0
     for k in names:
@@ -547,15 +724,16 @@ def _covariance(problem: _Problem, params: Params, prior_params: Params) -> tupl
         # (log, logit), so it respects bounds; its width there is the delta method's.
         t = problem.transforms[k]
         w = t.to_unconstrained(x)
-        sw = stderr[k] / np.maximum(np.asarray(t.derivative(w)), 1e-300)
-        interval[k] = (np.asarray(t.to_physical(w - 1.96 * sw)), np.asarray(t.to_physical(w + 1.96 * sw)))
+        sw = stderr[k] / np.maximum(t.derivative_np(w), 1e-300)
+        interval[k] = (t.to_physical_np(w - 1.96 * sw), t.to_physical_np(w + 1.96 * sw))
         labels += [k] if shape == () else [f"{k}[{i}]" for i in range(n)]
         pos += n
     pos = 0
     su_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    for k in sorted(u):  # ravel_pytree orders dict keys sorted
-        n = int(np.size(u[k]))
-        u_stderr[k] = su_flat[pos : pos + n].reshape(np.shape(u[k]))
+    for k in sorted(u_sizes):  # ravel_pytree orders dict keys sorted
+        n = u_sizes[k]
+        shape = () if k in ("extinction", "albedo") else np.shape(getattr(params, k))
+        u_stderr[k] = su_flat[pos : pos + n].reshape(shape)
         pos += n
     return cov, labels, stderr, interval, u_stderr
 
@@ -595,33 +773,29 @@ class Calibrator:
         else:
             self._problem.set_data(capture.mean(), capture.n_frames)
         problem = self._problem
-        start = _initial_params(capture, scene, base)
+        start = _initial_params(capture, scene, base, problem.reference_estimates(scene, base, capture.n_frames))
         solver = config.make_solver()
         minimise = config.solver == "poisson-deviance"
         stages: list[dict[str, Any]] = []
 
-        def stage(name, params, names):
-            """One solve over the nonlinear parameters ``names`` (the rest held at ``params``)."""
-
-            u0 = problem.pack(params, names)
-            prior = problem.pack(base, names)  # the scene's values
-            run = problem.solver_for(names, solver, config.max_steps, minimise, config.loss_tol)
-            out = run(u0, (params, problem.data, problem.sigma, prior))
-            h = np.asarray(out.history)
+        def stage(name, params, names, with_cov):
+            """One compiled fit over the nonlinear parameters ``names`` (the rest held at ``params``)."""
+            gn = config.gauss_newton_first if config.solver in ("levenberg-marquardt", "dogleg") else 0
+            gn = min(gn, config.max_steps)
+            run = problem.core_for(names, solver, config.max_steps, minimise, config.loss_tol, with_cov, gn)
+            out = jax.device_get(run(params, problem.data, problem.sigma, base))
+            h = np.asarray(out["history"])
             h = h[np.isfinite(h)]
-            ok = bool(out.result == optx.RESULTS.successful)
+            ok = bool(out["result"] == optx.RESULTS.successful)
             stages.append(
-                {"stage": name, "free": list(names), "steps": int(out.steps), "converged": ok, "final_loss": float(h[-1])}
+                {"stage": name, "free": list(names), "steps": int(out["steps"]), "converged": ok, "final_loss": float(h[-1])}
             )
-            return problem.profile_jit(problem.unpack(out.value, params), problem.data, problem.sigma), out, ok, h.tolist()
+            return out, ok, h.tolist()
 
-        candidates = [problem.profile_jit(start, problem.data, problem.sigma)]
+        candidates = [start]
         if config.multistart:
             rng = np.random.default_rng(config.multistart_seed)
-            candidates += [
-                problem.profile_jit(start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1)), problem.data, problem.sigma)
-                for _ in range(config.multistart)
-            ]
+            candidates += [start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1)) for _ in range(config.multistart)]
 
         best = None
         for k, params in enumerate(candidates):
@@ -629,33 +803,33 @@ class Calibrator:
             if config.coarse_to_fine and "pulse_sigma_s" in problem.nonlinear:
                 wide = params.replace(pulse_sigma_s=3.0 * float(params.pulse_sigma_s))
                 coarse = tuple(p for p in problem.nonlinear if p != "pulse_sigma_s")
-                params, _, _, h = stage(f"start {k}: widened pulse", wide, coarse)
+                out, _, h = stage(f"start {k}: widened pulse", wide, coarse, False)
                 history += h
-                params = params.replace(pulse_sigma_s=float(start.pulse_sigma_s))
-            params, out, ok, h = stage(f"start {k}: full", params, problem.nonlinear)
+                params = out["params"].replace(pulse_sigma_s=float(start.pulse_sigma_s))
+            out, ok, h = stage(f"start {k}: full", params, problem.nonlinear, True)
             history += h
             loss = stages[-1]["final_loss"]
             if best is None or loss < best[0]:
-                best = (loss, params, out, ok, history)
+                best = (loss, out, ok, history)
 
-        _, params, out, ok, best_history = best
-        r = (np.asarray(problem.model_jit(params)) - np.asarray(problem.data)) / np.asarray(problem.sigma)
+        _, out, ok, best_history = best
+        params = out["params"]
         n_free = int(sum(np.size(getattr(params, k)) for k in problem.free))
-        dof = max(r.size - n_free, 1)
-        reduced = float(np.sum(r**2) / dof)
-        cov, labels, stderr, interval, u_stderr = _covariance(problem, params, base)
+        dof = max(int(np.size(problem.data)) - n_free, 1)
+        reduced = float(out["chi2"]) / dof
+        cov, labels, stderr, interval, u_stderr = _covariance(problem, params, out["hessian"], out["dphys"], out["u_flat"])
         values = {k: np.asarray(getattr(params, k)) for k in config.free}
         return CalibrationResult(
             params=params,
             free=tuple(config.free),
             values=values,
             stderr={k: stderr[k] for k in config.free},
-        interval95={k: interval[k] for k in config.free},
+            interval95={k: interval[k] for k in config.free},
             covariance=cov,
             labels=labels,
             converged=ok,
-            result=_result_name(out.result),
-            steps=int(out.steps),
+            result=_result_name(out["result"]),
+            steps=int(out["steps"]),
             reduced_chi2=reduced,
             loss_history=best_history,
             solver=config.solver,

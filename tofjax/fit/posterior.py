@@ -55,6 +55,7 @@ class PosteriorResult:
     converged: bool  # chain longer than tau_factor x tau and tau stable
     n_effective: float
     chain: np.ndarray  # (steps, walkers, parameters), unconstrained space, for trace plots
+    chain_physical: np.ndarray | None = None  # the same chain in physical units (columns as ``names``)
 
     def summary(self) -> dict[str, Any]:
         out = {}
@@ -112,8 +113,12 @@ def sample_posterior(
 
     def log_prob(flat):
         u = unravel(flat)
-        params, logdet = problem.profile(problem.unpack(u, base), data, sigma, with_logdet=True)
-        r = (problem.model(params) - data) / sigma
+        params = problem.unpack(u, base)
+        if problem.linear:
+            _, m, logdet = problem.profile_parts(params, data, sigma)
+        else:
+            m, logdet = problem.model(params), 0.0
+        r = (m - data) / sigma
         lp = -0.5 * jnp.sum(r**2) - 0.5 * logdet - 0.5 * jnp.sum(problem.prior_residuals(u, prior) ** 2)
         return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
@@ -185,4 +190,5 @@ def sample_posterior(
         converged=converged,
         n_effective=float(n_samples_total / np.nanmax(tau)) if np.all(np.isfinite(tau)) else 0.0,
         chain=sampler.get_chain(),
+        chain_physical=np.asarray(to_phys(jnp.asarray(sampler.get_chain().reshape(-1, P)))).reshape(sampler.iteration, W, -1),
     )

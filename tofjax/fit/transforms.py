@@ -39,6 +39,28 @@ class Transform:
         f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return np.log(f) - np.log1p(-f)
 
+    def to_physical_np(self, u):
+        """:meth:`to_physical` in NumPy (no JAX dispatch: for reports after the fit)."""
+        u = np.asarray(u, float)
+        if self.kind == "log":
+            return self.scale * np.exp(u)
+        return self.lo + (self.hi - self.lo) / (1.0 + np.exp(-u))
+
+    def derivative_np(self, u):
+        """:meth:`derivative` in NumPy."""
+        u = np.asarray(u, float)
+        if self.kind == "log":
+            return self.scale * np.exp(u)
+        s = 1.0 / (1.0 + np.exp(-u))
+        return (self.hi - self.lo) * s * (1.0 - s)
+
+    def unconstrain(self, x):
+        """:meth:`to_unconstrained` in JAX (jit- and grad-safe), for the compiled fit."""
+        if self.kind == "log":
+            return jnp.log(jnp.maximum(x, 1e-12 * self.scale) / self.scale)
+        f = jnp.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
+        return jnp.log(f) - jnp.log1p(-f)
+
     def derivative(self, u):
         """dx/du at ``u``: carries standard errors from u to physical units."""
         if self.kind == "log":

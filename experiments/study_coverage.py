@@ -1,0 +1,227 @@
+"""Study: coverage of the calibration's 95% intervals (Laplace and posterior).
+
+Simulates ``replicates`` baselines of one (small) scene with known parameters, fits each,
+and counts how often the Laplace 95% interval of n1, mu_s, mu_a and mu_s + mu_a contains
+the truth; for the first ``posterior_replicates`` it also samples the emcee posterior
+(``walkers``, up to ``max_steps`` or 50 autocorrelation times) and counts the same for its
+95% intervals. A well-calibrated interval covers 95% of the time; with R replicates the
+binomial standard error is sqrt(0.95 x 0.05 / R) (2.2% at R = 100).
+
+All point fits run first, then the posteriors; ``coverage.json`` is rewritten after the fits
+and after every posterior, so a long run that is stopped still leaves its counts; ``coverage.md`` and ``coverage.png`` come at the end.
+
+    python experiments/study_coverage.py --config configs/studies/coverage.toml --out out/coverage
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+import tofjax
+from tofjax.config import from_dict, load_toml
+from tofjax.fit.calibrate import Calibrator
+from tofjax.scene import SensorModel, load_scene
+from tofjax.simulate import simulate
+
+QUANTITIES = ("n1", "mu_s_per_m", "mu_a_per_m", "mu_t")
+
+
+@dataclass(frozen=True)
+class CoverageConfig:
+    scene: str = "optoskin"
+    sensors: int = 3
+    zones: int = 3
+    bins: int = 96
+    frames: int = 40
+    replicates: int = 100
+    posterior_replicates: int = 100
+    walkers: int = 32
+    max_steps: int = 2500
+    seed: int = 20000
+
+
+def small_scene(config: CoverageConfig):
+    scene = load_scene(config.scene)
+    sm = scene.sensor
+    small = SensorModel(
+        bin_width_s=sm.bin_width_s, n_bins=config.bins, zones=config.zones, fov_deg=sm.fov_deg * config.zones / sm.zones
+    )
+    return scene.replace(sensor=small, sensors=scene.sensors[: config.sensors])
+
+
+def laplace_intervals(res) -> dict[str, tuple[float, float]]:
+    """The fit's 95% intervals; mu_t's from the covariance, symmetric in log(mu_t)."""
+    out = {k: (float(res.interval95[k][0]), float(res.interval95[k][1])) for k in QUANTITIES[:3]}
+    i, j = res.labels.index("mu_s_per_m"), res.labels.index("mu_a_per_m")
+    c = res.covariance
+    mu_t = float(res.values["mu_s_per_m"] + res.values["mu_a_per_m"])
+    sd = math.sqrt(max(c[i, i] + c[j, j] + 2 * c[i, j], 0.0)) / mu_t
+    out["mu_t"] = (mu_t * math.exp(-1.96 * sd), mu_t * math.exp(1.96 * sd))
+    return out
+
+
+def posterior_intervals(post) -> dict[str, tuple[float, float]]:
+    s = post.samples
+    cols = {k: s[:, post.names.index(k)] for k in QUANTITIES[:3]}
+    cols["mu_t"] = cols["mu_s_per_m"] + cols["mu_a_per_m"]
+    return {k: tuple(float(x) for x in np.percentile(v, [2.5, 97.5])) for k, v in cols.items()}
+
+
+def _summary(rows, key) -> dict:
+    used = [r for r in rows if r.get(key)]
+    n = len(used)
+    if not n:
+        return {"replicates": 0}
+    cover = {q: sum(r[key][q]["covers"] for r in used) for q in QUANTITIES}
+    return {
+        "replicates": n,
+        "coverage": {q: cover[q] / n for q in QUANTITIES},
+        "binomial_stderr": math.sqrt(0.95 * 0.05 / n),
+        "median_width": {q: float(np.median([r[key][q]["width"] for r in used])) for q in QUANTITIES},
+    }
+
+
+def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
+    from tofjax.fit.posterior import PosteriorOptions, sample_posterior
+
+    scene = small_scene(config)
+    truth = {k: float(getattr(scene.waveguide, k)) for k in QUANTITIES[:3]}
+    truth["mu_t"] = truth["mu_s_per_m"] + truth["mu_a_per_m"]
+    cal = Calibrator(scene)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    t0 = time.perf_counter()
+    fit_s = post_s = 0.0
+
+    def result(final: bool) -> dict:
+        return {
+            "study": "interval coverage",
+            "data": "simulated",
+            "config": dataclasses.asdict(config),
+            "scene": f"{config.sensors} sensors x {config.zones} zones x {config.bins} bins of {config.scene}, "
+            f"{config.frames} frames per baseline",
+            "truth": truth,
+            "finished": final,
+            "seconds": time.perf_counter() - t0,
+            "seconds_fits": fit_s,
+            "seconds_posteriors": post_s,
+            "laplace": _summary(rows, "laplace"),
+            "posterior": _summary(rows, "posterior"),
+            "posterior_reached_50_tau": sum(1 for r in rows if r.get("posterior_converged")),
+            "posterior_tau_median": float(np.median([r["posterior_tau_max"] for r in rows if "posterior_tau_max" in r]))
+            if any("posterior_tau_max" in r for r in rows)
+            else float("nan"),
+            "replicates_run": rows,
+        }
+
+    # all the point fits first (cheap), then the posteriors (expensive) of the first ones
+    caps = {}
+    for k in tqdm(range(config.replicates), desc="fits (Laplace)", disable=not progress):
+        cap = simulate(scene, config.frames, seed=config.seed + k)
+        t = time.perf_counter()
+        res = cal.fit(cap)
+        fit_s += time.perf_counter() - t
+        row = {"seed": config.seed + k, "converged": res.converged, "reduced_chi2": res.reduced_chi2}
+        row["laplace"] = {
+            q: {"interval": list(iv), "covers": bool(iv[0] <= truth[q] <= iv[1]), "width": iv[1] - iv[0]}
+            for q, iv in laplace_intervals(res).items()
+        }
+        rows.append(row)
+        if k < config.posterior_replicates and res.converged:
+            caps[k] = (cap, res)
+    (out / "coverage.json").write_text(json.dumps(result(False), indent=1))
+    for k, (cap, res) in tqdm(caps.items(), desc="posteriors", disable=not progress):
+        cal.fit(cap)  # the calibrator's data are this capture's again
+        t = time.perf_counter()
+        post = sample_posterior(
+            cal, cap, res, PosteriorOptions(walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False)
+        )
+        post_s += time.perf_counter() - t
+        row = rows[k]
+        row["posterior"] = {
+            q: {"interval": list(iv), "covers": bool(iv[0] <= truth[q] <= iv[1]), "width": iv[1] - iv[0]}
+            for q, iv in posterior_intervals(post).items()
+        }
+        row["posterior_converged"] = post.converged
+        row["posterior_steps"] = post.steps
+        row["posterior_tau_max"] = float(np.nanmax(post.tau))
+        (out / "coverage.json").write_text(json.dumps(result(False), indent=1))
+    r = result(True)
+    (out / "coverage.json").write_text(json.dumps(r, indent=1))
+    (out / "coverage.md").write_text(markdown(r))
+    plot(r, out / "coverage.png")
+    return r
+
+
+def markdown(r: dict) -> str:
+    c = r["config"]
+    lines = [
+        f"# Interval coverage ({r['data']}: {r['scene']})",
+        "",
+        f"{r['laplace']['replicates']} replicates with a Laplace interval, {r['posterior']['replicates']} with an emcee "
+        f"posterior ({c['walkers']} walkers, up to {c['max_steps']} steps or 50 tau; "
+        f"{r['posterior_reached_50_tau']} reached 50 tau; median tau "
+        f"{r['posterior_tau_median']:.0f} steps). Target: 95% nominal, 90-98% accepted. "
+        f"Run time {r['seconds']:.0f} s (fits {r['seconds_fits']:.0f} s, posteriors {r['seconds_posteriors']:.0f} s).",
+        "",
+        "| interval | n1 | mu_s | mu_a | mu_s + mu_a | binomial stderr |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key in ("laplace", "posterior"):
+        s = r[key]
+        if s["replicates"]:
+            lines.append(
+                f"| {key} ({s['replicates']}) | "
+                + " | ".join(f"{100 * s['coverage'][q]:.0f}%" for q in QUANTITIES)
+                + f" | {100 * s['binomial_stderr']:.1f}% |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(r: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = r["replicates_run"]
+    fig, axes = plt.subplots(1, len(QUANTITIES), figsize=(13, 4.2))
+    for ax, q in zip(axes, QUANTITIES):
+        for key, colour, dx in (("laplace", "C0", -0.15), ("posterior", "C1", 0.15)):
+            used = [(i, row[key][q]["interval"], row[key][q]["covers"]) for i, row in enumerate(rows) if row.get(key)]
+            for i, (lo, hi), ok in used:
+                ax.plot([i + dx, i + dx], [lo, hi], color=colour if ok else "red", lw=0.8)
+        ax.axhline(r["truth"][q], color="k", lw=0.8)
+        cov = {k: r[k]["coverage"][q] for k in ("laplace", "posterior") if r[k]["replicates"]}
+        ax.set_title(q + "\n" + ", ".join(f"{k} {100 * v:.0f}%" for k, v in cov.items()), fontsize=9)
+        ax.set_xlabel("replicate")
+        if q in ("mu_s_per_m", "mu_a_per_m"):
+            ax.set_yscale("log")
+    fig.suptitle("95% intervals against the truth (simulated; blue Laplace, orange posterior, red: missed)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="configs/studies/coverage.toml")
+    ap.add_argument("--out", default="out/coverage")
+    args = ap.parse_args(argv)
+    tofjax.enable_x64()
+    config = from_dict(CoverageConfig, load_toml(args.config), where=args.config)
+    r = run(config, Path(args.out))
+    print(markdown(r))
+
+
+if __name__ == "__main__":
+    main()

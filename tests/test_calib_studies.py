@@ -1,0 +1,76 @@
+"""Calibration studies (experiments/study_fit_speed.py, study_coverage.py): fast runs on a small scene."""
+
+import json
+
+import numpy as np
+import pytest
+
+from test_studies import load
+
+
+def test_fit_speed_study_fast(tmp_path):
+    """Settings and scipy parts on a small scene (the emcee part has its own test)."""
+    study = load("study_fit_speed")
+    cfg = study.FitSpeedConfig(
+        sensors=3,
+        zones=3,
+        bins=96,
+        frames=40,
+        captures=1,
+        repeats=1,
+        settings=(study.Setting("default"),),
+        scipy_methods=("trf",),
+        scipy_jacobians=("2-point",),
+        emcee=None,
+    )
+    r = study.run(cfg, tmp_path, progress=False)
+    (row,) = r["settings"]
+    assert row["converged"] == 1 and row["n1_rel_error_max"] < 0.005 and row["mu_t_rel_error_max"] < 0.05
+    assert row["warm_fit_s_median"] > 0 and row["first_fit_s"] >= row["warm_fit_s_median"]
+    sc = r["scipy"]["methods"]["trf 2-point"]
+    # the same problem from the same start: scipy and tofjax agree to a fraction of a standard error
+    assert sc["z_max_vs_tofjax_median"] < 0.5 and np.isfinite(sc["ratio_over_tofjax_median"])
+    saved = json.loads((tmp_path / "fit_speed.json").read_text())
+    assert saved["data"] == "simulated" and saved["emcee"] is None
+    assert "scipy.optimize.least_squares" in (tmp_path / "fit_speed.md").read_text()
+    assert (tmp_path / "fit_speed.png").stat().st_size > 5000
+
+
+def test_fit_speed_emcee_steps_fast():
+    study = load("study_fit_speed")
+    from tofjax.scene import load_scene
+
+    e = study.run_emcee(study.EmceeStudy(frames=40, walkers=16, max_steps=120, steps=(60,)), load_scene("optoskin"), False)
+    assert [x["steps"] for x in e["rows"]] == [60, e["steps_run"]]
+    # the whole chain against itself: no error; a prefix: a finite, non-negative one
+    assert e["rows"][-1]["n1"]["endpoint_error_over_width"] == 0.0
+    assert all(np.isfinite(e["rows"][0][k]["endpoint_error_over_width"]) for k in ("n1", "mu_t", "mu_s_per_m", "mu_a_per_m"))
+    assert "emcee steps against interval accuracy" in study.markdown(
+        {"data": "simulated", "scene": "x", "config": {"frames": 1, "captures": 1, "repeats": 1}, "machine": "m",
+         "settings": [], "scipy": {"tofjax_warm_solve_s_median": 1.0, "tofjax_z_max_median": 0.0, "methods": {}}, "emcee": e}
+    )
+
+
+def test_coverage_study_fast(tmp_path):
+    study = load("study_coverage")
+    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=16, max_steps=120)
+    r = study.run(cfg, tmp_path, progress=False)
+    assert r["finished"] and r["laplace"]["replicates"] == 3 and r["posterior"]["replicates"] == 1
+    for key in ("laplace", "posterior"):
+        assert all(0.0 <= v <= 1.0 for v in r[key]["coverage"].values())
+    row = r["replicates_run"][0]
+    lo, hi = row["laplace"]["n1"]["interval"]
+    assert lo < hi and row["laplace"]["n1"]["covers"] == (lo <= r["truth"]["n1"] <= hi)
+    assert json.loads((tmp_path / "coverage.json").read_text())["data"] == "simulated"
+    assert "| laplace (3) |" in (tmp_path / "coverage.md").read_text()
+    assert (tmp_path / "coverage.png").stat().st_size > 5000
+
+
+def test_coverage_config_rejects_unknown_keys(tmp_path):
+    from tofjax.config import ConfigError, from_dict, load_toml
+
+    study = load("study_coverage")
+    p = tmp_path / "c.toml"
+    p.write_text("replicate = 3\n")
+    with pytest.raises(ConfigError, match="replicate"):
+        from_dict(study.CoverageConfig, load_toml(p))
