@@ -1,8 +1,10 @@
 """The main job on the built-in default scene: what ``make demo`` runs.
 
 Simulates the default OptoSkin baseline and a frame with three contacts in a
-line, calibrates the baseline, then writes captures, plots, the calibration
-and a short text summary.
+line, calibrates the baseline, maps and detects six contacts with the
+calibrated optics, trains a small force model on seed 001's protocol, records
+a few frames from an emulated TMF8828 rig, then writes captures, plots, the
+calibration and a short text summary.
 """
 
 from __future__ import annotations
@@ -47,13 +49,13 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     opts = ModelOptions()
     lines = [f"tofjax demo: {base_scene.name} ({base_scene.description})", ""]
 
-    print(f"[1/5] simulating {frames} baseline frames and 1 touch frame ...", flush=True)
+    print(f"[1/8] simulating {frames} baseline frames and 1 touch frame ...", flush=True)
     baseline = simulate(base_scene, frames, seed, options=opts)
     touch = simulate(touch_scene, 1, seed + 1, options=opts)
     write_capture(out / "baseline.h5", baseline)
     write_capture(out / "touch.h5", touch)
 
-    print("[2/5] plotting ...", flush=True)
+    print("[2/8] plotting ...", flush=True)
     plot_scene(touch_scene, out / "scene.png")
     plot_capture(touch, out, baseline=baseline)
     model = build_model(touch_scene, opts)
@@ -64,7 +66,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     s_best, z_best = np.unravel_index(np.argmax(touch_part), touch_part.shape)
     plot_components(breakdown, touch_scene, int(s_best), int(z_best), out / "components.png")
 
-    print("[3/5] checking the physics ...", flush=True)
+    print("[3/8] checking the physics ...", flush=True)
     wg, sm = base_scene.waveguide, base_scene.sensor
     S, Z, B = base_scene.shape
     lines += [
@@ -95,7 +97,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         )
     lines.append("")
 
-    print("[4/5] calibrating the baseline (fit of n1, mu_s, mu_a and nuisance parameters) ...", flush=True)
+    print("[4/8] calibrating the baseline (fit of n1, mu_s, mu_a and nuisance parameters) ...", flush=True)
     from .fit.calibrate import calibrate, fit_report
 
     fit = calibrate(baseline)
@@ -107,7 +109,24 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         "",
     ]
 
-    print("[5/5] timing the forward model ...", flush=True)
+    print("[5/8] touch inversion with the calibrated optics: tactile maps and detections ...", flush=True)
+    from .invert.correction import OpticalParams
+    from .invert.demo import run as invert_demo
+
+    optical = OpticalParams.from_calibration(fit.to_json(), base_scene)
+    lines += invert_demo(out, baseline, seed=seed + 2, optical=optical)
+
+    print("[6/8] training a small force model (seed 001) ...", flush=True)
+    from .force.demo import run as force_demo
+
+    lines += [*force_demo(out, seed=seed), ""]
+
+    print("[7/8] recording from an emulated TMF8828 rig ...", flush=True)
+    from .hw.demo import run as hw_demo
+
+    lines += hw_demo(out, base_scene, seed=seed)
+
+    print("[8/8] timing the forward model ...", flush=True)
     f = jax.jit(lambda p: build_model(base_scene, opts)(p))
     p0 = Params.from_scene(base_scene, opts.jnp_dtype)
     dt = median_seconds(f, p0)
@@ -116,21 +135,10 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
         f"{dt * 1e6:.0f} us per evaluation (median of 50, this machine)",
         "",
         "files: scene.png, histograms_sensor*.png (capture vs baseline), components.png, baseline.h5, touch.h5,",
-        "       calibration.json",
-        "next: `tofjax plot out/demo/touch.h5 --baseline out/demo/baseline.h5 --out DIR`",
+        "       calibration.json, tactile_map.png, the force run and acquired.h5 (see above)",
+        "next: `tofjax process out/demo/touch.h5 --baseline out/demo/baseline.h5 --calibration out/demo/calibration.json"
+        " --out maps.h5 --png maps/`",
     ]
-    from .hw.demo import run as _hw_demo  # emulated acquisition (issue 6)
-
-    print("[+] recording from an emulated TMF8828 rig ...", flush=True)
-    lines += ["", *_hw_demo(out, base_scene, seed=seed)]
-    print("[+] training a small force model (seed 001) ...", flush=True)
-    from .force.demo import run as force_demo
-
-    lines += ["", *force_demo(out, seed=seed)]
-    print("[+] touch inversion: tactile maps and detections ...", flush=True)
-    from .invert.demo import run as invert_demo
-
-    lines += invert_demo(out, baseline, seed=seed + 2)
     summary = out / "summary.txt"
     summary.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..capture import Capture
 from ..scene import Touch
+from .correction import OpticalParams
 from .detect import match
 from .pipeline import InvertOptions, build_inverter
 from .synth import shadowed
@@ -20,9 +21,10 @@ __all__ = ["SIX_CONTACTS", "run"]
 SIX_CONTACTS = ((0.07, 0.08), (0.22, 0.06), (0.15, 0.15), (0.06, 0.24), (0.24, 0.22), (0.13, 0.27))
 
 
-def run(out_dir: str | Path, baseline: Capture, *, seed: int = 0) -> list[str]:
+def run(out_dir: str | Path, baseline: Capture, *, seed: int = 0, optical: OpticalParams | None = None) -> list[str]:
     """Simulate one six-contact frame of ``baseline``'s scene, map it with the baseline-only
-    and the full method, write ``tactile_map.png`` and return summary lines."""
+    and the full method (with the calibrated ``optical`` parameters if given), write
+    ``tactile_map.png`` and return summary lines."""
     from ..simulate import simulate
 
     out = Path(out_dir)
@@ -33,7 +35,9 @@ def run(out_dir: str | Path, baseline: Capture, *, seed: int = 0) -> list[str]:
     cells, lines = [], []
     results = {}
     for method in ("baseline", "full"):
-        inv = build_inverter(scene, baseline.mean(), InvertOptions(method=method), n_baseline=baseline.n_frames)
+        inv = build_inverter(
+            scene, baseline.mean(), InvertOptions(method=method), optical, n_baseline=baseline.n_frames
+        )
         res = inv.process(frame.histograms)
         results[method] = (inv, res)
         cells.append({"map": res.maps[0], "detection": res.detections[0], "truth": truth})
@@ -48,6 +52,8 @@ def run(out_dir: str | Path, baseline: Capture, *, seed: int = 0) -> list[str]:
     lines.append(
         f"touch inversion: {len(SIX_CONTACTS)} contacts (simulated), tactile maps in {path.name} (crosses: detections, dashed: truth)"
     )
+    if optical is not None:
+        lines.append(f"  optics from the calibration: n1 = {optical.n1:.5f}, mu_s + mu_a = {optical.mu_s_per_m + optical.mu_a_per_m:.3f} /m")
     for method, (inv, res) in results.items():
         det = res.detections[0]
         k, d = match(det.positions(), truth)
