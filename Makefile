@@ -18,11 +18,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/tofjax demo --out out/demo
 
+# Two workers (the machines have two cores; most of the suite's time is single-threaded XLA
+# compilation), one file per worker so module fixtures (fits, simulations) are built once.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q -m ""
+	$(PY) -m pytest -q -n 2 --dist loadfile -m ""
 
 bench: $(STAMP)
 	$(PY) experiments/bench_forward.py --out out/bench

@@ -528,7 +528,11 @@ class _Problem:
         _, m = self._profiled_model(u, base, d, sigma)
         mu = jnp.maximum(m, 1e-9)
         term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
-        return (2.0 * self.frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
+        # the frame count from the traced arguments (sigma^2 = max(d, 1) / frames, see
+        # set_data), not from self: read from self it would be frozen into the compiled fit
+        # and go stale for a capture with another number of frames
+        frames = jnp.mean(jnp.maximum(d, 1.0) / sigma**2)
+        return (2.0 * frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
 
     def core_for(
         self, names: tuple[str, ...], solver, max_steps: int, minimise: bool, loss_tol: float, with_cov: bool, gn_first: int = 0
