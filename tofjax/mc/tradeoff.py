@@ -327,16 +327,16 @@ def run_tradeoff(
     if cfg.fit_bias:
         result["fit_bias"] = _fit_bias(scene, cfg, ref, pruned.kept)
     else:
-        result["fit_bias"] = {"skipped": "fit_bias = false (quick run)"}
+        result["fit_bias"] = {"skipped": "fit_bias = false in the config (or a quick run)"}
     bar.update()
     if cfg.fit_speed:
         result["fit_speed"] = _fit_speed(scene, cfg, out)
     else:
-        result["fit_speed"] = {"skipped": "fit_speed = false (quick run)"}
+        result["fit_speed"] = {"skipped": "fit_speed = false in the config (or a quick run)"}
     if cfg.contact_bias:
         result["contact_bias"] = _contact_bias(scene, cfg, detect)
     else:
-        result["contact_bias"] = {"skipped": "contact_bias = false (quick run)"}
+        result["contact_bias"] = {"skipped": "contact_bias = false in the config (or a quick run)"}
     bar.update()
     bar.close()
 
