@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import ConfigError, from_dict, load_toml, to_dict
+from .config import ConfigError, from_dict, load_toml, to_dict, toml_value
 
 __all__ = [
     "COMPONENTS",
@@ -412,16 +412,7 @@ def default_scene() -> Scene:
     return load_scene("optoskin")
 
 
-def _fmt_toml(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_fmt_toml(x) for x in v) + "]"
-    raise TypeError(type(v))
+_fmt_toml = toml_value
 
 
 def _dump_toml(d: dict[str, Any]) -> str:

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture, read_capture
-from ..config import ConfigError, from_dict, load_toml, to_dict
+from ..config import ConfigError, from_dict, load_toml, to_dict, toml_value
 from ..errors import UserError
 from .alternatives import GBOptions, NonlinearOptions, SVROptions, fit_alternative
 from .features import (
@@ -352,19 +352,9 @@ def _versions() -> dict:
     }
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-
-
 def dump_toml(d: dict, prefix: str = "") -> str:
     """Nested dicts as TOML tables (what :func:`load_run_config` reads back)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    lines = [f"{k} = {toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
     for k, v in d.items():
         if isinstance(v, dict):
             name = f"{prefix}{k}"
