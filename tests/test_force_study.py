@@ -1,21 +1,13 @@
 """experiments/study_force.py: a fast run here; the full study is marked slow."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from test_studies import load
 
 ROOT = Path(__file__).parents[1]
 
-
-def load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_force_study_fast(tmp_path):

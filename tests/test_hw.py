@@ -335,11 +335,9 @@ def test_driver_options_validate():
 
 def test_bench_acquire_fast(optoskin):
     """The benchmark's measurement on a small case: bus-limited within 10 %, driver CPU well under the period."""
-    import importlib.util
+    from test_studies import load
 
-    spec = importlib.util.spec_from_file_location("bench_acquire", ROOT / "experiments" / "bench_acquire.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load("bench_acquire")
     scene = _scene(optoskin, 1, 7)
     rig = Rig(scene="optoskin", sensors=(RigSensor(),), select="none", period_ms=1)
     r = bench.run_case("1x3x3", rig, scene, _signals(1, 7), 1_000_000, 3, 1)

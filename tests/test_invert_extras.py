@@ -1,14 +1,13 @@
 """Touch inversion beyond Algorithm 1: dynamic baseline, uncertainty, model-based
 reconstruction, and the fast version of the evaluation study."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from test_studies import load
 
 from tofjax import load_scene
 from tofjax.invert import InvertOptions, MapOptions, build_inverter, match
@@ -133,16 +132,9 @@ def test_model_reconstruction_recovers_contacts(scene, base, shadow):
         assert all(0.5 < st < 1.5 for _, st in s)  # strengths in the model's units
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
 
 def test_eval_study_fast(tmp_path):
-    study = _load("eval_touch")
+    study = load("eval_touch")
     cfg = study.EvalConfig(
         methods=("baseline", "full"),
         baseline_frames=20,
@@ -165,7 +157,7 @@ def test_eval_study_fast(tmp_path):
 
 @pytest.mark.slow
 def test_eval_study_full(tmp_path):
-    study = _load("eval_touch")
+    study = load("eval_touch")
     study.main(["--config", str(ROOT / "configs" / "studies" / "eval_touch.toml"), "--out", str(tmp_path)])
     r = json.loads((tmp_path / "eval_touch.json").read_text())
     full = r["scenarios"]["multi6"]["methods"]["full"]
@@ -173,7 +165,7 @@ def test_eval_study_full(tmp_path):
 
 
 def test_bench_runs(tmp_path):
-    bench = _load("bench_invert")
+    bench = load("bench_invert")
     r = bench.run(tmp_path, resolution_m=0.02, batch=4, repeats=1)
     assert r["float32_max_rel_error"] < 1e-3
     assert r["numpy_vs_jax_max_rel_diff"] < 1e-3
