@@ -412,21 +412,18 @@ def default_scene() -> Scene:
     return load_scene("optoskin")
 
 
-_fmt_toml = toml_value
-
-
 def _dump_toml(d: dict[str, Any]) -> str:
     lines: list[str] = []
     scalars = {k: v for k, v in d.items() if not isinstance(v, (dict, list)) or (isinstance(v, list) and not (v and isinstance(v[0], dict)))}
     for k, v in scalars.items():
         if v is not None:
-            lines.append(f"{k} = {_fmt_toml(v)}")
+            lines.append(f"{k} = {toml_value(v)}")
     for k, v in d.items():
         if isinstance(v, dict):
             lines.append(f"\n[{k}]")
-            lines += [f"{kk} = {_fmt_toml(vv)}" for kk, vv in v.items() if vv is not None]
+            lines += [f"{kk} = {toml_value(vv)}" for kk, vv in v.items() if vv is not None]
         elif isinstance(v, list) and v and isinstance(v[0], dict):
             for item in v:
                 lines.append(f"\n[[{k}]]")
-                lines += [f"{kk} = {_fmt_toml(vv)}" for kk, vv in item.items() if vv is not None]
+                lines += [f"{kk} = {toml_value(vv)}" for kk, vv in item.items() if vv is not None]
     return "\n".join(lines) + "\n"
