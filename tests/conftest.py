@@ -15,6 +15,8 @@ jax.config.update("jax_enable_x64", True)
 _cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")
 jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# The CLI's main() turns on the user's cache (~/.cache/tofjax/jax): point it at the test cache.
+os.environ["TOFJAX_COMPILATION_CACHE"] = _cache
 
 # Every example compiles or runs a model: few examples, no deadline (CI machines are slow and shared).
 settings.register_profile("tofjax", max_examples=15, deadline=None, derandomize=True)

@@ -1,9 +1,12 @@
 """tofjax: a JAX framework for time-of-flight FTIR tactile sensors.
 
 Precision is never changed on import: call :func:`enable_x64` at your entry
-point (the CLI does) when fitting or differentiating in float64.
+point (the CLI does) when fitting or differentiating in float64. Likewise the
+persistent compilation cache: the CLI turns it on, library users call
+:func:`enable_compilation_cache` (see :mod:`tofjax.compile_cache`).
 """
 
+from .compile_cache import enable_compilation_cache as enable_compilation_cache
 from .config import ConfigError as ConfigError
 from .model import ForwardModel as ForwardModel
 from .model import ModelOptions as ModelOptions

@@ -205,9 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # Fitting and gradients need float64; set it here, at the entry point, never on import.
-    from . import enable_x64
+    from . import enable_compilation_cache, enable_x64
 
     enable_x64()
+    # Compile once per machine, not once per process ($TOFJAX_COMPILATION_CACHE=0 turns it off).
+    enable_compilation_cache()
     try:
         return args.func(args)
     except UserError as e:
