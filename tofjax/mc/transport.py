@@ -71,6 +71,10 @@ LEDGER = ("detected", "escaped", "edge_loss", "absorbed", "contact_loss", "late"
 
 _EDGES = ("diffuse", "specular", "absorb")
 
+#: Tallies beside the ledger: the top face's share of ``escaped`` and per-packet second moments
+#: (top, bottom, absorbed) for standard errors, all per emitted packet.
+_EXTRA = ("escaped_top", "sq_top", "sq_bottom", "sq_absorbed")
+
 
 @dataclass(frozen=True)
 class MCOptions:
@@ -201,6 +205,7 @@ class MCResult:
     compile_seconds: float
     devices: int
     options: MCOptions = field(repr=False)
+    moments: dict[str, float] = field(default_factory=dict, repr=False)
 
     @property
     def events_per_second(self) -> float:
@@ -316,7 +321,8 @@ class _Static:
         self.nee = bool(opts.nee)
         self.nee_points = int(opts.nee_points)
         self.nee_aperture = int(opts.nee_aperture)
-        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture)
+        self.slab = False
+        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture, self.slab)
         self.dyn = {
             "lx": wg.size_m[0], "ly": wg.size_m[1], "d": wg.thickness_m, "n1": n1,
             "mu_s": wg.mu_s_per_m, "mu_a": wg.mu_a_per_m, "c1": c1, "h": h, "t_e": t_e,
@@ -344,13 +350,19 @@ class _View:
     """Attribute access to the static shapes and the traced physics inside the kernel."""
 
     def __init__(self, st: _Static, ph: dict):
-        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture")})
+        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture", "slab")})
         self.__dict__.update(ph)
 
 
 def _emit(st: _View, idx, keys, dtype):
     """Initial packets for global photon indices ``idx`` (sensor = idx mod S)."""
     s = idx % st.S
+    if st.slab:
+        # pencil beam at normal incidence on the top face; the specular reflection at entry is not
+        # transported (tallied by the caller)
+        zero = jnp.zeros(idx.shape, dtype)
+        return dict(x=zero, y=zero, z=zero + st.d, ux=zero, uy=zero, uz=zero - 1.0, L=zero,
+                    w=zero + (1.0 - st.R_entry), s=s, diffuse=jnp.zeros(idx.shape, bool))
     u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
     xy = jnp.asarray(st.sensor_xy, dtype)[s]
     az = jnp.asarray(st.sensor_dir, dtype)[s] + (u[:, 0] - 0.5) * st.fov
@@ -439,6 +451,14 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
     return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
 
 
+def _geometric(n, log_r):
+    """``sum_{j<n} r^j`` from ``log r <= 0`` (``n`` terms, 0 for ``n = 0``), stable as ``r -> 1``."""
+    near_one = log_r > -1e-6
+    lr = jnp.where(near_one, -1.0, log_r)
+    ratio = jnp.expm1(n * lr) / jnp.expm1(lr)
+    return jnp.where(n > 0, jnp.where(near_one, n, ratio), 0.0)
+
+
 def _hg_pdf(g, cos_t):
     """Henyey-Greenstein phase function per steradian."""
     return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
@@ -462,12 +482,15 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
     if st.nee:
         mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
-    ledger0 = jnp.zeros((len(LEDGER),), dtype)
+    ledger0 = jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype)
     tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
+    acc0 = jnp.zeros((idx.shape[0], 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
 
     def body(carry):
-        step, p, alive, tally, ledger, events = carry
-        u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, step), (6,), dtype))(keys)
+        step, p, alive, tally, ledger, events, acc = carry
+        # one random number per decision: 0 free path, 1-2 scattering, 3-4 diffuse direction,
+        # 5 contact mirror or not, 6 roulette (never share one between two decisions)
+        u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, step), (7,), dtype))(keys)
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
@@ -477,7 +500,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
                        jnp.where(ux < -1e-12, -x / jnp.where(ux < -1e-12, ux, 1.0), inf))
         ty = jnp.where(uy > 1e-12, (st.ly - y) / jnp.where(uy > 1e-12, uy, 1.0),
                        jnp.where(uy < -1e-12, -y / jnp.where(uy < -1e-12, uy, 1.0), inf))
-        s_edge = jnp.maximum(jnp.minimum(tx, ty), 0.0)
+        s_edge = jnp.maximum(jnp.minimum(tx, ty), 0.0) if not st.slab else jnp.full_like(x, inf)  # a slab has no edges
         hit_x = tx <= ty
         s_late = jnp.maximum(st.L_max - L, 0.0)
         if has_contacts:
@@ -509,14 +532,15 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         s = jnp.min(cand, axis=1)
         s = jnp.where(jnp.isfinite(s), s, 0.0)
         # --- move, folding face bounces ---
-        nx_ = jnp.clip(x + ux * s, 0.0, st.lx)
-        ny_ = jnp.clip(y + uy * s, 0.0, st.ly)
+        nx_, ny_ = x + ux * s, y + uy * s
+        if not st.slab:
+            nx_, ny_ = jnp.clip(nx_, 0.0, st.lx), jnp.clip(ny_, 0.0, st.ly)
         zu = z + uz * s
         k_faces = jnp.abs(jnp.floor(zu / d))
         m = jnp.mod(zu, 2.0 * d)
         flip = m > d
         nz_ = jnp.clip(jnp.where(flip, 2.0 * d - m, m), 0.0, d)
-        nuz = jnp.where(flip, -jnp.abs(uz), jnp.abs(uz))
+        nuz = jnp.where(flip, -uz, uz)  # an odd number of face hits reverses u_z
         is_cont = kind == 3
         if has_contacts:
             k_faces = jnp.where(is_cont, 2.0 * k_cont + (uz < 0), k_faces)
@@ -526,8 +550,20 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         keep = jnp.where(R_air >= 1.0, 1.0, R_air**k_faces)
         att = jnp.exp(-st.mu_a * s)
         w_new = w * att * keep
-        absorbed = w * (1.0 - att)
-        escaped = w * att * (1.0 - keep)
+        # what escapes at the i-th face hit is attenuated up to that face, not over the whole step:
+        # w (1 - R) exp(-mu_a s_i) R^i with s_i = s0 + i d / |u_z|; faces alternate, so the top and
+        # bottom shares are two geometric series in q = R exp(-mu_a d / |u_z|)
+        s0 = jnp.where(uz > 0, d - z, z) / az_
+        e0 = jnp.exp(-st.mu_a * s0)
+        lq = jnp.log(jnp.maximum(R_air, 1e-30)) - st.mu_a * d / az_
+        n_first, n_second = jnp.ceil(0.5 * k_faces), jnp.floor(0.5 * k_faces)
+        e_first = (1.0 - R_air) * e0 * _geometric(n_first, 2.0 * lq)
+        e_second = (1.0 - R_air) * e0 * jnp.exp(lq) * _geometric(n_second, 2.0 * lq)
+        esc_ok = (R_air < 1.0) & (k_faces > 0)
+        e_top = jnp.where(esc_ok, w * jnp.where(uz > 0, e_first, e_second), 0.0)
+        e_bot = jnp.where(esc_ok, w * jnp.where(uz > 0, e_second, e_first), 0.0)
+        escaped = e_top + e_bot
+        absorbed = jnp.maximum(w - w_new - escaped, 0.0)
         L_new = L + s
         # --- events ---
         # late
@@ -610,7 +646,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         still = alive & ~late & ~det & (wn > 0)
         # Russian roulette (never triggers with roulette_w = 0)
         low = still & (wn < st.roulette_w)
-        survive = u[:, 5] < st.roulette_p
+        survive = u[:, 6] < st.roulette_p
         rw = jnp.where(low, jnp.where(survive, wn / st.roulette_p, 0.0), wn)
         roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
         wn = rw
@@ -618,20 +654,31 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
         ledger = ledger + jnp.stack([
             jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
-            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette),
+            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette), A(e_top), f(0.0), f(0.0), f(0.0),
         ])
+        acc = acc + jnp.where(alive[:, None], jnp.stack([e_top, e_bot, absorbed], 1), 0.0)
+        if st.slab:
+            # time- and radius-resolved diffuse reflectance: the step's top-face escape at its first
+            # top hit (exact for n = 1, where a packet leaves at its first hit)
+            s_t = s0 + jnp.where(uz > 0, 0.0, d / az_)
+            rho = jnp.sqrt((x + ux * s_t) ** 2 + (y + uy * s_t) ** 2)
+            ir = jnp.floor(rho / st.rho_bin_m).astype(jnp.int32)
+            it = jnp.floor((L + s_t) / st.c1 / st.time_bin_s).astype(jnp.int32)
+            inside = alive & (e_top > 0) & (ir < st.Z) & (it < st.K) & (it >= 0)
+            tally = tally.at[jnp.where(inside, ir * st.K + it, 0)].add(jnp.where(inside, e_top, 0.0))
         p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse)
         events = events + jnp.sum(alive, dtype=jnp.int32)
-        return step + 1, p, still, tally, ledger, events
+        return step + 1, p, still, tally, ledger, events, acc
 
     def cond(carry):
         step, _, alive, *_ = carry
         return (step < st.max_events) & jnp.any(alive)
 
-    step, p, alive, tally, ledger, events = jax.lax.while_loop(
-        cond, body, (jnp.int32(1), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32))
+    step, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
+        cond, body, (jnp.int32(1), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
     )
     ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(alive, p["w"], 0.0)))
+    ledger = ledger.at[len(LEDGER) + 1:].add(jnp.sum(acc**2, axis=0))  # second moments, for standard errors
     return tally, ledger, events
 
 
@@ -656,7 +703,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
             ti, li, ei = _transport(view, xs[0], xs[1], key, dtype)
             return (t + ti, l + li, e + ei), None
 
-        init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER),), dtype), jnp.zeros((), jnp.int32))
+        init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype), jnp.zeros((), jnp.int32))
         (t, l, e), _ = jax.lax.scan(one, init, (idx, valid))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
@@ -673,22 +720,10 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
     return exe, time.perf_counter() - t0
 
 
-def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
-    """Monte Carlo expected histograms of ``scene`` (transported light only).
+def _run_kernel(st: "_Static", options, dtype, progress: bool):
+    """Run the compiled transport over all packets (``options.photons`` per sensor) in batches.
 
-    **Arguments:**
-
-    - ``scene``: the scene (waveguide, sensors, contacts, pulse, gain).
-    - ``options``: :class:`MCOptions` (photon count, seed, physics switches).
-    - ``progress``: show a progress bar over batches.
-
-    **Returns:** an :class:`MCResult`. The same seed and photon count give the same
-    tallies on any number of devices and any batch size (to float rounding).
-    """
-    if not isinstance(scene, Scene):
-        raise UserError(f"scene: expected a Scene, got {type(scene).__name__}")
-    dtype = options.jnp_dtype
-    st = _Static(scene, options)
+    Returns (tally, ledger + extras, events, compile seconds, run seconds, devices)."""
     mesh = photon_mesh(options.devices)
     ndev = mesh.devices.size
     total = options.photons * st.S
@@ -703,7 +738,7 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
     sharding = NamedSharding(mesh, P(None, "photons"))
     seed = jax.random.key_data(jax.random.key(options.seed))
     tally = np.zeros(st.S * st.Z * st.K)
-    ledger = np.zeros(len(LEDGER))
+    ledger = np.zeros(len(LEDGER) + len(_EXTRA))
     events = 0
     compile_s = 0.0
     t_run = 0.0
@@ -723,6 +758,27 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
         tally += np.asarray(t, np.float64)
         ledger += np.asarray(lg, np.float64)
         events += int(ev)
+    return tally, ledger, events, compile_s, t_run, ndev
+
+
+def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
+    """Monte Carlo expected histograms of ``scene`` (transported light only).
+
+    **Arguments:**
+
+    - ``scene``: the scene (waveguide, sensors, contacts, pulse, gain).
+    - ``options``: :class:`MCOptions` (photon count, seed, physics switches).
+    - ``progress``: show a progress bar over batches.
+
+    **Returns:** an :class:`MCResult`. The same seed and photon count give the same
+    tallies on any number of devices and any batch size (to float rounding).
+    """
+    if not isinstance(scene, Scene):
+        raise UserError(f"scene: expected a Scene, got {type(scene).__name__}")
+    dtype = options.jnp_dtype
+    st = _Static(scene, options)
+    tally, ledger, events, compile_s, t_run, ndev = _run_kernel(st, options, dtype, progress)
+    total = options.photons * st.S
     nodes = tally.reshape(st.S, st.Z, st.K) / options.photons
     kernels = bin_kernels(st.dyn["h"], st.B, st.q, jnp.asarray(scene.sensor.pulse_sigma_s, dtype),
                           jnp.asarray(scene.sensor.pulse_tail_s, dtype), dtype)
@@ -736,6 +792,7 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
         fraction=fraction,
         nodes=nodes,
         ledger={k: float(v) / total for k, v in zip(LEDGER, ledger)},
+        moments={k: float(v) / total for k, v in zip(_EXTRA, ledger[len(LEDGER):])},
         photons=options.photons,
         events=events,
         seconds=t_run,
