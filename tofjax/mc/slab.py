@@ -39,8 +39,9 @@ class SlabOptions:
     - ``roulette_weight``, ``roulette_survival``: Russian roulette (MCML: 1e-4 and 0.1).
     - ``max_events``: scattering events per batch before the rest is tallied as ``remaining``.
     - ``rho_bins`` x ``rho_bin_m``, ``time_bins`` x ``time_bin_s``: the grid of ``R(rho, t)``.
-    - ``max_path_m``: packets are stopped (``late``) after this path length (default
-      ``1e4`` mean free paths or ``time_bins x time_bin_s`` of flight, whichever is longer).
+    - ``max_path_m``: packets are stopped (``late``) after this path length (default: the
+      time grid's window of flight when ``time_bins > 1``, else ``1e4`` thicknesses or mean
+      free paths, whichever is longer).
     """
 
     n: float = 1.4
@@ -116,8 +117,10 @@ class _SlabStatic(_Static):
         c1 = SPEED_OF_LIGHT_M_PER_S / o.n
         mu_t = o.mu_s_per_m + o.mu_a_per_m
         L_max = o.max_path_m
-        if L_max is None:
-            L_max = max(1e4 * max(o.thickness_m, 1.0 / mu_t if mu_t > 0 else 0.0), o.time_bins * o.time_bin_s * c1)
+        if L_max is None and o.time_bins > 1:
+            L_max = o.time_bins * o.time_bin_s * c1  # nothing later is tallied
+        elif L_max is None:
+            L_max = 1e4 * max(o.thickness_m, 1.0 / mu_t if mu_t > 0 else 0.0)
         self.dyn = {
             "lx": 1.0, "ly": 1.0, "d": o.thickness_m, "n1": o.n, "mu_s": o.mu_s_per_m, "mu_a": o.mu_a_per_m,
             "c1": c1, "h": o.time_bin_s, "t_e": 0.0, "L_max": L_max, "fov": 2 * math.pi,

@@ -563,7 +563,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         e_top = jnp.where(esc_ok, w * jnp.where(uz > 0, e_first, e_second), 0.0)
         e_bot = jnp.where(esc_ok, w * jnp.where(uz > 0, e_second, e_first), 0.0)
         escaped = e_top + e_bot
-        absorbed = jnp.maximum(w - w_new - escaped, 0.0)
+        absorbed = jnp.where(st.mu_a > 0, jnp.maximum(w - w_new - escaped, 0.0), 0.0)  # exactly 0 in a clear guide
         L_new = L + s
         # --- events ---
         # late
