@@ -26,11 +26,18 @@ GRID = {"n": (1.0, 1.4), "g": (0.0, 0.75, 0.9), "albedo": (0.9, 0.99), "optical_
 THICKNESS_M = 1e-3
 
 
+def quad_pts(n: float) -> int:
+    """Quadrature points of the adding-doubling reference (see :func:`adding_doubling`)."""
+    return 24 if n == 1.0 else 32
+
+
 def adding_doubling(n: float, g: float, albedo: float, tau: float) -> dict:
     """Diffuse reflectance (specular removed) and total transmittance by adding-doubling (iadpython)."""
     import iadpython as iad
 
-    s = iad.Sample(a=albedo, b=tau, g=g, d=1.0, n=n, n_above=1.0, n_below=1.0, quad_pts=32)
+    # iadpython 0.5.3 with n = 1 breaks down at 32 or more quadrature points (T_t of the g = 0.9 slabs
+    # drops by 0.3% at 32 and by half at 40); 24 is converged there to 1e-5, and 32 for n > 1
+    s = iad.Sample(a=albedo, b=tau, g=g, d=1.0, n=n, n_above=1.0, n_below=1.0, quad_pts=quad_pts(n))
     ur1, ut1, _, _ = s.rt()
     spec = ((n - 1.0) / (n + 1.0)) ** 2
     return {"diffuse_reflectance": float(ur1) - spec, "total_transmittance": float(ut1)}

@@ -162,3 +162,15 @@ def test_sharded_over_two_devices_matches_one():
     assert res["n"] == 2 and res["devices"] == [1, 2]
     assert res["max_rel"] < 1e-5
     assert res["ledger"][0] == pytest.approx(res["ledger"][1], rel=1e-5)
+
+
+def test_roulette_does_not_bias_contacts():
+    """Russian roulette is unbiased only with its own random number. Regression: one number decided
+    both the contact's mirror reflection and roulette, so packets entering the finger (number above
+    the Fresnel reflectance) survived roulette too rarely and the frustrated-TIR escape fell ~25%."""
+    touch = {"position_m": [0.03, 0.05], "radius_m": 0.01, "strength": 1.0}
+    sc = strip_scene(length=0.1, fov=20.0, mu_a=0.5, touches=[touch])
+    opts = dict(photons=16384, batch=4096, edges="absorb", nee=False, roulette_survival=0.05, contact_n=1.33, launch_elevation_deg=90.0)
+    off = run_mc(sc, MCOptions(**opts, roulette_weight=0.0))
+    on = run_mc(sc, MCOptions(**opts, roulette_weight=0.9999))  # roulette at nearly every event
+    assert on.ledger["escaped"] == pytest.approx(off.ledger["escaped"], rel=0.12)
