@@ -58,7 +58,7 @@ def test_clear_slab_closed_form():
     assert r.diffuse_reflectance == pytest.approx((1 - R) ** 2 * R * e**2 / den, rel=1e-9)
     assert r.absorbed == pytest.approx(1 - R - r.total_transmittance - r.diffuse_reflectance, rel=1e-9)
     assert r.specular_reflectance == pytest.approx(R)
-    assert r.diffuse_reflectance_se == pytest.approx(0.0, abs=1e-12)  # every packet alike
+    assert r.diffuse_reflectance_se < 1e-6  # every packet alike (rounding only)
 
 
 def test_van_de_hulst_slab():
@@ -87,7 +87,7 @@ def test_standard_errors_are_honest():
     opts = dict(n=1.0, thickness_m=case["thickness_m"], mu_s_per_m=case["mu_s_per_m"], mu_a_per_m=case["mu_a_per_m"], g=0.0)
     z = []
     for k in ("diffuse_reflectance", "total_transmittance", "absorbed"):
-        a, b = (run_slab(SlabOptions(**opts, photons=8192, seed=s)) for s in (1, 2))
+        a, b = (run_slab(SlabOptions(**opts, photons=20_000, seed=s)) for s in (1, 2))
         z.append((getattr(a, k) - getattr(b, k)) / math.hypot(getattr(a, k + "_se"), getattr(b, k + "_se")))
     assert all(abs(v) < 4 for v in z) and any(v != 0 for v in z)
 
@@ -132,7 +132,7 @@ def test_slab_options_validated():
 def test_cli_slab_writes_json(tmp_path, capsys):
     out = tmp_path / "slab.json"
     rc = main(["mc", "slab", "--n", "1.4", "--thickness-m", "0.005", "--mu-s-per-m", "200", "--mu-a-per-m", "2",
-               "--g", "0.9", "--photons", "4096", "--json", str(out)])
+               "--g", "0.9", "--photons", "20000", "--json", str(out)])
     assert rc == 0
     res = json.loads(out.read_text())
     for k in ("diffuse_reflectance", "total_transmittance", "absorbed"):

@@ -37,7 +37,7 @@ class SlabOptions:
     - ``n``, ``thickness_m``, ``mu_s_per_m``, ``mu_a_per_m``, ``g``: the slab (air outside).
     - ``photons``, ``seed``, ``batch``, ``dtype``, ``devices``: as in :class:`tofjax.mc.MCOptions`.
     - ``roulette_weight``, ``roulette_survival``: Russian roulette (MCML: 1e-4 and 0.1).
-    - ``max_events``: scattering events per batch before the rest is tallied as ``remaining``.
+    - ``max_events``: events of one packet before it is stopped (tallied as ``remaining``).
     - ``rho_bins`` x ``rho_bin_m``, ``time_bins`` x ``time_bin_s``: the grid of ``R(rho, t)``.
     - ``max_path_m``: packets are stopped (``late``) after this path length (default: the
       time grid's window of flight when ``time_bins > 1``, else ``1e4`` thicknesses or mean

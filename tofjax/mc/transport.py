@@ -93,8 +93,8 @@ class MCOptions:
       ``strength``, clipped to 1).
     - ``aperture_m``: width of the receiver window on the edge around each sensor.
     - ``quadrature``: time nodes per bin of the tally grid.
-    - ``max_events``: events per batch before the remaining packets are stopped (tallied
-      as ``remaining``).
+    - ``max_events``: events of one packet before it is stopped (its weight tallied as
+      ``remaining``).
     - ``roulette_weight``, ``roulette_survival``: Russian roulette below this weight (0: off).
     - ``counts_per_gain_m2``: counts per unit gain per detected fraction (expected counts
       ``= gain x detected fraction x counts_per_gain_m2``); default ``1 / (aperture x
@@ -464,11 +464,28 @@ def _hg_pdf(g, cos_t):
     return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
 
 
-def _transport(st: _View, idx, valid, seed_key, dtype):
-    """Follow one batch of packets to the end. Returns (tally (S*Z*K,), ledger (8,), events)."""
-    keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(idx)
-    p = _emit(st, idx, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
-    alive = valid
+def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
+    """Follow a queue of packets to the end, ``lanes`` at a time.
+
+    Lock-step over lanes with masks (one ``while_loop``); a lane whose packet ends takes the
+    next packet of the queue in the same step, so no lane idles while packets are waiting
+    (a batch's long tail of few live packets costs once per queue, not once per batch).
+    Packet ``i`` draws its numbers from ``fold_in(fold_in(seed, i), event)``: the tallies do
+    not depend on the lanes, the queue or the batch. ``max_events`` is per packet.
+
+    Returns (tally (S*Z*K,), ledger (LEDGER + _EXTRA,), events).
+    """
+    n_q = idx.shape[0]
+    lanes = min(lanes, n_q)
+
+    def emit(g):
+        keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(g)
+        q = _emit(st, g, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
+        q.update(g=g, ev=jnp.ones(g.shape, jnp.int32))
+        return q
+
+    p = emit(idx[:lanes])
+    alive = valid[:lanes]
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     d = f(st.d)
     inf = f(jnp.inf)
@@ -484,13 +501,13 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
     ledger0 = jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype)
     tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
-    acc0 = jnp.zeros((idx.shape[0], 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
+    acc0 = jnp.zeros((lanes, 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
 
     def body(carry):
-        step, p, alive, tally, ledger, events, acc = carry
+        nxt, p, alive, tally, ledger, events, acc = carry
         # one random number per decision: 0 free path, 1-2 scattering, 3-4 diffuse direction,
         # 5 contact mirror or not, 6 roulette (never share one between two decisions)
-        u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, step), (7,), dtype))(keys)
+        u = jax.vmap(lambda i, e: jax.random.uniform(jax.random.fold_in(jax.random.fold_in(seed_key, i), e), (7,), dtype))(p["g"], p["ev"])
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
@@ -666,19 +683,35 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
             it = jnp.floor((L + s_t) / st.c1 / st.time_bin_s).astype(jnp.int32)
             inside = alive & (e_top > 0) & (ir < st.Z) & (it < st.K) & (it >= 0)
             tally = tally.at[jnp.where(inside, ir * st.K + it, 0)].add(jnp.where(inside, e_top, 0.0))
-        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse)
+        # a packet at its last allowed event stops; its weight is tallied as remaining
+        stop = still & (p["ev"] >= st.max_events)
+        ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(stop, wn, 0.0)))
+        still = still & ~stop
+        # packets that ended: their second moments (standard errors), then the lane is free
+        ended = alive & ~still
+        ledger = ledger.at[len(LEDGER) + 1:].add(jnp.sum(jnp.where(ended[:, None], acc**2, 0.0), axis=0))
+        acc = jnp.where(ended[:, None], 0.0, acc)
         events = events + jnp.sum(alive, dtype=jnp.int32)
-        return step + 1, p, still, tally, ledger, events, acc
+        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse,
+                 g=p["g"], ev=p["ev"] + 1)
+        # free lanes take the next packets of the queue
+        free = ~still
+        pos = nxt + jnp.cumsum(free) - 1
+        take = free & (pos < n_q)
+        pos = jnp.minimum(pos, n_q - 1)
+        fresh = emit(idx[pos])
+        p = {k: jnp.where(take, fresh[k], v) for k, v in p.items()}
+        alive = jnp.where(take, valid[pos], still)
+        nxt = jnp.minimum(nxt + jnp.sum(free, dtype=jnp.int32), n_q)
+        return nxt, p, alive, tally, ledger, events, acc
 
     def cond(carry):
-        step, _, alive, *_ = carry
-        return (step < st.max_events) & jnp.any(alive)
+        nxt, _, alive, *_ = carry
+        return jnp.any(alive) | (nxt < n_q)
 
-    step, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
-        cond, body, (jnp.int32(1), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
+    nxt, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
+        cond, body, (jnp.int32(lanes), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
     )
-    ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(alive, p["w"], 0.0)))
-    ledger = ledger.at[len(LEDGER) + 1:].add(jnp.sum(acc**2, axis=0))  # second moments, for standard errors
     return tally, ledger, events
 
 
@@ -698,13 +731,9 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
         key = jax.random.wrap_key_data(seed)
         view = _View(st, ph)
 
-        def one(carry, xs):
-            t, l, e = carry
-            ti, li, ei = _transport(view, xs[0], xs[1], key, dtype)
-            return (t + ti, l + li, e + ei), None
-
-        init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype), jnp.zeros((), jnp.int32))
-        (t, l, e), _ = jax.lax.scan(one, init, (idx, valid))
+        # one queue per call: every batch of the call, followed `lanes` at a time
+        q = idx.size
+        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 8, min(256, q)))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
