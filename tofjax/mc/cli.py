@@ -1,4 +1,6 @@
-"""``tofjax mc``, ``tofjax prune`` and ``tofjax bench tradeoff``: thin wrappers of the library."""
+"""``tofjax mc`` (scenes and ``mc slab``) and ``tofjax prune``: thin wrappers of the library.
+
+The trade-off study (once ``tofjax bench tradeoff``) is ``experiments/study_tradeoff.py``."""
 
 from __future__ import annotations
 
@@ -76,33 +78,8 @@ def _cmd_prune(a) -> int:
     return 0
 
 
-def _cmd_tradeoff(a) -> int:
-    from ..scene import load_scene
-    from .tradeoff import TradeoffConfig, load_tradeoff_config, run_tradeoff
-
-    cfg = load_tradeoff_config(a.config) if a.config else TradeoffConfig()
-    changes = {}
-    if a.scene:
-        changes["scene"] = a.scene
-    if a.budget is not None:
-        changes["budget"] = a.budget
-    if a.photons is not None:
-        changes["reference_photons"] = a.photons
-    if a.quick:
-        changes.update(quick=True)
-    if changes:
-        import dataclasses
-
-        cfg = dataclasses.replace(cfg, **changes)
-    load_scene(cfg.scene)  # fail early on a bad scene
-    result = run_tradeoff(cfg, Path(a.out), progress=True)
-    print(Path(a.out, "tradeoff.md").read_text())
-    print(f"wrote tradeoff.json, tradeoff.md and tradeoff.png to {a.out}/ ({result['wall_s']:.0f} s)")
-    return 0
-
-
 def register(sub) -> None:
-    """Add ``mc``, ``prune`` and ``bench`` to the ``tofjax`` command."""
+    """Add ``mc`` and ``prune`` to the ``tofjax`` command."""
     s = sub.add_parser("mc", help="Monte Carlo photon transport: a reference capture from a scene file, or 'slab'")
     s.add_argument("scene", help="scene TOML file, a built-in name, or 'slab' (a slab in air, pencil beam; --json)")
     s.add_argument("--photons", type=int, default=100_000, help="photon packets per sensor (accuracy; default 1e5)")
@@ -129,15 +106,3 @@ def register(sub) -> None:
     s.add_argument("--timing", action="store_true", help="time the full and the pruned model")
     s.add_argument("--out", help="also write the report as JSON")
     s.set_defaults(func=_cmd_prune)
-
-    b = sub.add_parser("bench", help="benchmarks of speed against accuracy")
-    bsub = b.add_subparsers(dest="bench", metavar="BENCH")
-    bsub.required = True
-    s = bsub.add_parser("tradeoff", help="fidelity ladder, fits and Monte Carlo against a Monte Carlo reference")
-    s.add_argument("--scene", help="scene TOML file or built-in name (default optoskin)")
-    s.add_argument("--config", help="trade-off config TOML (configs/studies/tradeoff.toml)")
-    s.add_argument("--budget", type=float, help="error budget: relative L2 error against the reference")
-    s.add_argument("--photons", type=int, help="reference photons per sensor")
-    s.add_argument("--quick", action="store_true", help="a small run (minutes): fewer photons, no fit study")
-    s.add_argument("--out", required=True, help="output folder")
-    s.set_defaults(func=_cmd_tradeoff)
