@@ -481,7 +481,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     def emit(g):
         keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(g)
         q = _emit(st, g, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
-        q.update(g=g, ev=jnp.ones(g.shape, jnp.int32))
+        q.update(key=jax.random.key_data(keys), ev=jnp.ones(g.shape, jnp.int32))
         return q
 
     p = emit(idx[:lanes])
@@ -507,7 +507,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         nxt, p, alive, tally, ledger, events, acc = carry
         # one random number per decision: 0 free path, 1-2 scattering, 3-4 diffuse direction,
         # 5 contact mirror or not, 6 roulette (never share one between two decisions)
-        u = jax.vmap(lambda i, e: jax.random.uniform(jax.random.fold_in(jax.random.fold_in(seed_key, i), e), (7,), dtype))(p["g"], p["ev"])
+        u = jax.vmap(lambda k, e: jax.random.uniform(jax.random.fold_in(jax.random.wrap_key_data(k), e), (7,), dtype))(p["key"], p["ev"])
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
@@ -693,14 +693,18 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         acc = jnp.where(ended[:, None], 0.0, acc)
         events = events + jnp.sum(alive, dtype=jnp.int32)
         p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse,
-                 g=p["g"], ev=p["ev"] + 1)
+                 key=p["key"], ev=p["ev"] + 1)
         # free lanes take the next packets of the queue
         free = ~still
         pos = nxt + jnp.cumsum(free) - 1
         take = free & (pos < n_q)
         pos = jnp.minimum(pos, n_q - 1)
-        fresh = emit(idx[pos])
-        p = {k: jnp.where(take, fresh[k], v) for k, v in p.items()}
+        # (emission only in steps where a lane is refilled: most steps of a long walk have none)
+        def refill(p):
+            fresh = emit(idx[pos])
+            return {k: jnp.where(take if v.ndim == 1 else take[:, None], fresh[k], v) for k, v in p.items()}
+
+        p = jax.lax.cond(jnp.any(take), refill, lambda p: p, p)
         alive = jnp.where(take, valid[pos], still)
         nxt = jnp.minimum(nxt + jnp.sum(free, dtype=jnp.int32), n_q)
         return nxt, p, alive, tally, ledger, events, acc
