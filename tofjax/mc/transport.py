@@ -63,6 +63,7 @@ from ..errors import UserError
 from ..model.components import SPEED_OF_LIGHT_M_PER_S
 from ..model.pulse import apply_kernels, bin_kernels
 from ..scene import Scene
+from .contact import SkinContact
 
 __all__ = ["LEDGER", "MCOptions", "MCResult", "fresnel_reflectance", "photon_mesh", "run_mc"]
 
@@ -89,6 +90,11 @@ class MCOptions:
     - ``edge_reflectance``: reflectance of the lateral edges (default: the scene's
       ``end_reflectance``).
     - ``contact_n``: refractive index of what touches (skin ~1.45).
+    - ``contact``: a :class:`~tofjax.mc.contact.SkinContact` (index, absorption, reduced
+      scattering, anisotropy and coupling of skin, from the literature): sets the contact's
+      index and its diffuse albedo (diffusion theory), and the share of each contact in optical
+      contact (``coupling`` x the contact's ``strength``; the rest is an air gap). Without it
+      (default) ``contact_n`` and ``contact_albedo`` apply, in full optical contact.
     - ``contact_albedo``: diffuse albedo of every contact (default: each contact's
       ``strength``, clipped to 1).
     - ``aperture_m``: width of the receiver window on the edge around each sensor.
@@ -123,6 +129,7 @@ class MCOptions:
     edge_reflectance: float | None = None
     contact_n: float = 1.45
     contact_albedo: float | None = None
+    contact: "SkinContact | None" = None
     aperture_m: float = 1e-3
     quadrature: int = 4
     max_events: int = 4000
@@ -151,6 +158,11 @@ class MCOptions:
             raise ConfigError(f"contact_n: a refractive index must be >= 1, got {self.contact_n!r}")
         if self.contact_albedo is not None and not 0.0 <= self.contact_albedo <= 1.0:
             raise ConfigError(f"contact_albedo: must be in [0, 1], got {self.contact_albedo!r}")
+        if self.contact is not None:
+            if not isinstance(self.contact, SkinContact):
+                raise ConfigError(f"contact: expected a SkinContact, got {type(self.contact).__name__}")
+            if self.contact_albedo is not None or self.contact_n != 1.45:
+                raise ConfigError("contact_n, contact_albedo: set by the contact model (contact=SkinContact(...)); leave them out")
         if not self.aperture_m > 0:
             raise ConfigError(f"aperture_m: must be > 0, got {self.aperture_m!r}")
         if self.quadrature < 1:
@@ -314,7 +326,15 @@ class _Static:
         h = float(sm.bin_width_s) / self.q
         t_e = float(sm.emission_time)
         el = scene.contact_elements()
-        albedo = np.clip(el[:, 3], 0.0, 1.0) if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+        strength = np.clip(el[:, 3], 0.0, 1.0)
+        if opts.contact is not None:
+            # a skin model: its diffuse albedo seen from the guide; a contact's strength scales the
+            # share of its area in optical contact
+            albedo = np.full(len(el), opts.contact.diffuse_albedo(n1))
+            coupling = opts.contact.coupling * strength
+        else:
+            albedo = strength if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+            coupling = np.ones(len(el))
         self.n_contacts = len(el)
         self.edge_mode = opts.edges
         self.max_events = int(opts.max_events)
@@ -334,7 +354,8 @@ class _Static:
             "sensor_normal": _inward_normals(scene),
             "contacts": el[:, :3].astype(float).reshape(-1, 3),
             "albedo": albedo.astype(float),
-            "contact_n": opts.contact_n, "g": opts.g,
+            "coupling": coupling.astype(float),
+            "contact_n": opts.contact_n if opts.contact is None else opts.contact.n, "g": opts.g,
             "edge_R": float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance),
             "half_ap": 0.5 * opts.aperture_m,
             "cos_guided": math.sqrt(max(1.0 - 1.0 / n1**2, 0.0)),  # |u_z| below this is guided
@@ -445,6 +466,8 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
         chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # (n, N) in-plane length under each contact
         hits = chord[:, :, None] * (jnp.abs(mu) / (2.0 * st.d * c))[None, None, :]  # expected top hits
         Rc = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        fc = st.coupling[None, :, None]
+        Rc = fc * Rc + (1.0 - fc) * R[:, :, None]  # an air gap over the uncoupled share of the contact
         T = T * jnp.prod(jnp.where(Rc >= 1.0, 1.0, Rc**hits), axis=1)
     weight = (dphi[:, None] * dmu[None, :]) * T
     omega = jnp.stack([c[None, :] * ex[:, None], c[None, :] * ey[:, None], jnp.broadcast_to(mu[None, :], path.shape)], -1)
@@ -619,7 +642,16 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         # contact: Fresnel into the finger, diffuse return with its albedo
         if has_contacts:
             cn = alive & is_cont
-            Rc = fresnel_reflectance(f(st.n1), f(st.contact_n), az_)
+            # a share `coupling` of the contact is in optical contact (Fresnel n1 -> skin); the
+            # rest is an air gap (Fresnel n1 -> air: what it transmits escapes). Weights carry the
+            # gap's escape; one number picks mirror or skin among the rest.
+            fc = st.coupling[j]
+            Rs = fresnel_reflectance(f(st.n1), f(st.contact_n), az_)
+            Ra = R_air_of(az_)
+            kept_c = fc + (1.0 - fc) * Ra
+            Rc = (fc * Rs + (1.0 - fc) * Ra) / kept_c  # mirror probability among what is not lost to the gap
+            gap_escape = jnp.where(alive & is_cont, w_new * (1.0 - kept_c), 0.0)
+            w_new = jnp.where(is_cont, w_new * kept_c, w_new)
             mirror = u[:, 5] < Rc
             alb = calb[j]
             lx_, ly_, lz_ = _lambertian(0.0 * x, 0.0 * x, -jnp.ones_like(x), jnp.ones_like(x), 0.0 * x, 0.0 * x, u[:, 3], u[:, 4])
@@ -669,6 +701,8 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         wn = rw
         still = still & ~(low & ~survive)
         A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
+        if has_contacts:
+            escaped, e_top = escaped + gap_escape, e_top + gap_escape
         ledger = ledger + jnp.stack([
             jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
             jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette), A(e_top), f(0.0), f(0.0), f(0.0),
