@@ -208,3 +208,30 @@ def test_skin_albedo_against_adding_doubling():
                          quad_pts=24 if n == 1.0 else 32).rt()[0]
         ref = float(ur1) - ((n - 1) / (n + 1)) ** 2
         assert diffuse_reflectance_semi_infinite(s.mu_a_per_m, s.mu_s_prime_per_m, n) == pytest.approx(ref, rel=rel)
+
+
+def test_next_event_flight_under_a_contact():
+    """The direct flight's transmission under a contact: unchanged with coupling 0 (an air gap is
+    an ordinary face), frustrated as Rs^hits in the guided band with full coupling."""
+    import jax.numpy as jnp
+
+    from tofjax.mc.contact import SkinContact
+    from tofjax.mc.transport import _nee, _nee_nodes, _Static, _View
+
+    touch = {"position_m": [0.05, 0.05], "radius_m": 0.01, "strength": 1.0}
+    x, y, z, s = (jnp.array(v) for v in ([0.09, 0.08], [0.05, 0.052], [0.001, 0.003], [0, 0]))
+
+    def weights(scene, opts):
+        st = _Static(scene, opts)
+        v = _View(st, st.arrays(jnp.float64))
+        mu, dmu = _nee_nodes(v, 6, jnp.float64)
+        return np.asarray(_nee(v, x, y, z, s, mu, dmu, jnp.float64)[1]), np.asarray(mu), st
+
+    free, mu, _ = weights(strip_scene(fov=60.0), MCOptions(dtype="float64"))
+    gap, _, _ = weights(strip_scene(fov=60.0, touches=[touch]), MCOptions(dtype="float64", contact=SkinContact(coupling=0.0)))
+    np.testing.assert_allclose(gap, free, rtol=1e-12)
+    full, _, st = weights(strip_scene(fov=60.0, touches=[touch]), MCOptions(dtype="float64", contact=SkinContact(coupling=1.0)))
+    guided = np.abs(mu) < st.dyn["cos_guided"]
+    ratio = full[:, guided] / free[:, guided]
+    assert np.all(ratio < 1) and np.all(ratio > 0)  # frustrated, not cut off
+    assert np.all(full[:, ~guided] <= free[:, ~guided] * (1 + 1e-12))

@@ -465,9 +465,12 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
         t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None])
         chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # (n, N) in-plane length under each contact
         hits = chord[:, :, None] * (jnp.abs(mu) / (2.0 * st.d * c))[None, None, :]  # expected top hits
-        Rc = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        # a top-face hit under a contact reflects fc Rs + (1 - fc) R_air instead of R_air (already in
+        # R^k above): the factor is their ratio (Rs <= R_air: the skin's index is nearer the guide's)
+        Rs = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
         fc = st.coupling[None, :, None]
-        Rc = fc * Rc + (1.0 - fc) * R[:, :, None]  # an air gap over the uncoupled share of the contact
+        Ra = R[:, None, :]
+        Rc = jnp.where(Ra > 0, (fc * Rs + (1.0 - fc) * Ra) / jnp.where(Ra > 0, Ra, 1.0), 1.0)
         T = T * jnp.prod(jnp.where(Rc >= 1.0, 1.0, Rc**hits), axis=1)
     weight = (dphi[:, None] * dmu[None, :]) * T
     omega = jnp.stack([c[None, :] * ex[:, None], c[None, :] * ey[:, None], jnp.broadcast_to(mu[None, :], path.shape)], -1)
