@@ -213,6 +213,7 @@ def test_skin_albedo_against_adding_doubling():
 def test_next_event_flight_under_a_contact():
     """The direct flight's transmission under a contact: unchanged with coupling 0 (an air gap is
     an ordinary face), frustrated as Rs^hits in the guided band with full coupling."""
+    import jax
     import jax.numpy as jnp
 
     from tofjax.mc.contact import SkinContact
@@ -223,9 +224,15 @@ def test_next_event_flight_under_a_contact():
 
     def weights(scene, opts):
         st = _Static(scene, opts)
-        v = _View(st, st.arrays(jnp.float64))
-        mu, dmu = _nee_nodes(v, 6, jnp.float64)
-        return np.asarray(_nee(v, x, y, z, s, mu, dmu, jnp.float64)[1]), np.asarray(mu), st
+
+        @jax.jit
+        def w(ph):  # one compiled call, not a hundred eager ones
+            v = _View(st, ph)
+            mu, dmu = _nee_nodes(v, 6, jnp.float64)
+            return _nee(v, x, y, z, s, mu, dmu, jnp.float64)[1], mu
+
+        out, mu = w(st.arrays(jnp.float64))
+        return np.asarray(out), np.asarray(mu), st
 
     free, mu, _ = weights(strip_scene(fov=60.0), MCOptions(dtype="float64"))
     gap, _, _ = weights(strip_scene(fov=60.0, touches=[touch]), MCOptions(dtype="float64", contact=SkinContact(coupling=0.0)))
