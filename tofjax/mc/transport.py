@@ -774,7 +774,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
 
         # one queue per call: every batch of the call, followed `lanes` at a time
         q = idx.size
-        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 8, min(256, q)))
+        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 4, min(q, 2048)))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
