@@ -5,13 +5,12 @@ slab, and time-resolved diffusion theory for a semi-infinite medium. The full gr
 issue (n, g, albedo, optical thickness) is the slow test; a few cases run by default.
 """
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from test_studies import load
 
 from tofjax.cli import main
 from tofjax.config import ConfigError
@@ -19,18 +18,8 @@ from tofjax.mc.slab import SlabOptions, run_slab
 
 iad = pytest.importorskip("iadpython")
 
-ROOT = Path(__file__).parents[1]
 C = 299_792_458.0
-
-
-def _study():
-    spec = importlib.util.spec_from_file_location("validate_mc_slab", ROOT / "experiments" / "validate_mc_slab.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-study = _study()
+study = load("validate_mc_slab")
 CASES = {c["name"]: c for c in study.cases()}
 
 
