@@ -1,14 +1,18 @@
-"""tofjax bench tradeoff: a fast run on a tiny scene (the full study is configs/studies/tradeoff.toml)."""
+"""The trade-off study (experiments/study_tradeoff.py): a fast run on a tiny scene (the full study
+is configs/studies/tradeoff.toml)."""
 
 import json
 
 import numpy as np
 import pytest
+from test_studies import load
 
-from tofjax.cli import main
 from tofjax.config import ConfigError
-from tofjax.mc.tradeoff import Fidelity, TradeoffConfig, fastest_within, run_tradeoff
 from tofjax.scene import scene_from_dict
+
+study = load("study_tradeoff")
+Fidelity, TradeoffConfig, fastest_within, run_tradeoff = study.Fidelity, study.TradeoffConfig, study.fastest_within, study.run_tradeoff
+main = study.main
 
 
 def tiny_scene_file(tmp_path):
@@ -52,6 +56,8 @@ def test_tradeoff_fast_run(tmp_path):
     assert "Error budget 10" in md and fastest in md and "Monte Carlo" in md
     assert (out / "tradeoff.png").stat().st_size > 10_000
     assert r["wall_s"] > 0
+    # the headline number: the analytic model at the default fidelity against the Monte Carlo
+    assert data["analytic_vs_mc_relative_l2"] == data["analytic"][0]["error_vs_mc"]  # "default" is the default fidelity
 
 
 def test_fastest_within_budget():
@@ -69,16 +75,16 @@ def test_tradeoff_config_validated(tmp_path, capsys):
         Fidelity("x", exclude=("wobble",))
     bad = tmp_path / "t.toml"
     bad.write_text("budgett = 0.1\n")
-    assert main(["bench", "tradeoff", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert main(["--config", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "budgett" in capsys.readouterr().err
-    assert main(["bench", "tradeoff", "--scene", "no-such-scene", "--out", str(tmp_path / "o")]) == 2
+    assert main(["--scene", "no-such-scene", "--out", str(tmp_path / "o")]) == 2
     assert np.isfinite(TradeoffConfig(quick=True).effective().reference_photons)
 
 
 def test_contact_bias_row_detects_analytic_contacts(tmp_path):
     """The contact-position row: the same contact from the Monte Carlo and from the analytic
     model, detected by tofjax.invert's back-projection; the analytic one is found near the truth."""
-    from tofjax.mc.tradeoff import _contact_bias
+    _contact_bias = study._contact_bias
     from tofjax.scene import Touch, load_scene
 
     scene = load_scene(str(tiny_scene_file(tmp_path)))

@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .force.cli import register as register_force  # train, predict, table, force-data (issue 5)
     from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
     from .invert.cli import register as register_invert  # process, detect (issue 4)
-    from .mc.cli import register as register_mc  # mc, prune, bench tradeoff (issue 7)
+    from .mc.cli import register as register_mc  # mc, mc slab, prune (issues 7, 14)
 
     register_invert(sub)
     register_force(sub)

@@ -1,4 +1,6 @@
-"""``tofjax mc``, ``tofjax prune`` and ``tofjax bench tradeoff``: thin wrappers of the library."""
+"""``tofjax mc`` (scenes and ``mc slab``) and ``tofjax prune``: thin wrappers of the library.
+
+The trade-off study (once ``tofjax bench tradeoff``) is ``experiments/study_tradeoff.py``."""
 
 from __future__ import annotations
 
@@ -14,6 +16,13 @@ def _cmd_mc(a) -> int:
     from .capture import mc_capture
     from .transport import MCOptions
 
+    if a.scene == "slab":
+        return _cmd_mc_slab(a)
+    if a.out is None:
+        raise ConfigError("--out: required (the output capture), except for 'tofjax mc slab'")
+    slab_only = [f"--{k.replace('_', '-')}" for k in _SLAB_ONLY if getattr(a, k) is not None]
+    if slab_only:
+        raise ConfigError(f"{', '.join(slab_only)}: only for 'tofjax mc slab'")
     scene = load_scene(a.scene)
     if a.frames < 1:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
@@ -27,6 +36,27 @@ def _cmd_mc(a) -> int:
         f"({t['mc_events'] / max(t['mc_seconds'], 1e-9):.3g} events/s)"
     )
     print("where the light went: " + ", ".join(f"{k} {v:.3g}" for k, v in t["mc_ledger"].items()))
+    return 0
+
+
+_SLAB_ONLY = ("n", "thickness_m", "mu_s_per_m", "mu_a_per_m", "json")
+
+
+def _cmd_mc_slab(a) -> int:
+    from .slab import SlabOptions, run_slab
+
+    if a.out is not None or a.frames != 1 or a.edges != "diffuse":
+        raise ConfigError("--out, --frames, --edges: not for 'tofjax mc slab' (it writes --json)")
+    if a.json is None:
+        raise ConfigError("--json: required for 'tofjax mc slab' (the output file)")
+    given = {k: getattr(a, k) for k in ("n", "thickness_m", "mu_s_per_m", "mu_a_per_m") if getattr(a, k) is not None}
+    opts = SlabOptions(**given, g=a.g, photons=a.photons, seed=a.seed, dtype=a.dtype, batch=a.batch)
+    res = run_slab(opts, progress=True)
+    res.write_json(a.json)
+    for k in ("diffuse_reflectance", "total_transmittance", "absorbed"):
+        print(f"{k:20s} {getattr(res, k):.5f} +- {getattr(res, k + '_se'):.5f}")
+    print(f"(specular {res.specular_reflectance:.5f} not included; {res.events} events in {res.seconds:.1f} s, "
+          f"{res.events_per_second:.3g} events/s); wrote {a.json}")
     return 0
 
 
@@ -48,35 +78,10 @@ def _cmd_prune(a) -> int:
     return 0
 
 
-def _cmd_tradeoff(a) -> int:
-    from ..scene import load_scene
-    from .tradeoff import TradeoffConfig, load_tradeoff_config, run_tradeoff
-
-    cfg = load_tradeoff_config(a.config) if a.config else TradeoffConfig()
-    changes = {}
-    if a.scene:
-        changes["scene"] = a.scene
-    if a.budget is not None:
-        changes["budget"] = a.budget
-    if a.photons is not None:
-        changes["reference_photons"] = a.photons
-    if a.quick:
-        changes.update(quick=True)
-    if changes:
-        import dataclasses
-
-        cfg = dataclasses.replace(cfg, **changes)
-    load_scene(cfg.scene)  # fail early on a bad scene
-    result = run_tradeoff(cfg, Path(a.out), progress=True)
-    print(Path(a.out, "tradeoff.md").read_text())
-    print(f"wrote tradeoff.json, tradeoff.md and tradeoff.png to {a.out}/ ({result['wall_s']:.0f} s)")
-    return 0
-
-
 def register(sub) -> None:
-    """Add ``mc``, ``prune`` and ``bench`` to the ``tofjax`` command."""
-    s = sub.add_parser("mc", help="Monte Carlo photon transport: a reference capture from a scene file")
-    s.add_argument("scene", help="scene TOML file, or a built-in name")
+    """Add ``mc`` and ``prune`` to the ``tofjax`` command."""
+    s = sub.add_parser("mc", help="Monte Carlo photon transport: a reference capture from a scene file, or 'slab'")
+    s.add_argument("scene", help="scene TOML file, a built-in name, or 'slab' (a slab in air, pencil beam; --json)")
     s.add_argument("--photons", type=int, default=100_000, help="photon packets per sensor (accuracy; default 1e5)")
     s.add_argument("--frames", type=int, default=1, help="frames drawn with photon noise (default 1)")
     s.add_argument("--seed", type=int, default=0)
@@ -84,7 +89,13 @@ def register(sub) -> None:
     s.add_argument("--edges", choices=["diffuse", "specular", "absorb"], default="diffuse")
     s.add_argument("--batch", type=int, default=32_768, help="packets followed at once (memory)")
     s.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    s.add_argument("--out", required=True, help="output capture (.h5)")
+    s.add_argument("--out", help="output capture (.h5)")
+    slab = s.add_argument_group("slab", "'tofjax mc slab': a slab in air lit by a pencil beam at normal incidence")
+    slab.add_argument("--n", type=float, help="refractive index of the slab (default 1.4)")
+    slab.add_argument("--thickness-m", type=float, help="thickness (default 0.005)")
+    slab.add_argument("--mu-s-per-m", type=float, help="scattering coefficient (default 200)")
+    slab.add_argument("--mu-a-per-m", type=float, help="absorption coefficient (default 2)")
+    slab.add_argument("--json", help="output JSON: diffuse_reflectance, total_transmittance, absorbed with *_se")
     s.set_defaults(func=_cmd_mc)
 
     s = sub.add_parser("prune", help="which model components a scene needs, against the photon noise")
@@ -95,15 +106,3 @@ def register(sub) -> None:
     s.add_argument("--timing", action="store_true", help="time the full and the pruned model")
     s.add_argument("--out", help="also write the report as JSON")
     s.set_defaults(func=_cmd_prune)
-
-    b = sub.add_parser("bench", help="benchmarks of speed against accuracy")
-    bsub = b.add_subparsers(dest="bench", metavar="BENCH")
-    bsub.required = True
-    s = bsub.add_parser("tradeoff", help="fidelity ladder, fits and Monte Carlo against a Monte Carlo reference")
-    s.add_argument("--scene", help="scene TOML file or built-in name (default optoskin)")
-    s.add_argument("--config", help="trade-off config TOML (configs/studies/tradeoff.toml)")
-    s.add_argument("--budget", type=float, help="error budget: relative L2 error against the reference")
-    s.add_argument("--photons", type=int, help="reference photons per sensor")
-    s.add_argument("--quick", action="store_true", help="a small run (minutes): fewer photons, no fit study")
-    s.add_argument("--out", required=True, help="output folder")
-    s.set_defaults(func=_cmd_tradeoff)

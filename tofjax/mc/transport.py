@@ -63,6 +63,7 @@ from ..errors import UserError
 from ..model.components import SPEED_OF_LIGHT_M_PER_S
 from ..model.pulse import apply_kernels, bin_kernels
 from ..scene import Scene
+from .contact import SkinContact
 
 __all__ = ["LEDGER", "MCOptions", "MCResult", "fresnel_reflectance", "photon_mesh", "run_mc"]
 
@@ -70,6 +71,10 @@ __all__ = ["LEDGER", "MCOptions", "MCResult", "fresnel_reflectance", "photon_mes
 LEDGER = ("detected", "escaped", "edge_loss", "absorbed", "contact_loss", "late", "remaining", "roulette")
 
 _EDGES = ("diffuse", "specular", "absorb")
+
+#: Tallies beside the ledger: the top face's share of ``escaped`` and per-packet second moments
+#: (top, bottom, absorbed) for standard errors, all per emitted packet.
+_EXTRA = ("escaped_top", "sq_top", "sq_bottom", "sq_absorbed")
 
 
 @dataclass(frozen=True)
@@ -85,12 +90,17 @@ class MCOptions:
     - ``edge_reflectance``: reflectance of the lateral edges (default: the scene's
       ``end_reflectance``).
     - ``contact_n``: refractive index of what touches (skin ~1.45).
+    - ``contact``: a :class:`~tofjax.mc.contact.SkinContact` (index, absorption, reduced
+      scattering, anisotropy and coupling of skin, from the literature): sets the contact's
+      index and its diffuse albedo (diffusion theory), and the share of each contact in optical
+      contact (``coupling`` x the contact's ``strength``; the rest is an air gap). Without it
+      (default) ``contact_n`` and ``contact_albedo`` apply, in full optical contact.
     - ``contact_albedo``: diffuse albedo of every contact (default: each contact's
       ``strength``, clipped to 1).
     - ``aperture_m``: width of the receiver window on the edge around each sensor.
     - ``quadrature``: time nodes per bin of the tally grid.
-    - ``max_events``: events per batch before the remaining packets are stopped (tallied
-      as ``remaining``).
+    - ``max_events``: events of one packet before it is stopped (its weight tallied as
+      ``remaining``).
     - ``roulette_weight``, ``roulette_survival``: Russian roulette below this weight (0: off).
     - ``counts_per_gain_m2``: counts per unit gain per detected fraction (expected counts
       ``= gain x detected fraction x counts_per_gain_m2``); default ``1 / (aperture x
@@ -119,6 +129,7 @@ class MCOptions:
     edge_reflectance: float | None = None
     contact_n: float = 1.45
     contact_albedo: float | None = None
+    contact: "SkinContact | None" = None
     aperture_m: float = 1e-3
     quadrature: int = 4
     max_events: int = 4000
@@ -147,6 +158,11 @@ class MCOptions:
             raise ConfigError(f"contact_n: a refractive index must be >= 1, got {self.contact_n!r}")
         if self.contact_albedo is not None and not 0.0 <= self.contact_albedo <= 1.0:
             raise ConfigError(f"contact_albedo: must be in [0, 1], got {self.contact_albedo!r}")
+        if self.contact is not None:
+            if not isinstance(self.contact, SkinContact):
+                raise ConfigError(f"contact: expected a SkinContact, got {type(self.contact).__name__}")
+            if self.contact_albedo is not None or self.contact_n != 1.45:
+                raise ConfigError("contact_n, contact_albedo: set by the contact model (contact=SkinContact(...)); leave them out")
         if not self.aperture_m > 0:
             raise ConfigError(f"aperture_m: must be > 0, got {self.aperture_m!r}")
         if self.quadrature < 1:
@@ -201,6 +217,7 @@ class MCResult:
     compile_seconds: float
     devices: int
     options: MCOptions = field(repr=False)
+    moments: dict[str, float] = field(default_factory=dict, repr=False)
 
     @property
     def events_per_second(self) -> float:
@@ -309,14 +326,23 @@ class _Static:
         h = float(sm.bin_width_s) / self.q
         t_e = float(sm.emission_time)
         el = scene.contact_elements()
-        albedo = np.clip(el[:, 3], 0.0, 1.0) if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+        strength = np.clip(el[:, 3], 0.0, 1.0)
+        if opts.contact is not None:
+            # a skin model: its diffuse albedo seen from the guide; a contact's strength scales the
+            # share of its area in optical contact
+            albedo = np.full(len(el), opts.contact.diffuse_albedo(n1))
+            coupling = opts.contact.coupling * strength
+        else:
+            albedo = strength if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+            coupling = np.ones(len(el))
         self.n_contacts = len(el)
         self.edge_mode = opts.edges
         self.max_events = int(opts.max_events)
         self.nee = bool(opts.nee)
         self.nee_points = int(opts.nee_points)
         self.nee_aperture = int(opts.nee_aperture)
-        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture)
+        self.slab = False
+        self.key = (self.S, self.Z, self.K, self.n_contacts, self.edge_mode, self.max_events, self.nee, self.nee_points, self.nee_aperture, self.slab)
         self.dyn = {
             "lx": wg.size_m[0], "ly": wg.size_m[1], "d": wg.thickness_m, "n1": n1,
             "mu_s": wg.mu_s_per_m, "mu_a": wg.mu_a_per_m, "c1": c1, "h": h, "t_e": t_e,
@@ -328,7 +354,8 @@ class _Static:
             "sensor_normal": _inward_normals(scene),
             "contacts": el[:, :3].astype(float).reshape(-1, 3),
             "albedo": albedo.astype(float),
-            "contact_n": opts.contact_n, "g": opts.g,
+            "coupling": coupling.astype(float),
+            "contact_n": opts.contact_n if opts.contact is None else opts.contact.n, "g": opts.g,
             "edge_R": float(wg.end_reflectance if opts.edge_reflectance is None else opts.edge_reflectance),
             "half_ap": 0.5 * opts.aperture_m,
             "cos_guided": math.sqrt(max(1.0 - 1.0 / n1**2, 0.0)),  # |u_z| below this is guided
@@ -344,13 +371,19 @@ class _View:
     """Attribute access to the static shapes and the traced physics inside the kernel."""
 
     def __init__(self, st: _Static, ph: dict):
-        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture")})
+        self.__dict__.update({k: getattr(st, k) for k in ("S", "Z", "K", "n_contacts", "edge_mode", "max_events", "nee", "nee_points", "nee_aperture", "slab")})
         self.__dict__.update(ph)
 
 
 def _emit(st: _View, idx, keys, dtype):
     """Initial packets for global photon indices ``idx`` (sensor = idx mod S)."""
     s = idx % st.S
+    if st.slab:
+        # pencil beam at normal incidence on the top face; the specular reflection at entry is not
+        # transported (tallied by the caller)
+        zero = jnp.zeros(idx.shape, dtype)
+        return dict(x=zero, y=zero, z=zero + st.d, ux=zero, uy=zero, uz=zero - 1.0, L=zero,
+                    w=zero + (1.0 - st.R_entry), s=s, diffuse=jnp.zeros(idx.shape, bool))
     u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
     xy = jnp.asarray(st.sensor_xy, dtype)[s]
     az = jnp.asarray(st.sensor_dir, dtype)[s] + (u[:, 0] - 0.5) * st.fov
@@ -432,11 +465,24 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
         t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None])
         chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # (n, N) in-plane length under each contact
         hits = chord[:, :, None] * (jnp.abs(mu) / (2.0 * st.d * c))[None, None, :]  # expected top hits
-        Rc = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        # a top-face hit under a contact reflects fc Rs + (1 - fc) R_air instead of R_air (already in
+        # R^k above): the factor is their ratio (Rs <= R_air: the skin's index is nearer the guide's)
+        Rs = fresnel_reflectance(st.n1, st.contact_n, mu)[None, None, :]
+        fc = st.coupling[None, :, None]
+        Ra = R[:, None, :]
+        Rc = jnp.where(Ra > 0, (fc * Rs + (1.0 - fc) * Ra) / jnp.where(Ra > 0, Ra, 1.0), 1.0)
         T = T * jnp.prod(jnp.where(Rc >= 1.0, 1.0, Rc**hits), axis=1)
     weight = (dphi[:, None] * dmu[None, :]) * T
     omega = jnp.stack([c[None, :] * ex[:, None], c[None, :] * ey[:, None], jnp.broadcast_to(mu[None, :], path.shape)], -1)
     return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
+
+
+def _geometric(n, log_r):
+    """``sum_{j<n} r^j`` from ``log r <= 0`` (``n`` terms, 0 for ``n = 0``), stable as ``r -> 1``."""
+    near_one = log_r > -1e-6
+    lr = jnp.where(near_one, -1.0, log_r)
+    ratio = jnp.expm1(n * lr) / jnp.expm1(lr)
+    return jnp.where(n > 0, jnp.where(near_one, n, ratio), 0.0)
 
 
 def _hg_pdf(g, cos_t):
@@ -444,11 +490,28 @@ def _hg_pdf(g, cos_t):
     return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
 
 
-def _transport(st: _View, idx, valid, seed_key, dtype):
-    """Follow one batch of packets to the end. Returns (tally (S*Z*K,), ledger (8,), events)."""
-    keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(idx)
-    p = _emit(st, idx, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
-    alive = valid
+def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
+    """Follow a queue of packets to the end, ``lanes`` at a time.
+
+    Lock-step over lanes with masks (one ``while_loop``); a lane whose packet ends takes the
+    next packet of the queue in the same step, so no lane idles while packets are waiting
+    (a batch's long tail of few live packets costs once per queue, not once per batch).
+    Packet ``i`` draws its numbers from ``fold_in(fold_in(seed, i), event)``: the tallies do
+    not depend on the lanes, the queue or the batch. ``max_events`` is per packet.
+
+    Returns (tally (S*Z*K,), ledger (LEDGER + _EXTRA,), events).
+    """
+    n_q = idx.shape[0]
+    lanes = min(lanes, n_q)
+
+    def emit(g):
+        keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(g)
+        q = _emit(st, g, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
+        q.update(key=jax.random.key_data(keys), ev=jnp.ones(g.shape, jnp.int32))
+        return q
+
+    p = emit(idx[:lanes])
+    alive = valid[:lanes]
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     d = f(st.d)
     inf = f(jnp.inf)
@@ -462,12 +525,15 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
     if st.nee:
         mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
-    ledger0 = jnp.zeros((len(LEDGER),), dtype)
+    ledger0 = jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype)
     tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
+    acc0 = jnp.zeros((lanes, 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
 
     def body(carry):
-        step, p, alive, tally, ledger, events = carry
-        u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, step), (6,), dtype))(keys)
+        nxt, p, alive, tally, ledger, events, acc = carry
+        # one random number per decision: 0 free path, 1-2 scattering, 3-4 diffuse direction,
+        # 5 contact mirror or not, 6 roulette (never share one between two decisions)
+        u = jax.vmap(lambda k, e: jax.random.uniform(jax.random.fold_in(jax.random.wrap_key_data(k), e), (7,), dtype))(p["key"], p["ev"])
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
@@ -477,7 +543,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
                        jnp.where(ux < -1e-12, -x / jnp.where(ux < -1e-12, ux, 1.0), inf))
         ty = jnp.where(uy > 1e-12, (st.ly - y) / jnp.where(uy > 1e-12, uy, 1.0),
                        jnp.where(uy < -1e-12, -y / jnp.where(uy < -1e-12, uy, 1.0), inf))
-        s_edge = jnp.maximum(jnp.minimum(tx, ty), 0.0)
+        s_edge = jnp.maximum(jnp.minimum(tx, ty), 0.0) if not st.slab else jnp.full_like(x, inf)  # a slab has no edges
         hit_x = tx <= ty
         s_late = jnp.maximum(st.L_max - L, 0.0)
         if has_contacts:
@@ -509,14 +575,15 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         s = jnp.min(cand, axis=1)
         s = jnp.where(jnp.isfinite(s), s, 0.0)
         # --- move, folding face bounces ---
-        nx_ = jnp.clip(x + ux * s, 0.0, st.lx)
-        ny_ = jnp.clip(y + uy * s, 0.0, st.ly)
+        nx_, ny_ = x + ux * s, y + uy * s
+        if not st.slab:
+            nx_, ny_ = jnp.clip(nx_, 0.0, st.lx), jnp.clip(ny_, 0.0, st.ly)
         zu = z + uz * s
         k_faces = jnp.abs(jnp.floor(zu / d))
         m = jnp.mod(zu, 2.0 * d)
         flip = m > d
         nz_ = jnp.clip(jnp.where(flip, 2.0 * d - m, m), 0.0, d)
-        nuz = jnp.where(flip, -jnp.abs(uz), jnp.abs(uz))
+        nuz = jnp.where(flip, -uz, uz)  # an odd number of face hits reverses u_z
         is_cont = kind == 3
         if has_contacts:
             k_faces = jnp.where(is_cont, 2.0 * k_cont + (uz < 0), k_faces)
@@ -526,8 +593,20 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         keep = jnp.where(R_air >= 1.0, 1.0, R_air**k_faces)
         att = jnp.exp(-st.mu_a * s)
         w_new = w * att * keep
-        absorbed = w * (1.0 - att)
-        escaped = w * att * (1.0 - keep)
+        # what escapes at the i-th face hit is attenuated up to that face, not over the whole step:
+        # w (1 - R) exp(-mu_a s_i) R^i with s_i = s0 + i d / |u_z|; faces alternate, so the top and
+        # bottom shares are two geometric series in q = R exp(-mu_a d / |u_z|)
+        s0 = jnp.where(uz > 0, d - z, z) / az_
+        e0 = jnp.exp(-st.mu_a * s0)
+        lq = jnp.log(jnp.maximum(R_air, 1e-30)) - st.mu_a * d / az_
+        n_first, n_second = jnp.ceil(0.5 * k_faces), jnp.floor(0.5 * k_faces)
+        e_first = (1.0 - R_air) * e0 * _geometric(n_first, 2.0 * lq)
+        e_second = (1.0 - R_air) * e0 * jnp.exp(lq) * _geometric(n_second, 2.0 * lq)
+        esc_ok = (R_air < 1.0) & (k_faces > 0)
+        e_top = jnp.where(esc_ok, w * jnp.where(uz > 0, e_first, e_second), 0.0)
+        e_bot = jnp.where(esc_ok, w * jnp.where(uz > 0, e_second, e_first), 0.0)
+        escaped = e_top + e_bot
+        absorbed = jnp.where(st.mu_a > 0, jnp.maximum(w - w_new - escaped, 0.0), 0.0)  # exactly 0 in a clear guide
         L_new = L + s
         # --- events ---
         # late
@@ -566,7 +645,16 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         # contact: Fresnel into the finger, diffuse return with its albedo
         if has_contacts:
             cn = alive & is_cont
-            Rc = fresnel_reflectance(f(st.n1), f(st.contact_n), az_)
+            # a share `coupling` of the contact is in optical contact (Fresnel n1 -> skin); the
+            # rest is an air gap (Fresnel n1 -> air: what it transmits escapes). Weights carry the
+            # gap's escape; one number picks mirror or skin among the rest.
+            fc = st.coupling[j]
+            Rs = fresnel_reflectance(f(st.n1), f(st.contact_n), az_)
+            Ra = R_air_of(az_)
+            kept_c = fc + (1.0 - fc) * Ra
+            Rc = (fc * Rs + (1.0 - fc) * Ra) / kept_c  # mirror probability among what is not lost to the gap
+            gap_escape = jnp.where(alive & is_cont, w_new * (1.0 - kept_c), 0.0)
+            w_new = jnp.where(is_cont, w_new * kept_c, w_new)
             mirror = u[:, 5] < Rc
             alb = calb[j]
             lx_, ly_, lz_ = _lambertian(0.0 * x, 0.0 * x, -jnp.ones_like(x), jnp.ones_like(x), 0.0 * x, 0.0 * x, u[:, 3], u[:, 4])
@@ -610,28 +698,61 @@ def _transport(st: _View, idx, valid, seed_key, dtype):
         still = alive & ~late & ~det & (wn > 0)
         # Russian roulette (never triggers with roulette_w = 0)
         low = still & (wn < st.roulette_w)
-        survive = u[:, 5] < st.roulette_p
+        survive = u[:, 6] < st.roulette_p
         rw = jnp.where(low, jnp.where(survive, wn / st.roulette_p, 0.0), wn)
         roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
         wn = rw
         still = still & ~(low & ~survive)
         A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
+        if has_contacts:
+            escaped, e_top = escaped + gap_escape, e_top + gap_escape
         ledger = ledger + jnp.stack([
             jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
-            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette),
+            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette), A(e_top), f(0.0), f(0.0), f(0.0),
         ])
-        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse)
+        acc = acc + jnp.where(alive[:, None], jnp.stack([e_top, e_bot, absorbed], 1), 0.0)
+        if st.slab:
+            # time- and radius-resolved diffuse reflectance: the step's top-face escape at its first
+            # top hit (exact for n = 1, where a packet leaves at its first hit)
+            s_t = s0 + jnp.where(uz > 0, 0.0, d / az_)
+            rho = jnp.sqrt((x + ux * s_t) ** 2 + (y + uy * s_t) ** 2)
+            ir = jnp.floor(rho / st.rho_bin_m).astype(jnp.int32)
+            it = jnp.floor((L + s_t) / st.c1 / st.time_bin_s).astype(jnp.int32)
+            inside = alive & (e_top > 0) & (ir < st.Z) & (it < st.K) & (it >= 0)
+            tally = tally.at[jnp.where(inside, ir * st.K + it, 0)].add(jnp.where(inside, e_top, 0.0))
+        # a packet at its last allowed event stops; its weight is tallied as remaining
+        stop = still & (p["ev"] >= st.max_events)
+        ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(stop, wn, 0.0)))
+        still = still & ~stop
+        # packets that ended: their second moments (standard errors), then the lane is free
+        ended = alive & ~still
+        ledger = ledger.at[len(LEDGER) + 1:].add(jnp.sum(jnp.where(ended[:, None], acc**2, 0.0), axis=0))
+        acc = jnp.where(ended[:, None], 0.0, acc)
         events = events + jnp.sum(alive, dtype=jnp.int32)
-        return step + 1, p, still, tally, ledger, events
+        p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse,
+                 key=p["key"], ev=p["ev"] + 1)
+        # free lanes take the next packets of the queue
+        free = ~still
+        pos = nxt + jnp.cumsum(free) - 1
+        take = free & (pos < n_q)
+        pos = jnp.minimum(pos, n_q - 1)
+        # (emission only in steps where a lane is refilled: most steps of a long walk have none)
+        def refill(p):
+            fresh = emit(idx[pos])
+            return {k: jnp.where(take if v.ndim == 1 else take[:, None], fresh[k], v) for k, v in p.items()}
+
+        p = jax.lax.cond(jnp.any(take), refill, lambda p: p, p)
+        alive = jnp.where(take, valid[pos], still)
+        nxt = jnp.minimum(nxt + jnp.sum(free, dtype=jnp.int32), n_q)
+        return nxt, p, alive, tally, ledger, events, acc
 
     def cond(carry):
-        step, _, alive, *_ = carry
-        return (step < st.max_events) & jnp.any(alive)
+        nxt, _, alive, *_ = carry
+        return jnp.any(alive) | (nxt < n_q)
 
-    step, p, alive, tally, ledger, events = jax.lax.while_loop(
-        cond, body, (jnp.int32(1), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32))
+    nxt, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
+        cond, body, (jnp.int32(lanes), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
     )
-    ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(alive, p["w"], 0.0)))
     return tally, ledger, events
 
 
@@ -651,13 +772,9 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
         key = jax.random.wrap_key_data(seed)
         view = _View(st, ph)
 
-        def one(carry, xs):
-            t, l, e = carry
-            ti, li, ei = _transport(view, xs[0], xs[1], key, dtype)
-            return (t + ti, l + li, e + ei), None
-
-        init = (jnp.zeros((st.S * st.Z * st.K,), dtype), jnp.zeros((len(LEDGER),), dtype), jnp.zeros((), jnp.int32))
-        (t, l, e), _ = jax.lax.scan(one, init, (idx, valid))
+        # one queue per call: every batch of the call, followed `lanes` at a time
+        q = idx.size
+        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 4, min(q, 2048)))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
@@ -673,22 +790,10 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
     return exe, time.perf_counter() - t0
 
 
-def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
-    """Monte Carlo expected histograms of ``scene`` (transported light only).
+def _run_kernel(st: "_Static", options, dtype, progress: bool):
+    """Run the compiled transport over all packets (``options.photons`` per sensor) in batches.
 
-    **Arguments:**
-
-    - ``scene``: the scene (waveguide, sensors, contacts, pulse, gain).
-    - ``options``: :class:`MCOptions` (photon count, seed, physics switches).
-    - ``progress``: show a progress bar over batches.
-
-    **Returns:** an :class:`MCResult`. The same seed and photon count give the same
-    tallies on any number of devices and any batch size (to float rounding).
-    """
-    if not isinstance(scene, Scene):
-        raise UserError(f"scene: expected a Scene, got {type(scene).__name__}")
-    dtype = options.jnp_dtype
-    st = _Static(scene, options)
+    Returns (tally, ledger + extras, events, compile seconds, run seconds, devices)."""
     mesh = photon_mesh(options.devices)
     ndev = mesh.devices.size
     total = options.photons * st.S
@@ -703,7 +808,7 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
     sharding = NamedSharding(mesh, P(None, "photons"))
     seed = jax.random.key_data(jax.random.key(options.seed))
     tally = np.zeros(st.S * st.Z * st.K)
-    ledger = np.zeros(len(LEDGER))
+    ledger = np.zeros(len(LEDGER) + len(_EXTRA))
     events = 0
     compile_s = 0.0
     t_run = 0.0
@@ -723,6 +828,27 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
         tally += np.asarray(t, np.float64)
         ledger += np.asarray(lg, np.float64)
         events += int(ev)
+    return tally, ledger, events, compile_s, t_run, ndev
+
+
+def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = False) -> MCResult:
+    """Monte Carlo expected histograms of ``scene`` (transported light only).
+
+    **Arguments:**
+
+    - ``scene``: the scene (waveguide, sensors, contacts, pulse, gain).
+    - ``options``: :class:`MCOptions` (photon count, seed, physics switches).
+    - ``progress``: show a progress bar over batches.
+
+    **Returns:** an :class:`MCResult`. The same seed and photon count give the same
+    tallies on any number of devices and any batch size (to float rounding).
+    """
+    if not isinstance(scene, Scene):
+        raise UserError(f"scene: expected a Scene, got {type(scene).__name__}")
+    dtype = options.jnp_dtype
+    st = _Static(scene, options)
+    tally, ledger, events, compile_s, t_run, ndev = _run_kernel(st, options, dtype, progress)
+    total = options.photons * st.S
     nodes = tally.reshape(st.S, st.Z, st.K) / options.photons
     kernels = bin_kernels(st.dyn["h"], st.B, st.q, jnp.asarray(scene.sensor.pulse_sigma_s, dtype),
                           jnp.asarray(scene.sensor.pulse_tail_s, dtype), dtype)
@@ -736,6 +862,7 @@ def run_mc(scene: Scene, options: MCOptions = MCOptions(), *, progress: bool = F
         fraction=fraction,
         nodes=nodes,
         ledger={k: float(v) / total for k, v in zip(LEDGER, ledger)},
+        moments={k: float(v) / total for k, v in zip(_EXTRA, ledger[len(LEDGER):])},
         photons=options.photons,
         events=events,
         seconds=t_run,

@@ -1,5 +1,15 @@
 """Speed against accuracy: the analytic model's fidelity ladder, fits and the Monte Carlo itself,
-measured against a Monte Carlo reference at a high photon count (``tofjax bench tradeoff``).
+measured against a Monte Carlo reference at a high photon count.
+
+A study, not library code (it uses the demo and ``experiments/study_fit_speed.py``); it
+replaces ``tofjax bench tradeoff``:
+
+    python experiments/study_tradeoff.py --config configs/studies/tradeoff.toml --out out/tradeoff
+    python experiments/study_tradeoff.py --quick --out out/tradeoff_quick      # a first look (minutes)
+
+``tradeoff.json`` holds ``analytic_vs_mc_relative_l2``: the relative L2 error of the analytic
+model at the default fidelity against the Monte Carlo reference (gain profiled per sensor,
+transported light only).
 
 What is measured (all on one scene, side by side in one run):
 
@@ -44,12 +54,12 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ..config import ConfigError, from_dict, load_toml
-from ..model import ModelOptions, Params, build_model, sample_counts
-from ..scene import COMPONENTS, Scene, load_scene
-from ..timing import median_seconds
-from .prune import PruneOptions, prune_model
-from .transport import MCOptions, run_mc
+from tofjax.config import ConfigError, from_dict, load_toml
+from tofjax.model import ModelOptions, Params, build_model, sample_counts
+from tofjax.scene import COMPONENTS, Scene, load_scene
+from tofjax.timing import median_seconds
+from tofjax.mc.prune import PruneOptions, prune_model
+from tofjax.mc import MCOptions, run_mc
 
 __all__ = ["Fidelity", "TradeoffConfig", "load_tradeoff_config", "run_tradeoff", "fastest_within"]
 
@@ -96,7 +106,7 @@ DEFAULT_LADDER = (
 
 @dataclass(frozen=True)
 class TradeoffConfig:
-    """Options of ``tofjax bench tradeoff`` (TOML: ``configs/studies/tradeoff.toml``).
+    """Options of the trade-off study (TOML: ``configs/studies/tradeoff.toml``).
 
     - ``scene``: scene file or built-in name.
     - ``reference_photons``: Monte Carlo reference, packets per sensor.
@@ -200,7 +210,7 @@ def _mc(scene: Scene, cfg: TradeoffConfig, photons: int, seed: int):
 
 
 def _capture_from(scene: Scene, expected: np.ndarray, frames: int, seed: int):
-    from ..capture import Capture
+    from tofjax.capture import Capture
 
     keys = jax.random.split(jax.random.key(seed), frames)
     lam = jnp.asarray(expected)
@@ -210,7 +220,7 @@ def _capture_from(scene: Scene, expected: np.ndarray, frames: int, seed: int):
 
 def _load_fit_speed_study():
     """``experiments/study_fit_speed.py`` of this checkout (the fit-speed logic is reused, not copied)."""
-    path = Path(__file__).resolve().parents[2] / "experiments" / "study_fit_speed.py"
+    path = Path(__file__).resolve().parent / "study_fit_speed.py"
     if not path.exists():
         return None
     spec = importlib.util.spec_from_file_location("study_fit_speed", path)
@@ -344,6 +354,8 @@ def run_tradeoff(
     for key in ("error_vs_mc", "error_numerical"):
         best = fastest_within(rows, key, cfg.budget)
         result[f"fastest_within_budget_{key}"] = None if best is None else best["label"]
+    default = next((r for r in rows if {**r["fidelity"], "label": ""} == dataclasses.asdict(Fidelity(""))), None)
+    result["analytic_vs_mc_relative_l2"] = None if default is None else default["error_vs_mc"]
     best_mc = fastest_within(mc_rows, "error_vs_mc", cfg.budget)
     result["fastest_within_budget_monte_carlo"] = None if best_mc is None else best_mc["label"]
     result["wall_s"] = time.perf_counter() - t_start
@@ -390,8 +402,8 @@ def _per_component(scene: Scene, cfg: TradeoffConfig, ref: np.ndarray, comps) ->
 
 
 def _fit_bias(scene: Scene, cfg: TradeoffConfig, ref: np.ndarray, kept) -> dict:
-    from ..fit.calibrate import Calibrator
-    from ..simulate import simulate
+    from tofjax.fit.calibrate import Calibrator
+    from tofjax.simulate import simulate
 
     base = scene.without_touches()
     truth = {k: float(getattr(base.waveguide, k)) for k in TARGETS}
@@ -455,7 +467,7 @@ def detect_backprojection(capture, baseline, scene: Scene) -> np.ndarray:
     """Default detector of the contact-position row: ``tofjax.invert``'s back-projection
     (Algorithm 1 ``full``, Eq. 8 maps, detection) with the scene's own optics, on the mean
     frame. Returns the detected positions (n, 2) in metres."""
-    from ..invert import InvertOptions, build_inverter
+    from tofjax.invert import InvertOptions, build_inverter
 
     inv = build_inverter(scene.without_touches(), baseline.mean(), InvertOptions(), n_baseline=baseline.n_frames)
     return inv.process(capture.mean()[None]).detections[0].positions()
@@ -465,13 +477,13 @@ def _contact_bias(scene: Scene, cfg: TradeoffConfig, detect) -> dict:
     """Detected contact positions on Monte Carlo data and on analytic data of the same
     contacts (the scene's, or the demo's line of three if it has none): the difference is
     the bias the analytic model's mismatch puts into touch detection."""
-    from ..invert import match
-    from ..simulate import simulate
-    from .capture import mc_capture
+    from tofjax.invert import match
+    from tofjax.simulate import simulate
+    from tofjax.mc.capture import mc_capture
 
     detect = detect_backprojection if detect is None else detect
     if not scene.touches:
-        from ..demo import three_touch_scene
+        from tofjax.demo import three_touch_scene
 
         scene = three_touch_scene(scene)
     truth = scene.contact_elements()[:, :2]
@@ -628,3 +640,40 @@ def plot(r: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def main(argv=None) -> int:
+    """``python experiments/study_tradeoff.py --out DIR [--config TOML] [--scene S] [--budget B] [--photons N] [--quick]``."""
+    import argparse
+
+    from tofjax import enable_x64
+    from tofjax.errors import UserError
+
+    ap = argparse.ArgumentParser(description="fidelity ladder, fits and Monte Carlo against a Monte Carlo reference")
+    ap.add_argument("--scene", help="scene TOML file or built-in name (default optoskin)")
+    ap.add_argument("--config", help="trade-off config TOML (configs/studies/tradeoff.toml)")
+    ap.add_argument("--budget", type=float, help="error budget: relative L2 error against the reference")
+    ap.add_argument("--photons", type=int, help="reference photons per sensor")
+    ap.add_argument("--quick", action="store_true", help="a small run (minutes): fewer photons, no fit study")
+    ap.add_argument("--out", required=True, help="output folder")
+    a = ap.parse_args(argv)
+    enable_x64()
+    try:
+        cfg = load_tradeoff_config(a.config) if a.config else TradeoffConfig()
+        changes = {k: v for k, v in (("scene", a.scene), ("budget", a.budget), ("reference_photons", a.photons)) if v is not None}
+        if a.quick:
+            changes["quick"] = True
+        cfg = dataclasses.replace(cfg, **changes)
+        load_scene(cfg.scene)  # fail early on a bad scene
+    except UserError as e:
+        print(f"study_tradeoff: error: {e}", file=sys.stderr)
+        return 2
+    result = run_tradeoff(cfg, Path(a.out), progress=True)
+    print(Path(a.out, "tradeoff.md").read_text())
+    print(f"analytic_vs_mc_relative_l2 (default fidelity): {result['analytic_vs_mc_relative_l2']}")
+    print(f"wrote tradeoff.json, tradeoff.md and tradeoff.png to {a.out}/ ({result['wall_s']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
