@@ -361,7 +361,7 @@ def _frame_problems(hist: np.ndarray, times: np.ndarray) -> dict[int, str]:
             for i in np.flatnonzero((flat == 0).all(axis=1)):
                 bad.setdefault(int(i), "all bins zero (a frame never written, e.g. a full disk)")
         for i in np.flatnonzero(~np.isfinite(times)):
-            bad.setdefault(int(i), f"timestamp {times[i]!r}")
+            bad.setdefault(int(i), f"timestamp {float(times[i])!r}")
     return dict(sorted(bad.items()))
 
 
@@ -499,7 +499,8 @@ def _int_attr(attrs, name: str, path: Path, default: int | None = None) -> int:
     if isinstance(v, np.ndarray) and v.shape == ():
         v = v[()]
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
-        raise CaptureError(f"{path}: attribute '{name}' must be an integer, got {v!r}")
+        shown = v.item() if isinstance(v, np.generic) else v
+        raise CaptureError(f"{path}: attribute '{name}' must be an integer, got {shown!r}"[:300])
     return int(v)
 
 

@@ -320,15 +320,23 @@ def main(argv: list[str] | None = None) -> int:
     from . import enable_x64
 
     enable_x64()
-    try:
-        _check_args(args)
-        return args.func(args)
-    except UserError as e:
-        print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"tofjax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # A warning is one line too, named by its category (BadFramesWarning, ...).
+        print(f"tofjax {args.command}: warning: {category.__name__}: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        try:
+            _check_args(args)
+            return args.func(args)
+        except UserError as e:
+            print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"tofjax {args.command}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -282,6 +282,8 @@ def load_predictor(run_dir: str | Path):
 
 
 def _load_predictor(run_dir: Path, header: dict):
+    if header["kind"] not in ("mlp", "deep_mlp"):
+        return _load_sklearn(run_dir), header
     scaling = Scaling.from_json(header["scaling"])
     if header["kind"] in ("mlp", "deep_mlp"):
         spec = MLPSpec.from_json(header["spec"])
@@ -297,7 +299,7 @@ def _load_predictor(run_dir: Path, header: dict):
             scaling.force_lo, scaling.force_hi - scaling.force_lo, header["features"]["variant"],
         )
         return pred, header
-    return _load_sklearn(run_dir), header
+    raise UserError(f"{run_dir}: model.json names kind {header['kind']!r}")
 
 
 #: The only types a stored scikit-learn model may hold beyond what skops trusts by default:

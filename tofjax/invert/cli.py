@@ -27,8 +27,11 @@ def _options(a):
 
 
 def _run(a, *, want_detect: bool):
+    from .correction import InversionError
     from .pipeline import build_inverter, load_inputs
 
+    if a.dynamic_baseline and a.method not in ("baseline", "full"):  # before the inversion is built
+        raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
