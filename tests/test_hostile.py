@@ -712,10 +712,29 @@ if __name__ == "__main__":  # count outcomes (README): python tests/test_hostile
     w = _build(root / "world")
     import time
 
+    import signal
+
+    # Restored before every case: an older tofjax may write over its inputs (counted as "silent").
+    snapshot = {p: p.read_bytes() for p in (w["scene"], w["good"], w["touch"], w["notes"], w["json"])}
+    limit = int(sys.argv[sys.argv.index("--timeout") + 1]) if "--timeout" in sys.argv else 0
+
+    def alarm(*_):
+        raise TimeoutError("took longer than --timeout")
+
+    signal.signal(signal.SIGALRM, alarm)
     counts, bad, times, lines = Counter(), {}, {}, []
     for i, c in enumerate(CASES):
+        for p, data in snapshot.items():
+            p.write_bytes(data)
         t0 = time.perf_counter()
-        outcome, detail = run_case(c, w, root / f"case{i}")
+        signal.alarm(limit)
+        try:
+            outcome, detail = run_case(c, w, root / f"case{i}")
+        except TimeoutError as e:  # raised outside main()'s own handlers
+            outcome, detail = "hang", str(e)
+        signal.alarm(0)
+        if "took longer than --timeout" in detail:
+            outcome = "hang"
         times[c.id] = time.perf_counter() - t0
         lines.append(f"{c.id}\t{outcome}\t{detail.strip().splitlines()[-1] if detail.strip() else ''}")
         counts[outcome] += 1

@@ -27,6 +27,7 @@ from .scene import Scene, scene_from_json
 __all__ = [
     "BadFramesWarning",
     "Capture",
+    "check_capture_target",
     "CaptureError",
     "CaptureWriter",
     "read_capture",
@@ -40,6 +41,11 @@ VERSION = 1
 #: Histograms are stored as float32: exact for every 24-bit TMF8828 count.
 HIST_DTYPE = np.float32
 
+
+#: Free space a writer keeps on its disk (bytes, beyond twice the frames about to be written):
+#: HDF5 cannot close a file cleanly once a write has failed for lack of space (the process
+#: crashes), so a writer stops, in one line and with every committed frame, before that.
+DISK_MARGIN_BYTES = 512 * 1024
 
 #: Root attribute: frames committed (whole, flushed). Written after each frame's data, so a
 #: reader never sees a frame a crash or a full disk left half-written (or zero-filled).
@@ -124,6 +130,13 @@ def _being_written(path: Path) -> bool:
     return False
 
 
+def check_capture_target(path: str | Path, overwrite: bool = False) -> None:
+    """Raise :class:`CaptureError` now if a capture could not be written to ``path`` later
+    (it exists and ``overwrite`` is not set, or another process is still writing it): call it
+    before a long simulation or before opening a rig."""
+    _prepare_target(Path(path), overwrite)
+
+
 def _prepare_target(path: Path, overwrite: bool) -> None:
     """Refuse an existing ``path`` unless ``overwrite``; never replace a capture being written."""
     if path.is_dir():
@@ -183,7 +196,7 @@ class CaptureWriter:
             raise CaptureError(f"{self.path}: cannot create the capture: {_oserror(e)}") from None
         try:
             self._setup(scene, source, with_force, with_reference, max_touches, truth)
-        except OSError as e:
+        except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
             self._fail(e)
 
     def _setup(self, scene, source, with_force, with_reference, max_touches, truth) -> None:
@@ -220,9 +233,20 @@ class CaptureWriter:
         self._f.flush()  # ... then the count that makes them visible
         self.n_frames = n
 
-    def _check_open(self) -> None:
+    def _check_open(self, n_bytes: int = 0) -> None:
         if self._failed is not None:
             raise CaptureError(f"{self.path}: an earlier write failed ({self._failed}); no more frames can be added")
+        try:
+            st = os.statvfs(self.path.parent)
+        except OSError:
+            return
+        free = st.f_bavail * st.f_frsize
+        if free < 2 * n_bytes + DISK_MARGIN_BYTES:
+            self._failed = "disk full"
+            raise CaptureError(
+                f"{self.path}: write failed after {self.n_frames} committed frames (the disk is full: "
+                f"{free / 1e6:.2f} MB left); the committed frames are kept"
+            )
 
     def append(self, histogram, timestamp: float, *, force=None, reference=None, touches=None) -> None:
         """Write one whole frame: histogram (sensors, zones, bins); optional force, reference, touches."""
@@ -231,7 +255,7 @@ class CaptureWriter:
             raise CaptureError(f"frame shape {histogram.shape} does not match the scene's {self._hist.shape[1:]}")
         if (force is None) != (self._force is None):
             raise CaptureError("force must be given for every frame of a capture with a force channel, and only then")
-        self._check_open()
+        self._check_open(2 * histogram.nbytes)  # histogram, and room for the extras
         i = self.n_frames
         try:
             if self._force is not None:
@@ -252,7 +276,7 @@ class CaptureWriter:
             self._time.resize(i + 1, 0)
             self._time[i] = float(timestamp)
             self._commit(i + 1)
-        except OSError as e:
+        except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
             self._fail(e)
 
     def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None) -> None:
@@ -263,7 +287,7 @@ class CaptureWriter:
             raise CaptureError(f"frame shape {histograms.shape[1:]} does not match the scene's {self._hist.shape[1:]}")
         if (force is None) != (self._force is None):
             raise CaptureError("force must be given for every frame of a capture with a force channel, and only then")
-        self._check_open()
+        self._check_open(histograms.nbytes)
         i = self.n_frames
         try:
             if self._force is not None:
@@ -284,14 +308,14 @@ class CaptureWriter:
             self._time.resize(i + n, 0)
             self._time[i:] = np.asarray(timestamps, np.float64)
             self._commit(i + n)
-        except OSError as e:
+        except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
             self._fail(e)
 
     def close(self) -> None:
         if self._f is not None and self._f.id.valid:
             try:
                 self._f.close()
-            except OSError as e:
+            except (OSError, RuntimeError) as e:
                 if self._failed is None:
                     self._failed = _oserror(e)
                     raise CaptureError(f"{self.path}: closing failed ({self._failed})") from None
@@ -303,8 +327,11 @@ class CaptureWriter:
         self.close()
 
 
-def _oserror(e: OSError) -> str:
-    return (e.strerror or str(e)).strip()
+def _oserror(e: Exception) -> str:
+    text = getattr(e, "strerror", None) or str(e)
+    if "No space left on device" in text:
+        return "No space left on device"
+    return " ".join(text.split())[:200]
 
 
 def write_capture(path: str | Path, cap: Capture, *, overwrite: bool = False) -> Path:

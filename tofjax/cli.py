@@ -16,7 +16,7 @@ from .errors import UserError
 
 
 def _cmd_simulate(a) -> int:
-    from .capture import write_capture
+    from .capture import check_capture_target, write_capture
     from .model import ModelOptions
     from .scene import load_scene
     from .simulate import simulate
@@ -25,6 +25,7 @@ def _cmd_simulate(a) -> int:
     if a.frames < 1:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
     _check_size(scene, a.frames)
+    check_capture_target(a.out, a.overwrite)
     cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
     write_capture(a.out, cap, overwrite=a.overwrite)
     print(f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}'")

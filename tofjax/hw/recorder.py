@@ -285,8 +285,10 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
 
     **Returns:** an :class:`AcquireResult` (frames written, dropped, error counts, rates).
     """
+    from ..capture import check_capture_target
     from ..simulate import true_parameters
 
+    check_capture_target(out, options.overwrite)  # before the rig is opened (firmware, seconds)
     if isinstance(rig_or_scene, tuple):
         rig, scene = rig_or_scene
         is_rig = True

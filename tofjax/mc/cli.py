@@ -20,6 +20,9 @@ def _cmd_mc(a) -> int:
     from ..cli import _check_size
 
     _check_size(scene, a.frames)
+    from ..capture import check_capture_target
+
+    check_capture_target(a.out, a.overwrite)
     opts = MCOptions(photons=a.photons, seed=a.seed, g=a.g, edges=a.edges, dtype=a.dtype, batch=a.batch)
     cap = mc_capture(scene, a.frames, a.seed, opts, progress=True)
     write_capture(a.out, cap, overwrite=a.overwrite)
