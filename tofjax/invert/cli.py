@@ -79,6 +79,12 @@ def _cmd_process(a) -> int:
     touch, base, optical, inv, res = _run(a, want_detect=True)
     with atomic_path(a.out) as tmp:
         write_maps(tmp, res, base.scene, optical)
+        import h5py
+
+        with h5py.File(tmp, "a") as f:  # which capture frame each map is, and the frames left out
+            if touch.frame_index is not None:
+                f["frame_index"] = touch.frame_index
+            f.attrs["dropped_frames"] = json.dumps({str(i): why for i, why in touch.dropped.items()})
     msg = f"wrote {a.out}: {len(res.maps)} maps of {inv.grid.ny} x {inv.grid.nx} px ({a.method})"
     if a.png:
         from .plots import plot_map
