@@ -723,7 +723,16 @@ if __name__ == "__main__":  # count outcomes (README): python tests/test_hostile
 
     signal.signal(signal.SIGALRM, alarm)
     counts, bad, times, lines = Counter(), {}, {}, []
+    # --log FILE: one line per case as it ends (a case that kills the process, e.g. by running
+    # out of memory, leaves its id last in --log; run again with --start to go on).
+    log = open(sys.argv[sys.argv.index("--log") + 1], "a") if "--log" in sys.argv else None
+    start = int(sys.argv[sys.argv.index("--start") + 1]) if "--start" in sys.argv else 0
     for i, c in enumerate(CASES):
+        if i < start:
+            continue
+        if log:
+            log.write(f"{i}\t{c.id}\tstarted\n")
+            log.flush()
         for p, data in snapshot.items():
             p.write_bytes(data)
         t0 = time.perf_counter()
@@ -735,6 +744,9 @@ if __name__ == "__main__":  # count outcomes (README): python tests/test_hostile
         signal.alarm(0)
         if "took longer than --timeout" in detail:
             outcome = "hang"
+        if log:
+            log.write(f"{i}\t{c.id}\t{outcome}\t{' '.join(detail.split())[-200:]}\n")
+            log.flush()
         times[c.id] = time.perf_counter() - t0
         lines.append(f"{c.id}\t{outcome}\t{detail.strip().splitlines()[-1] if detail.strip() else ''}")
         counts[outcome] += 1
