@@ -180,7 +180,6 @@ _RANGES = {
     "photons": (1, 10**10),
     "batch": (1, 10**8),
     "g": (-0.99, 0.99),
-    "noise_floor": (0.0, 1e6),
     "budget": (1e-9, 10.0),
     "baseline_frames": (0, 10**8),
     "bus": (0, 255),
