@@ -200,7 +200,8 @@ def load_data(cfg: DataConfig, *, progress: bool = False) -> tuple[list[Capture]
         d = Path(cfg.cache_dir) / protocol_key(cfg.protocol)
         stamp = d / "complete.json"
         if not stamp.exists():
-            paths = generate(cfg.protocol, d, progress=progress)
+            # An incomplete cache (no stamp: an interrupted generation) is ours to replace.
+            paths = generate(cfg.protocol, d, progress=progress, overwrite=True)
             stamp.write_text(json.dumps({k: [str(p) for p in v] for k, v in paths.items()}))
         paths = json.loads(stamp.read_text())
         tr, te = [Path(p) for p in paths["train"]], [Path(p) for p in paths["test"]]
