@@ -413,6 +413,17 @@ def _cases() -> list[Case]:
         cases.append(Case(f"{cmd}/out_is_folder", lambda w, o, fn=fn: fn(w, str(w["d"]))))
         cases.append(Case(f"{cmd}/out_under_a_file", lambda w, o, fn=fn: fn(w, f"{notes(w)}/x.out"), keep=keep_notes))
         cases.append(Case(f"{cmd}/out_empty", lambda w, o, fn=fn: fn(w, "")))
+    unwritable = {  # /proc takes no new files, even from root: refused before any work
+        "simulate": lambda w: ["simulate", S(w), "--frames", "1", "--out", "/proc/tofjax-x.h5"],
+        "calibrate": lambda w: ["calibrate", G(w), "--out", "/proc/tofjax-cal.json"],
+        "detect": lambda w: ["detect", T(w), "--baseline", G(w), "--json", "/proc/tofjax-d.json"],
+        "process": lambda w: ["process", T(w), "--baseline", G(w), "--out", "/proc/tofjax-m.h5"],
+        "plot": lambda w: ["plot", G(w), "--out", "/proc/tofjax-plots"],
+        "acquire": lambda w: ["acquire", S(w), "--emulate", "--frames", "1", "--out", "/proc/tofjax-x.h5"],
+    }
+    if Path("/proc/self").exists():
+        for name, fn in unwritable.items():
+            cases.append(Case(f"{name}/out_unwritable", lambda w, o, fn=fn: fn(w)))
     own_input = {
         "simulate": lambda w: ["simulate", S(w), "--frames", "1", "--out", S(w), "--overwrite"],
         "mc": lambda w: ["mc", S(w), "--out", S(w), "--overwrite"],

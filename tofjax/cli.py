@@ -334,6 +334,10 @@ def main(argv: list[str] | None = None) -> int:
         except UserError as e:
             print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
             return 2
+        except OSError as e:  # the disk, not the input: a full or read-only disk, a lost mount
+            where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+            print(f"tofjax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+            return 2
         except KeyboardInterrupt:
             print(f"tofjax {args.command}: interrupted", file=sys.stderr)
             return 130

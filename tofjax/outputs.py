@@ -74,6 +74,13 @@ def check_output(
         raise OutputError(f"{flag} {p}: {anc} is a file, not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
         raise OutputError(f"{flag} {p}: {anc} is not writable")
+    try:  # os.access says yes to root everywhere; a real file says whether the disk takes it
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(dir=anc, prefix=".tofjax-write-test-"):
+            pass
+    except OSError as e:
+        raise OutputError(f"{flag} {p}: {anc} is not writable ({e.strerror or e})") from None
     return p
 
 
@@ -105,15 +112,22 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
                 raise OutputError(f"{path}: exists; pass --overwrite to replace it") from None
             os.unlink(tmp)
         _fsync_dir(path.parent)
+    except OSError as e:
+        _remove(tmp)
+        raise OutputError(f"{path}: cannot write: {e.strerror or e}") from None
     except BaseException:
-        with contextlib.suppress(OSError):
-            if tmp.is_dir():
-                import shutil
-
-                shutil.rmtree(tmp)
-            else:
-                tmp.unlink()
+        _remove(tmp)
         raise
+
+
+def _remove(tmp: Path) -> None:
+    with contextlib.suppress(OSError):
+        if tmp.is_dir():
+            import shutil
+
+            shutil.rmtree(tmp)
+        else:
+            tmp.unlink()
 
 
 def _fsync_dir(folder: Path) -> None:
