@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/tofjax demo --out out/demo
+	$(VENV)/bin/tofjax demo --out out/demo --overwrite
 
 # Two workers (the machines have two cores; most of the suite's time is single-threaded XLA
 # compilation), one file per worker so module fixtures (fits, simulations) are built once.

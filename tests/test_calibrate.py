@@ -144,7 +144,8 @@ def test_cli_calibrate_and_touch_capture_refused(tmp_path, small, capsys):
     cfg.write_text("max_steps = 2\n")
     assert main(["calibrate", str(base), "--config", str(cfg), "--out", str(tmp_path / "u.json")]) == 3
     assert json.loads((tmp_path / "u.json").read_text())["converged"] is False
-    assert main(["calibrate", str(base), "--config", str(cfg), "--out", str(tmp_path / "u.json"), "--allow-unconverged"]) == 0
+    assert main(["calibrate", str(base), "--config", str(cfg), "--out", str(tmp_path / "u.json"), "--allow-unconverged",
+                 "--overwrite"]) == 0
 
 
 def test_shipped_fit_config_is_the_default():

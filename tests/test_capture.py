@@ -57,7 +57,7 @@ def test_writer_appends_and_flushes(tmp_path, small_scene):
     path = tmp_path / "rec.h5"
     w = CaptureWriter(path, small_scene, source="tmf8828", with_force=True)
     for i in range(4):
-        w.append(np.full(small_scene.shape, i), timestamp=i * 0.1, force=float(i))
+        w.append(np.full(small_scene.shape, i + 1), timestamp=i * 0.1, force=float(i))
         # Readable while still open for writing, with every completed frame.
         assert read_capture(path).n_frames == i + 1
     w.close()

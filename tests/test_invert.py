@@ -187,7 +187,7 @@ def test_detect_json_schema(captures, capsys):
     assert set(data) == {"frames"}
     assert [f["index"] for f in data["frames"]] == [0, 1]
     for f in data["frames"]:
-        assert set(f) == {"index", "touches"}
+        assert set(f) == {"index", "ok", "touches"} and f["ok"] is True  # "reason" only when not ok
         assert len(f["touches"]) >= 3
         for t in f["touches"]:
             assert set(t) == {"x_m", "y_m", "strength"}

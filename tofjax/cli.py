@@ -16,7 +16,7 @@ from .errors import UserError
 
 
 def _cmd_simulate(a) -> int:
-    from .capture import write_capture
+    from .capture import check_capture_target, write_capture
     from .model import ModelOptions
     from .scene import load_scene
     from .simulate import simulate
@@ -24,8 +24,10 @@ def _cmd_simulate(a) -> int:
     scene = load_scene(a.scene)
     if a.frames < 1:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
+    _check_size(scene, a.frames)
+    check_capture_target(a.out, a.overwrite)
     cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
-    write_capture(a.out, cap)
+    write_capture(a.out, cap, overwrite=a.overwrite)
     print(f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}'")
     return 0
 
@@ -50,7 +52,10 @@ def _cmd_demo(a) -> int:
     from .demo import run_demo
     from .scene import load_scene
 
-    run_demo(a.out, load_scene(a.scene) if a.scene else None, frames=a.frames, seed=a.seed)
+    scene = load_scene(a.scene) if a.scene else None
+    if scene is not None:
+        _check_size(scene, a.frames)
+    run_demo(a.out, scene, frames=a.frames, seed=a.seed, overwrite=a.overwrite)
     return 0
 
 
@@ -85,10 +90,11 @@ def _cmd_calibrate(a) -> int:
     config = load_fit_config(a.config) if a.config else FitConfig()
     calibrator = Calibrator((scene or cap.scene), config)
     result = calibrator.fit(cap)
+    from .outputs import atomic_write_text
+
     report = result.to_json()
     out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2))
+    atomic_write_text(out, json.dumps(report, indent=2))
     print(fit_report(result))
     if a.mcmc and result.converged:
         from .fit.posterior import PosteriorOptions, sample_posterior
@@ -100,7 +106,7 @@ def _cmd_calibrate(a) -> int:
             PosteriorOptions(walkers=a.walkers, max_steps=a.max_steps, chain=a.chain, progress=True),
         )
         report["posterior"] = post.summary()
-        out.write_text(json.dumps(report, indent=2))
+        atomic_write_text(out, json.dumps(report, indent=2))
         print(
             f"posterior: {post.steps} steps, tau {np.nanmax(post.tau):.0f}, acceptance {post.acceptance:.2f}, "
             f"{post.n_effective:.0f} effective samples, {'converged' if post.converged else 'NOT converged (raise --max-steps)'}"
@@ -140,8 +146,113 @@ def _cmd_calibrate(a) -> int:
     return 0
 
 
+# ---- input and output checks of every command (issue 15) ---------------------------------
+
+#: Outputs of each command: (argument, is a folder). Checked before any work is done.
+_OUTPUTS = {
+    "simulate": (("out", False),),
+    "plot": (("out", True),),
+    "demo": (("out", True),),
+    "calibrate": (("out", False), ("plots", True)),
+    "process": (("out", False), ("png", True)),
+    "detect": (("json", False),),
+    "acquire": (("out", False),),
+    "baseline": (("out", False),),
+    "replay": (("out", False),),
+    "predict": (("out", False),),
+    "force-data": (("out", True),),
+    "mc": (("out", False),),
+    "prune": (("out", False),),
+    "bench": (("out", True),),
+}
+#: Arguments naming files a command reads: no output may be one of them.
+_INPUTS = ("scene", "capture", "baseline", "touch", "calibration", "config", "run", "rig", "protocol", "chain", "image")
+#: Numeric arguments: (lowest, highest). argparse takes "nan" and "inf" for floats; these do not.
+_RANGES = {
+    "frames": (1, 10**8),
+    "seed": (0, 2**32 - 1),
+    "quadrature": (1, 64),
+    "resolution_mm": (0.05, 1000.0),
+    "relative": (1e-6, 1.0),
+    "n_sigma": (0.0, 1e6),
+    "walkers": (2, 100_000),
+    "max_steps": (1, 10**8),
+    "photons": (1, 10**10),
+    "batch": (1, 10**8),
+    "g": (-0.99, 0.99),
+    "budget": (1e-9, 10.0),
+    "baseline_frames": (0, 10**8),
+    "bus": (0, 255),
+    "bus_speed": (1_000, 10_000_000),
+    "period_ms": (1, 100_000),
+    "duration": (1e-6, 1e7),
+}
+#: Largest capture held in memory (frames x sensors x zones x bins values): 1.6 GB as float64.
+_MAX_VALUES = 2 * 10**8
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _check_size(scene, frames: int) -> None:
+    S, Z, B = scene.shape
+    if frames * S * Z * B > _MAX_VALUES:
+        raise UserError(
+            f"--frames: {frames} frames of {S} x {Z} x {B} bins are {frames * S * Z * B:.3g} values, more than "
+            f"{_MAX_VALUES:.0e} fit in memory; record fewer frames"
+        )
+
+
+def _check_args(a) -> None:
+    """One-line errors for numbers out of range and outputs that must not be written."""
+    import math
+
+    for dest, (lo, hi) in _RANGES.items():
+        v = getattr(a, dest, None)
+        if v is None or isinstance(v, (str, bool)):
+            continue
+        if isinstance(v, float) and not math.isfinite(v):
+            raise UserError(f"{_flag(dest)}: must be a finite number, got {v}")
+        if not lo <= v <= hi:
+            raise UserError(f"{_flag(dest)}: must be in [{lo}, {hi}], got {v}")
+    from .outputs import check_output
+
+    inputs = []
+    for name in _INPUTS:
+        v = getattr(a, name, None)
+        if isinstance(v, (list, tuple)):
+            inputs += list(v)
+        elif isinstance(v, str):
+            inputs.append(v)
+    for dest, folder in _OUTPUTS.get(a.command, ()):
+        v = getattr(a, dest, None)
+        if v is None:
+            continue
+        check_output(v, overwrite=getattr(a, "overwrite", False), inputs=inputs, folder=folder, flag=_flag(dest))
+
+
+def _add_overwrite(parser: argparse.ArgumentParser) -> None:
+    """``--overwrite`` on every (sub)command that writes something."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sp in action.choices.values():
+                dests = {x.dest for x in sp._actions}
+                if dests & {"out", "json", "plots", "png"} and "overwrite" not in dests:
+                    sp.add_argument("--overwrite", action="store_true",
+                                    help="replace existing outputs (never a file the command reads)")
+                _add_overwrite(sp)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (``tofjax CMD: error: ...``) instead of usage + error."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="tofjax",
         description="Time-of-flight FTIR tactile sensors: simulate, plot, calibrate and invert.",
     )
@@ -199,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_force(sub)
     register_hw(sub)
     register_mc(sub)
+    _add_overwrite(p)
     return p
 
 
@@ -210,14 +322,27 @@ def main(argv: list[str] | None = None) -> int:
     enable_x64()
     # Compile once per machine, not once per process ($TOFJAX_COMPILATION_CACHE=0 turns it off).
     enable_compilation_cache()
-    try:
-        return args.func(args)
-    except UserError as e:
-        print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"tofjax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # A warning is one line too, named by its category (BadFramesWarning, ...).
+        print(f"tofjax {args.command}: warning: {category.__name__}: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        try:
+            _check_args(args)
+            return args.func(args)
+        except UserError as e:
+            print(f"tofjax {args.command}: error: {e}", file=sys.stderr)
+            return 2
+        except OSError as e:  # the disk, not the input: a full or read-only disk, a lost mount
+            where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+            print(f"tofjax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"tofjax {args.command}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -32,7 +32,10 @@ def three_touch_scene(scene: Scene) -> Scene:
     return scene.replace(touches=touches, name=f"{scene.name}+3 touches")
 
 
-def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, frames: int = 100, seed: int = 0) -> Path:
+def run_demo(
+    out_dir: str | Path = "out/demo", scene: Scene | None = None, *, frames: int = 100, seed: int = 0,
+    overwrite: bool = False,
+) -> Path:
     """Run the demo and return the path of its summary.
 
     **Arguments:**
@@ -41,6 +44,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     - ``scene``: a baseline scene (default: the built-in OptoSkin scene).
     - ``frames``: baseline frames to average.
     - ``seed``: noise seed.
+    - ``overwrite``: replace the captures of an earlier run in ``out_dir``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,8 +56,8 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     print(f"[1/8] simulating {frames} baseline frames and 1 touch frame ...", flush=True)
     baseline = simulate(base_scene, frames, seed, options=opts)
     touch = simulate(touch_scene, 1, seed + 1, options=opts)
-    write_capture(out / "baseline.h5", baseline)
-    write_capture(out / "touch.h5", touch)
+    write_capture(out / "baseline.h5", baseline, overwrite=overwrite)
+    write_capture(out / "touch.h5", touch, overwrite=overwrite)
 
     print("[2/8] plotting ...", flush=True)
     plot_scene(touch_scene, out / "scene.png")
@@ -70,7 +74,7 @@ def run_demo(out_dir: str | Path = "out/demo", scene: Scene | None = None, *, fr
     wg, sm = base_scene.waveguide, base_scene.sensor
     S, Z, B = base_scene.shape
     lines += [
-        f"waveguide   {wg.size_m[0] * 100:.0f} x {wg.size_m[1] * 100:.0f} x {wg.thickness_m * 1000:.0f} mm, "
+        f"waveguide   {wg.size_m[0] * 1000:.0f} x {wg.size_m[1] * 1000:.0f} x {wg.thickness_m * 1000:.0f} mm, "
         f"n1 = {wg.n1}, mu_s = {wg.mu_s_per_m} /m, mu_a = {wg.mu_a_per_m} /m",
         f"sensors     {S} x {Z} zones x {B} bins of {sm.bin_width_s * 1e12:.0f} ps, fov {sm.fov_deg} deg",
         f"components  baseline: {', '.join(base_scene.components())}",

@@ -53,6 +53,18 @@ COMPONENTS = (
 
 _EDGE_TOL_M = 1e-6
 
+# Size caps from the hardware family (a TMF8828 histogram has 128 bins; its largest mode has
+# 64 zones; a rig is at most 8 muxes of 8 sensors). Beyond them a scene cannot describe a
+# real setup, and the model's arrays would not fit in memory (issue 15).
+MAX_BINS = 128
+MAX_ZONES = 64
+MAX_SENSORS = 64
+MAX_TOUCHES = 256
+#: Disks one stick or ring contact is modelled with.
+MAX_ELEMENTS = 4096
+#: Laser pulses per histogram (the TMF8828 takes up to about 4 million; 2**24 counts per bin).
+MAX_ITERATIONS = 2**24
+
 
 def _positive(value: float, key: str, *, strict: bool = True) -> None:
     if (value <= 0) if strict else (value < 0):
@@ -144,10 +156,10 @@ class SensorModel:
 
     def __post_init__(self):
         _positive(self.bin_width_s, "bin_width_s")
-        if self.n_bins < 2:
-            raise ConfigError(f"n_bins: must be >= 2, got {self.n_bins!r}")
-        if self.zones < 1:
-            raise ConfigError(f"zones: must be >= 1, got {self.zones!r}")
+        if not 2 <= self.n_bins <= MAX_BINS:
+            raise ConfigError(f"n_bins: must be in [2, {MAX_BINS}] (a TMF8828 histogram), got {self.n_bins!r}")
+        if not 1 <= self.zones <= MAX_ZONES:
+            raise ConfigError(f"zones: must be in [1, {MAX_ZONES}] (a TMF8828's largest mode), got {self.zones!r}")
         if not 0.0 < self.fov_deg < 180.0:
             raise ConfigError(f"fov_deg: must be in (0, 180), got {self.fov_deg!r}")
         _positive(self.pulse_sigma_s, "pulse_sigma_s")
@@ -161,8 +173,8 @@ class SensorModel:
         _positive(self.gain, "gain", strict=False)
         _positive(self.crosstalk_counts, "crosstalk_counts", strict=False)
         _positive(self.ambient_counts, "ambient_counts", strict=False)
-        if self.iterations < 1:
-            raise ConfigError(f"iterations: must be >= 1, got {self.iterations!r}")
+        if not 1 <= self.iterations <= MAX_ITERATIONS:
+            raise ConfigError(f"iterations: must be in [1, {MAX_ITERATIONS}], got {self.iterations!r}")
         _positive(self.saturation_counts, "saturation_counts")
 
     @property
@@ -213,6 +225,19 @@ class Touch:
             _positive(self.length_m, "length_m")
         if self.shape == "ring":
             _positive(self.ring_radius_m, "ring_radius_m")
+        n = self._n_elements()
+        if n > MAX_ELEMENTS:
+            raise ConfigError(
+                f"radius_m: a {self.shape} of radius {self.radius_m:g} m needs {n} disks (at most {MAX_ELEMENTS}); "
+                "make radius_m larger"
+            )
+
+    def _n_elements(self) -> int:
+        if self.shape == "stick":
+            return max(2, int(math.ceil(self.length_m / (2 * self.radius_m))) + 1)
+        if self.shape == "ring":
+            return max(6, int(math.ceil(2 * math.pi * self.ring_radius_m / (2 * self.radius_m))))
+        return 1
 
     def elements(self) -> np.ndarray:
         """The disks that make up this contact: (n, 4) = x_m, y_m, radius_m, strength."""
@@ -285,6 +310,10 @@ class Scene:
         wg = self.waveguide
         if not self.sensors:
             raise ConfigError("sensors: at least one [[sensors]] table is required")
+        if len(self.sensors) > MAX_SENSORS:
+            raise ConfigError(f"sensors: at most {MAX_SENSORS} sensors (8 muxes of 8), got {len(self.sensors)}")
+        if len(self.touches) > MAX_TOUCHES:
+            raise ConfigError(f"touches: at most {MAX_TOUCHES} contacts, got {len(self.touches)}")
         for i, s in enumerate(self.sensors):
             key = f"sensors[{i}]"
             x, y = s.position_m

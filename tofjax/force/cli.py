@@ -18,8 +18,11 @@ def _cmd_predict(a) -> int:
 
     from .train import predict_capture, write_prediction_csv
 
+    from ..outputs import atomic_path
+
     pred = predict_capture(a.run, a.capture, baseline_frames=a.baseline_frames)
-    write_prediction_csv(a.out, pred)
+    with atomic_path(a.out) as tmp:
+        write_prediction_csv(tmp, pred)
     keys = [k for k in pred if k not in ("time", "force")]
     msg = f"wrote {a.out}: {len(pred['time'])} frames, columns {', '.join(k + '_n' for k in keys)}"
     if np.isfinite(pred["force"]).any():
@@ -54,7 +57,7 @@ def _cmd_data(a) -> int:
     from ..config import load_toml
 
     p = protocol_from_dict(load_toml(a.protocol) if a.protocol else {}, a.protocol or "protocol")
-    paths = generate(p, a.out, progress=True)
+    paths = generate(p, a.out, progress=True, overwrite=a.overwrite)
     print(f"wrote {len(paths['train'])} training and {len(paths['test'])} test captures to {a.out}/")
     return 0
 

@@ -319,7 +319,9 @@ def simulate_session(
     )
 
 
-def generate(p: Protocol, out_dir: str | Path | None = None, *, progress: bool = False) -> dict[str, list]:
+def generate(
+    p: Protocol, out_dir: str | Path | None = None, *, progress: bool = False, overwrite: bool = False
+) -> dict[str, list]:
     """Simulate the whole protocol: ``{"train": [...], "test": [...]}`` captures (or paths, with ``out_dir``).
 
     Training: for each velocity and repetition one capture with every training
@@ -355,7 +357,7 @@ def generate(p: Protocol, out_dir: str | Path | None = None, *, progress: bool =
             out[split].append(cap)
         else:
             path = out_dir / f"{split}_v{v:g}_r{r}.h5"
-            write_capture(path, cap)
+            write_capture(path, cap, overwrite=overwrite)
             out[split].append(path)
     return out
 

@@ -11,7 +11,8 @@ A run folder holds everything a researcher needs to trust and reuse it:
   ``mae_n.mlp_rf``; an alternative reports under its kind), plus the hold-out split,
   operations per prediction and training times. Written last;
 - ``model.eqx`` (a JSON header line + ``eqx.tree_serialise_leaves``), ``forest.npz``
-  (the forest as arrays), or ``model.pkl`` for scikit-learn alternatives;
+  (the forest as arrays), or ``model.skops`` for scikit-learn alternatives (skops, a format
+  that cannot run code on loading; pickles are refused);
 - ``predictions.csv`` and figures like seed 001 Fig. 15-18.
 """
 
@@ -23,7 +24,6 @@ import datetime as _dt
 import glob
 import json
 import math
-import pickle
 import platform
 import time
 from dataclasses import dataclass, field
@@ -200,7 +200,8 @@ def load_data(cfg: DataConfig, *, progress: bool = False) -> tuple[list[Capture]
         d = Path(cfg.cache_dir) / protocol_key(cfg.protocol)
         stamp = d / "complete.json"
         if not stamp.exists():
-            paths = generate(cfg.protocol, d, progress=progress)
+            # An incomplete cache (no stamp: an interrupted generation) is ours to replace.
+            paths = generate(cfg.protocol, d, progress=progress, overwrite=True)
             stamp.write_text(json.dumps({k: [str(p) for p in v] for k, v in paths.items()}))
         paths = json.loads(stamp.read_text())
         tr, te = [Path(p) for p in paths["train"]], [Path(p) for p in paths["test"]]
@@ -244,9 +245,17 @@ def predict_batch(predictor: ForcePredictor, raw):
 
 def _header(run_dir: Path) -> dict:
     path = run_dir / "model.json"
+    if not run_dir.is_dir():
+        raise UserError(f"{run_dir}: not a folder (a force run folder is expected)")
     if not path.exists():
         raise UserError(f"{run_dir}: not a force run (no model.json); train one with `tofjax train CONFIG`")
-    return json.loads(path.read_text())
+    try:
+        header = json.loads(path.read_text())
+    except (UnicodeDecodeError, ValueError) as e:
+        raise UserError(f"{path}: not valid JSON: {e}") from None
+    if not isinstance(header, dict):
+        raise UserError(f"{path}: expected a JSON object")
+    return header
 
 
 def save_predictor(run_dir: Path, predictor: ForcePredictor, header: dict) -> None:
@@ -264,6 +273,18 @@ def load_predictor(run_dir: str | Path):
     header = _header(run_dir)
     if header.get("format") != MODEL_FORMAT:
         raise UserError(f"{run_dir}: model.json is not a {MODEL_FORMAT} header")
+    try:
+        return _load_predictor(run_dir, header)
+    except UserError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, OSError, RuntimeError) as e:
+        what = f"key {e}" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+        raise UserError(f"{run_dir}: damaged run folder ({what})".splitlines()[0]) from None
+
+
+def _load_predictor(run_dir: Path, header: dict):
+    if header["kind"] not in ("mlp", "deep_mlp"):
+        return _load_sklearn(run_dir), header
     scaling = Scaling.from_json(header["scaling"])
     if header["kind"] in ("mlp", "deep_mlp"):
         spec = MLPSpec.from_json(header["spec"])
@@ -279,8 +300,46 @@ def load_predictor(run_dir: str | Path):
             scaling.force_lo, scaling.force_hi - scaling.force_lo, header["features"]["variant"],
         )
         return pred, header
-    with open(run_dir / "model.pkl", "rb") as f:
-        return pickle.load(f), header
+    raise UserError(f"{run_dir}: model.json names kind {header['kind']!r}")
+
+
+#: The only types a stored scikit-learn model may hold beyond what skops trusts by default:
+#: the tree predictor of HistGradientBoostingRegressor (kind "gb").
+_TRUSTED = ("sklearn.ensemble._hist_gradient_boosting.predictor.TreePredictor",)
+
+
+def _save_sklearn(run_dir: Path, est) -> None:
+    import skops.io as sio
+
+    sio.dump(est, run_dir / "model.skops")
+
+
+def _load_sklearn(run_dir: Path):
+    """A scikit-learn model stored with skops, refusing any type outside the allowlist.
+
+    ``model.pkl`` files (pickles, which run code when loaded) are never opened.
+    """
+    path = run_dir / "model.skops"
+    if not path.exists():
+        if (run_dir / "model.pkl").exists():
+            raise UserError(
+                f"{run_dir}: model.pkl is a pickle, which can run code when loaded; tofjax no longer loads "
+                "them. Retrain the run (models are now stored as model.skops)"
+            )
+        raise UserError(f"{run_dir}: no model.skops (a scikit-learn model) in this run folder")
+    import skops.io as sio
+
+    try:
+        untrusted = sio.get_untrusted_types(file=path)
+    except Exception as e:  # a damaged or foreign file: skops raises many kinds
+        raise UserError(f"{path}: not a skops model file: {type(e).__name__}: {e}") from None
+    foreign = [t for t in untrusted if t not in _TRUSTED]
+    if foreign:
+        raise UserError(f"{path}: refusing to load types outside the allowlist: {', '.join(foreign[:3])}")
+    try:
+        return sio.load(path, trusted=list(untrusted))
+    except Exception as e:
+        raise UserError(f"{path}: cannot load the model: {type(e).__name__}: {e}") from None
 
 
 def _predict(model, header: dict, raw: np.ndarray) -> dict[str, np.ndarray]:
@@ -363,14 +422,33 @@ def dump_toml(d: dict, prefix: str = "") -> str:
 
 
 def _run_dir(runs_dir: Path, name: str) -> Path:
+    """A new, unused run folder name; the folder itself is written as ``.<name>.partial``
+    and renamed to it when the run is complete (issue 15: whole or not at all)."""
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     d = runs_dir / f"{stamp}_{name}"
     i = 1
-    while d.exists():
+    while d.exists() or _partial(d).exists():
         d = runs_dir / f"{stamp}-{i}_{name}"
         i += 1
-    d.mkdir(parents=True)
+    try:
+        _partial(d).mkdir(parents=True)
+    except OSError as e:
+        raise UserError(f"{runs_dir}: cannot create a run folder: {e.strerror or e}") from None
     return d
+
+
+def _partial(d: Path) -> Path:
+    return d.with_name(f".{d.name}.partial")
+
+
+def _finish_run_dir(partial: Path, final: Path) -> Path:
+    import os
+
+    try:
+        os.rename(partial, final)  # fails rather than merge if the name was taken meanwhile
+    except OSError as e:
+        raise UserError(f"{final}: cannot finish the run folder ({e.strerror or e}); the run is in {partial}") from None
+    return final
 
 
 def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = False, log=print) -> Path:
@@ -384,7 +462,8 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
     - ``log``: where one-line progress messages go (``None``: silent).
     """
     say = log or (lambda *_: None)
-    out = _run_dir(Path(runs_dir), config.name)
+    final = _run_dir(Path(runs_dir), config.name)
+    out = _partial(final)
     cfg_dict = config.to_dict()
     (out / "config.toml").write_text(dump_toml(cfg_dict))
     (out / "config.json").write_text(json.dumps(cfg_dict, indent=2))
@@ -492,8 +571,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
             r = est.predict(x_all[i_va]) - Y(ds.force[i_va])
             fh.write(f"1,,{float(np.mean(r**2))},{float(np.mean(np.abs(r))) * span},,{timings[f'{kind}_s']}\n")
         (out / "model.json").write_text(json.dumps(header, indent=2))
-        with open(out / "model.pkl", "wb") as f:
-            pickle.dump(est, f)
+        _save_sklearn(out, est)
         model_obj = est
         say(f"  {kind}: fitted in {timings[f'{kind}_s']:.1f} s")
 
@@ -523,6 +601,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
         plot_by_velocity(dt, test_pred, out / "fig16_by_velocity.png", title=f"{config.name}")
     timings["total_s"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    out = _finish_run_dir(out, final)
     best = min(metrics["mae_n"], key=lambda k: metrics["mae_n"][k]["overall"])
     say("  test MAE: " + ", ".join(f"{k} {v['overall']:.3f} N" for k, v in metrics["mae_n"].items())
         + f" (best {best}); wrote {out}")

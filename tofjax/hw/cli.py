@@ -44,6 +44,7 @@ def _cmd_acquire(a, baseline: bool = False) -> int:
         frames=a.frames, duration_s=getattr(a, "duration", None), emulate=a.emulate, image=a.image, bus=a.bus,
         bus_speed_hz=a.bus_speed, baseline=baseline, seed=a.seed, noise=False if a.no_noise else None,
         bus_faults=bus_faults, device_faults=device_faults, period_ms=a.period_ms, progress=not a.quiet,
+        overwrite=a.overwrite,
     )
     if a.emulate and not a.image:
         print("tofjax: emulated rig with the synthetic test image (not firmware; a real rig needs --image)",
@@ -72,7 +73,7 @@ def _common(s) -> None:
 def _cmd_replay(a) -> int:
     from .recorder import replay
 
-    res = replay(a.capture, a.out, speed=a.speed, progress=not a.quiet)
+    res = replay(a.capture, a.out, speed=a.speed, progress=not a.quiet, overwrite=a.overwrite)
     wall_rate = res.frames / res.wall_s if res.wall_s > 0 else float("nan")
     what = f"wrote {res.path}" if a.out else f"replayed {res.path}"
     print(f"{'interrupted: ' if res.interrupted else ''}{what}: {res.frames} frames "

@@ -46,6 +46,7 @@ class AcquireOptions:
     - ``period_ms``: override the rig's measurement period.
     - ``max_dropped_in_row``: consecutive dropped frames after which recording stops with an error.
     - ``progress``: a live status line (tqdm) with frame rate and error counts.
+    - ``overwrite``: replace an existing ``out`` (never one another process is still writing).
     """
 
     frames: int | None = None
@@ -62,6 +63,7 @@ class AcquireOptions:
     period_ms: int | None = None
     max_dropped_in_row: int = 20
     progress: bool = True
+    overwrite: bool = False
 
     def __post_init__(self):
         if self.frames is None and self.duration_s is None:
@@ -94,21 +96,42 @@ class AcquireResult:
                 f"({self.frame_rate_hz:.2f} frames/s), {self.dropped} dropped; handled errors: {errs}")
 
 
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextlib.contextmanager
 def _sigint_deferred():
-    """Hold Ctrl-C while one frame is being written, so a frame is in the file whole or not at all
-    (a kill -9 or power cut cannot be held: the writer's order of writes covers those)."""
+    """Hold Ctrl-C and SIGTERM while one frame is being written, so a frame is in the file whole
+    or not at all (a kill -9 or power cut cannot be held: the writer's commit count covers those)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     got = []
-    old = signal.signal(signal.SIGINT, lambda *a: got.append(a))
+    old = {s: signal.signal(s, lambda *a: got.append(a)) for s in _HELD}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        for s, h in old.items():
+            signal.signal(s, h)
         if got:
             raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM ends a recording the way Ctrl-C does: cleanly, with every committed frame kept."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(*_):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 class EndOfStream(Exception):
@@ -165,6 +188,8 @@ def record(source, writer: CaptureWriter, *, frames: int | None = None, duration
     written = 0
     interrupted = False
     bar = tqdm(total=frames, unit="frame", disable=not progress, desc=label or "acquire", dynamic_ncols=True)
+    _term = _sigterm_as_interrupt()
+    _term.__enter__()
     try:
         for fr in iter_frames(source, frames=frames, duration_s=duration_s, max_dropped_in_row=max_dropped_in_row,
                               stats=stats):
@@ -178,6 +203,7 @@ def record(source, writer: CaptureWriter, *, frames: int | None = None, duration
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        _term.__exit__(None, None, None)
         bar.close()
     return written, stats.dropped, interrupted
 
@@ -227,7 +253,7 @@ class ReplaySource:
 
 
 def replay(capture: str | Path, out: str | Path | None = None, *, speed: str | float = "max",
-           progress: bool = True) -> AcquireResult:
+           progress: bool = True, overwrite: bool = False) -> AcquireResult:
     """Feed a recorded capture through the live pipeline (:func:`iter_frames`, :func:`record`),
     at recorded or maximum speed; with ``out``, the frames are written again as a live rig's are."""
     src = ReplaySource(capture, speed)
@@ -239,7 +265,7 @@ def replay(capture: str | Path, out: str | Path | None = None, *, speed: str | f
     else:
         with CaptureWriter(out, cap.scene, source=cap.source, with_reference=cap.reference is not None,
                            max_touches=0 if cap.truth_touches is None else cap.truth_touches.shape[1],
-                           truth=cap.truth or None) as w:
+                           truth=cap.truth or None, overwrite=overwrite) as w:
             written, dropped, interrupted = record(src, w, progress=progress, label="replay")
         path = Path(out)
     elapsed = float(cap.timestamps[written - 1] - cap.timestamps[0]) if written > 1 else 0.0
@@ -259,8 +285,10 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
 
     **Returns:** an :class:`AcquireResult` (frames written, dropped, error counts, rates).
     """
+    from ..capture import check_capture_target
     from ..simulate import true_parameters
 
+    check_capture_target(out, options.overwrite)  # before the rig is opened (firmware, seconds)
     if isinstance(rig_or_scene, tuple):
         rig, scene = rig_or_scene
         is_rig = True
@@ -313,7 +341,8 @@ def acquire(rig_or_scene: str | tuple[Rig, Scene], out: str | Path, options: Acq
         array.open()
         t0 = array.clock.now()
         with CaptureWriter(out, capture_scene, source=source, with_reference=True,
-                           max_touches=0 if touches is None else len(touches), truth=truth) as w:
+                           max_touches=0 if touches is None else len(touches), truth=truth,
+                           overwrite=options.overwrite) as w:
             written, dropped, interrupted = record(
                 array, w, frames=options.frames, duration_s=options.duration_s, touches=touches,
                 progress=options.progress, max_dropped_in_row=options.max_dropped_in_row,

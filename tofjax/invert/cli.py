@@ -27,13 +27,16 @@ def _options(a):
 
 
 def _run(a, *, want_detect: bool):
+    from .correction import InversionError
     from .pipeline import build_inverter, load_inputs
 
+    if a.dynamic_baseline and a.method not in ("baseline", "full"):  # before the inversion is built
+        raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
     for w in caught:
-        print(f"tofjax {a.command}: warning: {w.message}", file=sys.stderr)
+        print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
     if a.method == "model":
         print(
             f"tofjax {a.command}: building the model-based reconstruction (the forward model's response "
@@ -71,8 +74,17 @@ def _run(a, *, want_detect: bool):
 def _cmd_process(a) -> int:
     from .pipeline import write_maps
 
+    from ..outputs import atomic_path
+
     touch, base, optical, inv, res = _run(a, want_detect=True)
-    write_maps(a.out, res, base.scene, optical)
+    with atomic_path(a.out) as tmp:
+        write_maps(tmp, res, base.scene, optical)
+        import h5py
+
+        with h5py.File(tmp, "a") as f:  # which capture frame each map is, and the frames left out
+            if touch.frame_index is not None:
+                f["frame_index"] = touch.frame_index
+            f.attrs["dropped_frames"] = json.dumps({str(i): why for i, why in touch.dropped.items()})
     msg = f"wrote {a.out}: {len(res.maps)} maps of {inv.grid.ny} x {inv.grid.nx} px ({a.method})"
     if a.png:
         from .plots import plot_map
@@ -93,15 +105,31 @@ def _cmd_process(a) -> int:
 
 def _cmd_detect(a) -> int:
     touch, base, optical, inv, res = _run(a, want_detect=True)
-    data = res.touches_json()
-    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.json).write_text(json.dumps(data, indent=1))
+    from ..outputs import atomic_write_text
+
+    data = _with_frame_flags(res.touches_json(), touch, res)
+    atomic_write_text(a.json, json.dumps(data, indent=1))
     n = sum(len(f["touches"]) for f in data["frames"])
     print(f"wrote {a.json}: {n} touches in {len(data['frames'])} frames ({a.method})")
     for f in data["frames"][:10]:
         pts = ", ".join(f"({t['x_m'] * 100:.1f}, {t['y_m'] * 100:.1f}) cm s={t['strength']:.2f}" for t in f["touches"])
         print(f"  frame {f['index']}: {pts or 'no touch'}")
     return 0
+
+
+def _with_frame_flags(data: dict, touch, res) -> dict:
+    """Per frame: its index in the capture file, ``ok`` and, if not ok, the reason; frames the
+    reader dropped (impossible counts) are listed too, so no frame disappears silently."""
+    idx = touch.frame_index if touch.frame_index is not None else range(len(data["frames"]))
+    frames = []
+    for f, i, ok in zip(data["frames"], idx, res.ok):
+        f = {"index": int(i), "ok": bool(ok), **({} if ok else {"reason": "NaN or saturated bins"}),
+             "touches": f["touches"]}
+        frames.append(f)
+    for i, why in touch.dropped.items():
+        frames.append({"index": int(i), "ok": False, "reason": why, "touches": []})
+    data["frames"] = sorted(frames, key=lambda f: f["index"])
+    return data
 
 
 def _common(s):

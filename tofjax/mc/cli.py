@@ -26,9 +26,15 @@ def _cmd_mc(a) -> int:
     scene = load_scene(a.scene)
     if a.frames < 1:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
+    from ..cli import _check_size
+
+    _check_size(scene, a.frames)
+    from ..capture import check_capture_target
+
+    check_capture_target(a.out, a.overwrite)
     opts = MCOptions(photons=a.photons, seed=a.seed, g=a.g, edges=a.edges, dtype=a.dtype, batch=a.batch)
     cap = mc_capture(scene, a.frames, a.seed, opts, progress=True)
-    write_capture(a.out, cap)
+    write_capture(a.out, cap, overwrite=a.overwrite)
     t = cap.truth
     print(
         f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}', "
@@ -72,8 +78,9 @@ def _cmd_prune(a) -> int:
     )
     print(report.table())
     if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text(json.dumps(report.to_json(), indent=1))
+        from ..outputs import atomic_write_text
+
+        atomic_write_text(a.out, json.dumps(report.to_json(), indent=1))
         print(f"wrote {a.out}")
     return 0
 

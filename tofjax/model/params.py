@@ -8,12 +8,50 @@ the forward model only ever sees physical values.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from ..errors import UserError
 from ..scene import Scene
 
-__all__ = ["Params"]
+__all__ = ["Params", "ParamsError"]
+
+
+class ParamsError(UserError):
+    """Parameters the forward model cannot evaluate (NaN, out of range, inconsistent shapes)."""
+
+
+# (field, lowest, highest, lowest allowed?) -- the physical ranges of Eq. 2-5; the same as
+# the scene file's (tofjax.scene), so a Params a scene could not state is refused too.
+_RANGES = (
+    ("n1", 1.0, np.inf, False),
+    ("mu_s_per_m", 0.0, np.inf, True),
+    ("mu_a_per_m", 0.0, np.inf, True),
+    ("gain", 0.0, np.inf, True),
+    ("pulse_sigma_s", 0.0, np.inf, False),
+    ("pulse_tail_s", 0.0, np.inf, False),
+    ("emission_time_s", -np.inf, np.inf, True),
+    ("crosstalk_counts", 0.0, np.inf, True),
+    ("ambient_counts", 0.0, np.inf, True),
+    ("interface_backscatter_per_m", 0.0, np.inf, True),
+    ("end_reflectance", 0.0, 1.0, True),
+    ("volume_backscatter_fraction", 0.0, 1.0, True),
+    ("multiple_scattering", 0.0, np.inf, True),
+    ("shadow_opacity", 0.0, 1.0, True),
+    ("near_field_m", 0.0, np.inf, False),
+    ("touch_xy_m", -np.inf, np.inf, True),
+    ("touch_radius_m", 0.0, np.inf, False),
+    ("touch_strength", 0.0, np.inf, True),
+)
+
+
+def _concrete(x):
+    """``x`` as a NumPy array, or None while tracing (or for a placeholder that is not an array)."""
+    if isinstance(x, jax.core.Tracer) or not isinstance(x, (jax.Array, np.ndarray, float, int, np.number)):
+        return None
+    return np.asarray(x)
 
 
 class Params(eqx.Module):
@@ -40,6 +78,39 @@ class Params(eqx.Module):
     touch_xy_m: Float[Array, "N 2"]
     touch_radius_m: Float[Array, " N"]
     touch_strength: Float[Array, " N"]
+
+    def __check_init__(self):
+        self.validate()
+
+    def validate(self) -> "Params":
+        """Raise :class:`ParamsError` (one line naming the field) if a concrete value is out of range.
+
+        Skipped for traced values (inside ``jit``/``grad``): the check is for what a user passes in.
+        """
+        vals = {name: _concrete(getattr(self, name)) for name, *_ in _RANGES}
+        for name, lo, hi, lo_ok in _RANGES:
+            v = vals[name]
+            if v is None or v.size == 0:
+                continue
+            if not np.issubdtype(v.dtype, np.number):
+                raise ParamsError(f"Params.{name}: expected numbers, got dtype {v.dtype}")
+            if not np.isfinite(v).all():
+                raise ParamsError(f"Params.{name}: must be finite, got {v.ravel()[~np.isfinite(v.ravel())][0].item()!r}")
+            bad = (v < lo) | (v > hi) | ((v == lo) & (not lo_ok))
+            if bad.any():
+                rng = f"{'[' if lo_ok else '('}{lo:g}, {hi:g}]"
+                raise ParamsError(f"Params.{name}: must be in {rng}, got {v.ravel()[bad.ravel()][0].item()!r}")
+        xy, r, st = vals["touch_xy_m"], vals["touch_radius_m"], vals["touch_strength"]
+        if xy is not None and r is not None and st is not None:
+            if xy.ndim != 2 or xy.shape[1] != 2 or r.shape != (xy.shape[0],) or st.shape != (xy.shape[0],):
+                raise ParamsError(
+                    f"Params: touch_xy_m {xy.shape}, touch_radius_m {r.shape} and touch_strength {st.shape} "
+                    "must be (N, 2), (N,) and (N,)"
+                )
+        ct, amb = vals["crosstalk_counts"], vals["ambient_counts"]
+        if ct is not None and amb is not None and ct.shape != amb.shape:
+            raise ParamsError(f"Params: crosstalk_counts {ct.shape} and ambient_counts {amb.shape} differ in shape")
+        return self
 
     @classmethod
     def from_scene(cls, scene: Scene, dtype=jnp.float64) -> "Params":
@@ -80,8 +151,12 @@ class Params(eqx.Module):
         """A copy with some fields changed (values are cast to this pytree's dtype)."""
         dtype = self.n1.dtype
         names = list(changes)
-        return eqx.tree_at(
+        unknown = [n for n in names if n not in self.__dataclass_fields__]
+        if unknown:
+            raise ParamsError(f"Params.replace: unknown field {unknown[0]!r}")
+        out = eqx.tree_at(
             lambda p: [getattr(p, n) for n in names],
             self,
             [jnp.asarray(changes[n], dtype) for n in names],
         )
+        return out.validate()
