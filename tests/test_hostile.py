@@ -367,8 +367,12 @@ def _cases() -> list[Case]:
         ("acquire", "--faults", ["nack=2", "nack=x", "gremlins=0.1", "nack"]),
         ("replay", "--speed", ["0", "-1", "fast", "nan"]),
         ("predict", "--baseline-frames", ["-1"]),
-        ("bench tradeoff", "--budget", ["0", "-1", "nan"]),
-        ("bench tradeoff", "--photons", ["0"]),
+        ("mc slab", "--n", ["0.5", "nan", "inf"]),
+        ("mc slab", "--thickness-m", ["0", "-0.005", "inf"]),
+        ("mc slab", "--mu-s-per-m", ["-1", "nan", "1e30"]),
+        ("mc slab", "--mu-a-per-m", ["-2", "inf"]),
+        ("mc slab", "--g", ["1", "-1", "nan"]),
+        ("mc slab", "--photons", ["0"]),
     ]
     base_argv = {
         "simulate": lambda w, o: ["simulate", S(w), "--out", f"{o}/x.h5"],
@@ -381,7 +385,7 @@ def _cases() -> list[Case]:
         "acquire": lambda w, o: ["acquire", S(w), "--emulate", "--quiet", "--out", f"{o}/x.h5"],
         "replay": lambda w, o: ["replay", G(w), "--quiet"],
         "predict": lambda w, o: ["predict", str(w["d"]), G(w), "--out", f"{o}/p.csv"],
-        "bench tradeoff": lambda w, o: ["bench", "tradeoff", "--scene", S(w), "--out", f"{o}/t"],
+        "mc slab": lambda w, o: ["mc", "slab", "--photons", "10", "--json", f"{o}/slab.json"],
     }
     for cmd, flag, values in numeric:
         for v in values:
@@ -446,7 +450,6 @@ def _cases() -> list[Case]:
         "demo": lambda w, out: ["demo", "--frames", "2", "--out", out],
         "force-data": lambda w, out: ["force-data", "--out", out],
         "calibrate_plots": lambda w, out: ["calibrate", G(w), "--out", f"{w['d']}/new.json", "--plots", out],
-        "bench": lambda w, out: ["bench", "tradeoff", "--quick", "--out", out],
     }
     for name, fn in folder_outputs.items():
         cases.append(Case(f"{name}/folder_not_empty", lambda w, o, fn=fn: fn(w, str(w["d"])),

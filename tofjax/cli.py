@@ -161,9 +161,8 @@ _OUTPUTS = {
     "replay": (("out", False),),
     "predict": (("out", False),),
     "force-data": (("out", True),),
-    "mc": (("out", False),),
+    "mc": (("out", False), ("json", False)),
     "prune": (("out", False),),
-    "bench": (("out", True),),
 }
 #: Arguments naming files a command reads: no output may be one of them.
 _INPUTS = ("scene", "capture", "baseline", "touch", "calibration", "config", "run", "rig", "protocol", "chain", "image")
@@ -186,6 +185,11 @@ _RANGES = {
     "bus_speed": (1_000, 10_000_000),
     "period_ms": (1, 100_000),
     "duration": (1e-6, 1e7),
+    # tofjax mc slab
+    "n": (1.0, 10.0),
+    "thickness_m": (1e-9, 100.0),
+    "mu_s_per_m": (0.0, 1e8),
+    "mu_a_per_m": (0.0, 1e8),
 }
 #: Largest capture held in memory (frames x sensors x zones x bins values): 1.6 GB as float64.
 _MAX_VALUES = 2 * 10**8

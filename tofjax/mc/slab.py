@@ -175,8 +175,10 @@ class SlabResult:
     def write_json(self, path) -> None:
         from pathlib import Path
 
+        from ..outputs import atomic_write_text
+
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(self.to_json(), indent=1))
+        atomic_write_text(path, json.dumps(self.to_json(), indent=1))
 
 
 def run_slab(options: SlabOptions = SlabOptions(), *, progress: bool = False) -> SlabResult:
