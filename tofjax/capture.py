@@ -52,6 +52,11 @@ class Capture:
     reference: np.ndarray | None = None
     truth_touches: np.ndarray | None = None
     truth: dict[str, Any] = field(default_factory=dict)
+    #: Free-space ground truth and the sensor's own results (imported TMF882x recordings):
+    #: target distance (frames,) m; on-chip distance and confidence (frames, sensors, zones).
+    target_distance_m: np.ndarray | None = None
+    onchip_distance_m: np.ndarray | None = None
+    onchip_confidence: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -100,6 +105,8 @@ class CaptureWriter:
         with_reference: bool = False,
         max_touches: int = 0,
         truth: dict[str, Any] | None = None,
+        with_target: bool = False,
+        with_onchip: bool = False,
     ):
         self.path = Path(path)
         self.scene = scene
@@ -122,6 +129,18 @@ class CaptureWriter:
             g.attrs["parameters"] = json.dumps(truth or {})
             if max_touches:
                 self._touch = _extendable(g, "touches", (max_touches, 3), np.float64, fill=np.nan)
+        self._target = self._onchip = self._onchip_conf = None
+        if with_target:
+            g = self._f.require_group("truth")
+            if "parameters" not in g.attrs:
+                g.attrs["parameters"] = json.dumps(truth or {})
+            self._target = _extendable(g, "target_distance_m", (), np.float64, fill=np.nan)
+            self._target.attrs["units"] = "m"
+        if with_onchip:
+            g = self._f.create_group("onchip")
+            self._onchip = _extendable(g, "distance_m", (S, Z), np.float64, fill=np.nan)
+            self._onchip.attrs["units"] = "m"
+            self._onchip_conf = _extendable(g, "confidence", (S, Z), np.float64, fill=np.nan)
         self.n_frames = 0
         self._f.flush()
 
@@ -148,6 +167,9 @@ class CaptureWriter:
                 row = np.full(self._touch.shape[1:], np.nan)
                 row[: len(t)] = t
                 self._touch[i] = row
+        for ds in (self._target, self._onchip, self._onchip_conf):  # free-space extras: NaN unless extended
+            if ds is not None:
+                ds.resize(i + 1, 0)
         self._hist.resize(i + 1, 0)
         self._hist[i] = histogram
         self._time.resize(i + 1, 0)
@@ -155,7 +177,8 @@ class CaptureWriter:
         self._f.flush()
         self.n_frames = i + 1
 
-    def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None) -> None:
+    def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None,
+               target_distance_m=None, onchip_distance_m=None, onchip_confidence=None) -> None:
         """Write many whole frames at once (one resize and one flush: fast for long simulated captures)."""
         histograms = np.asarray(histograms, HIST_DTYPE)
         n = histograms.shape[0]
@@ -178,6 +201,10 @@ class CaptureWriter:
                 rows = np.full((n, *self._touch.shape[1:]), np.nan)
                 rows[:, : t.shape[1]] = t
                 self._touch[i:] = rows
+        for ds, v in ((self._target, target_distance_m), (self._onchip, onchip_distance_m), (self._onchip_conf, onchip_confidence)):
+            if ds is not None:
+                ds.resize(i + n, 0)
+                ds[i:] = np.asarray(v, np.float64) if v is not None else np.nan
         self._hist.resize(i + n, 0)
         self._hist[i:] = histograms
         self._time.resize(i + n, 0)
@@ -208,9 +235,13 @@ def write_capture(path: str | Path, cap: Capture) -> Path:
         with_reference=cap.reference is not None,
         max_touches=max_touches,
         truth=cap.truth or None,
+        with_target=cap.target_distance_m is not None,
+        with_onchip=cap.onchip_distance_m is not None,
     ) as w:
         w._f.attrs["created"] = cap.created
-        w.extend(cap.histograms, cap.timestamps, force=cap.force, reference=cap.reference, touches=cap.truth_touches)
+        w.extend(cap.histograms, cap.timestamps, force=cap.force, reference=cap.reference, touches=cap.truth_touches,
+                 target_distance_m=cap.target_distance_m, onchip_distance_m=cap.onchip_distance_m,
+                 onchip_confidence=cap.onchip_confidence)
     return path
 
 
@@ -254,6 +285,11 @@ def read_capture(path: str | Path) -> Capture:
                 truth = json.loads(f["truth"].attrs.get("parameters", "{}"))
                 if "touches" in f["truth"]:
                     touches = np.asarray(f["truth/touches"][:n], np.float64)
+            extras = {
+                k: np.asarray(f[name][:n], np.float64) if name in f else None
+                for k, name in (("target_distance_m", "truth/target_distance_m"), ("onchip_distance_m", "onchip/distance_m"),
+                                ("onchip_confidence", "onchip/confidence"))
+            }
         except (OSError, KeyError) as e:
             raise CaptureError(f"{path}: unreadable data (truncated?): {e}") from None
         if hist.ndim != 4 or hist.shape[1:] != scene.shape:
@@ -261,7 +297,7 @@ def read_capture(path: str | Path) -> Capture:
                 f"{path}: histograms have shape {hist.shape[1:]} per frame but the scene says "
                 f"(sensors, zones, bins) = {scene.shape}"
             )
-        for name, arr in (("force", force), ("reference", ref), ("truth/touches", touches)):
+        for name, arr in (("force", force), ("reference", ref), ("truth/touches", touches), *extras.items()):
             if arr is not None and arr.shape[0] != n:
                 raise CaptureError(f"{path}: '{name}' has {arr.shape[0]} frames, timestamps {n}")
         return Capture(
@@ -274,4 +310,5 @@ def read_capture(path: str | Path) -> Capture:
             reference=ref,
             truth_touches=touches,
             truth=truth or {},
+            **extras,
         )

@@ -83,6 +83,9 @@ def _cmd_calibrate(a) -> int:
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
         )
     config = load_fit_config(a.config) if a.config else FitConfig()
+    if a.sensor:  # a sensor model fitted on real histograms (issue 12): its bin width, not the nominal one
+        scene = (scene or cap.scene).with_sensor_model(a.sensor)
+        print(f"sensor model {a.sensor}: bin width {scene.sensor.bin_width_s * 1e12:.2f} ps")
     calibrator = Calibrator((scene or cap.scene), config)
     result = calibrator.fit(cap)
     report = result.to_json()
@@ -182,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
+    s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (its bin width replaces the scene's)")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")
@@ -194,11 +198,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
     from .invert.cli import register as register_invert  # process, detect (issue 4)
     from .mc.cli import register as register_mc  # mc, prune, bench tradeoff (issue 7)
+    from .sensor.cli import register as register_sensor  # import, sensor fit, range (issue 12)
 
     register_invert(sub)
     register_force(sub)
     register_hw(sub)
     register_mc(sub)
+    register_sensor(sub)
     return p
 
 

@@ -38,6 +38,9 @@ class SensorFitOptions:
       and support (bins after and before its nominal position).
     - ``pile_up``: fit the effective number of laser pulses per histogram (Coates pile-up).
     - ``smoothness``: weight of a second-difference penalty on the pulse (0: none).
+    - ``walk_degree``: degree of the range-walk polynomial (position minus the straight line
+      against distance, fitted over every fitted frame); -1: none.
+    - ``dnl``: also fit each bin's edges (time-to-digital converter non-linearity).
     - ``max_iterations``: Levenberg-Marquardt steps per zone.
     """
 
@@ -48,7 +51,8 @@ class SensorFitOptions:
     pulse_bins: float = 36.0
     pulse_before_bins: float = 2.0
     pile_up: bool = True
-    smoothness: float = 0.0
+    smoothness: float = 1e5
+    walk_degree: int = 4
     dnl: bool = False
     max_iterations: int = 60
 
@@ -306,6 +310,10 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], res["shift"][line_sel])
         pa, pb, pa_se, pb_se, prms = line_fit(ds[line_sel], peaks[line_sel, z])
         gain = res["amplitude"] * ds**2
+        walk = None
+        if options.walk_degree >= 0 and len(np.unique(ds)) > options.walk_degree + 2:
+            walk = np.polyfit(ds, res["shift"] - (t0 + slope * ds), options.walk_degree)
+        res["walk"] = walk
         zones.append((res, t0, slope, t0_se, slope_se, rms, pa, pb, pa_se, pb_se, prms, gain))
         if progress:
             progress(f"zone {z}: pulse fit {res['iterations']} steps, median reduced chi2 {np.median(res['chi2']):.2f}")
@@ -366,6 +374,7 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         pulse_start_bins=zones[0][0]["start"],
         pulse_step_bins=zones[0][0]["step"],
         pulses_per_histogram=np.array([zones[z][0]["pulses"] for z in Zs]) if options.pile_up else None,
+        walk_coeffs=None if zones[0][0]["walk"] is None else np.stack([zones[z][0]["walk"] for z in Zs]),
         gain_m2=np.array(report["gain_m2"]),
         ambient_counts=np.array([float(np.median(zones[z][0]["ambient"])) for z in Zs]),
         reference_pulse=None if ref is None else ref["pulse"],

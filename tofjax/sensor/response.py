@@ -52,6 +52,9 @@ class SensorResponse:
     pulse_start_bins: float
     pulse_step_bins: float
     pulses_per_histogram: np.ndarray | None = None  # (Z,) effective laser pulses (pile-up); None: no pile-up
+    #: Range walk: position minus the straight line, a polynomial in distance (m) per zone (Z, degree + 1),
+    #: highest power first (numpy.polyval); None: the line alone.
+    walk_coeffs: np.ndarray | None = None
     #: Signal amplitude model for simulation: amplitude = gain_m2[z] / d^2 (counts at 1 m), ambient counts per bin.
     gain_m2: np.ndarray | None = None
     ambient_counts: np.ndarray | None = None
@@ -66,12 +69,24 @@ class SensorResponse:
     def n_zones(self) -> int:
         return int(self.zero_range_bins.shape[0])
 
-    def shift_bins(self, distance_m):
-        """Pulse position (bins) for a target at ``distance_m``: (..., Z) or broadcastable."""
-        return jnp.asarray(self.zero_range_bins) + jnp.asarray(self.bins_per_m) * jnp.asarray(distance_m)
+    def walk_bins(self, distance_m, zone: int):
+        """The range-walk correction of ``zone`` at ``distance_m`` (bins; 0 without one)."""
+        if self.walk_coeffs is None:
+            return np.zeros_like(np.asarray(distance_m, float))
+        return np.polyval(self.walk_coeffs[zone], np.asarray(distance_m, float))
 
-    def distance_m(self, shift_bins):
-        return (np.asarray(shift_bins) - self.zero_range_bins) / self.bins_per_m
+    def shift_bins(self, distance_m, zone: int):
+        """Pulse position (bins) of ``zone`` for a target at ``distance_m``."""
+        d = np.asarray(distance_m, float)
+        return self.zero_range_bins[zone] + self.bins_per_m[zone] * d + self.walk_bins(d, zone)
+
+    def distance_m(self, shift_bins, zone: int):
+        """Inverse of :meth:`shift_bins` (a few fixed-point steps: the walk is a small correction)."""
+        s = np.asarray(shift_bins, float)
+        d = (s - self.zero_range_bins[zone]) / self.bins_per_m[zone]
+        for _ in range(6):
+            d = (s - self.zero_range_bins[zone] - self.walk_bins(d, zone)) / self.bins_per_m[zone]
+        return d
 
     def zero_range_s(self) -> np.ndarray:
         """Time of the zero-range pulse position per zone, seconds after bin 0's start."""
@@ -94,6 +109,7 @@ class SensorResponse:
             "pulse_start_bins": float(self.pulse_start_bins),
             "pulse_step_bins": float(self.pulse_step_bins),
             "pulses_per_histogram": arr(self.pulses_per_histogram),
+            "walk_coeffs": arr(self.walk_coeffs),
             "gain_m2": arr(self.gain_m2),
             "ambient_counts": arr(self.ambient_counts),
             "reference_pulse": arr(self.reference_pulse),
@@ -129,6 +145,7 @@ class SensorResponse:
                 pulse_start_bins=float(d["pulse_start_bins"]),
                 pulse_step_bins=float(d["pulse_step_bins"]),
                 pulses_per_histogram=arr("pulses_per_histogram"),
+                walk_coeffs=arr("walk_coeffs"),
                 gain_m2=arr("gain_m2"),
                 ambient_counts=arr("ambient_counts"),
                 reference_pulse=arr("reference_pulse"),
@@ -186,7 +203,7 @@ def expected_counts(model: SensorResponse, distance_m, amplitude=None, ambient=N
     ambient = np.broadcast_to(ambient, (len(d), Z))
     out = []
     for z in range(Z):
-        shift = model.zero_range_bins[z] + model.bins_per_m[z] * d
+        shift = model.shift_bins(d, z)
         N = None if model.pulses_per_histogram is None else float(model.pulses_per_histogram[z])
         out.append(
             zone_counts(
