@@ -12,6 +12,8 @@ through the raw peak positions (parabolic interpolation of the highest three bin
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -37,7 +39,9 @@ class SensorFitOptions:
     - ``knots_per_bin``, ``pulse_bins``, ``pulse_before_bins``: the learned pulse's knots
       and support (bins after and before its nominal position).
     - ``pile_up``: fit the effective number of laser pulses per histogram (Coates pile-up).
-    - ``smoothness``: weight of a second-difference penalty on the pulse (0: none).
+    - ``smoothness``: weight of a curvature penalty on the pulse (0: none): lambda times the
+      integral over bins of (pulse'' / max pulse)^2. Without it the learned pulse rings at
+      the knot spacing and ranging fits find false minima.
     - ``walk_degree``: degree of the range-walk polynomial (position minus the straight line
       against distance, fitted over every fitted frame); -1: none.
     - ``dnl``: also fit each bin's edges (time-to-digital converter non-linearity).
@@ -51,7 +55,7 @@ class SensorFitOptions:
     pulse_bins: float = 36.0
     pulse_before_bins: float = 2.0
     pile_up: bool = True
-    smoothness: float = 1e5
+    smoothness: float = 2000.0
     walk_degree: int = 4
     dnl: bool = False
     max_iterations: int = 60
@@ -119,14 +123,14 @@ def peak_positions(hist):
 
 
 # ---- Levenberg-Marquardt -------------------------------------------------------------------
-def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10):
+def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
     """Minimise ``sum(resid(x, *args)^2)`` by Levenberg-Marquardt on dense normal equations.
 
     Returns ``(x, cost, J at x, iterations, converged)``. ``resid`` must be jittable; its
     Jacobian is taken in forward mode (the fits here have a few hundred parameters).
+    ``compiled``: ``(jit(resid), jit(jacfwd(resid)))`` to reuse across calls.
     """
-    r_fn = jax.jit(resid)
-    j_fn = jax.jit(jax.jacfwd(resid))
+    r_fn, j_fn = compiled or (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
     x = np.asarray(x0, float)
     r = np.asarray(r_fn(x, *args))
     cost = float(r @ r)
@@ -167,6 +171,7 @@ def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10):
 
 
 # ---- the per-zone joint fit ----------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
 def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl):
     E = n_bins - 1 if dnl else 0
 
@@ -200,10 +205,12 @@ def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl):
         if not pile:
             extra.append(jnp.atleast_1d(logn))
         if smooth > 0:
-            extra.append(math.sqrt(smooth) * jnp.diff(pdf, 2) / jnp.max(jnp.abs(pdf)))
+            # lambda * integral of (pulse'' / max pulse)^2 over bins, on knots ``step`` apart
+            extra.append(math.sqrt(smooth / step**3) * jnp.diff(pdf, 2) / jnp.max(jnp.abs(pdf)))
         return jnp.concatenate([r.ravel(), *extra])
 
-    return unpack, model, resid, edges
+    compiled = (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
+    return unpack, jax.jit(model), resid, edges, compiled
 
 
 def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6):
@@ -228,11 +235,12 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6):
     prof = np.maximum(prof / F, 0.0)
     prof /= step * prof.sum()
     a0 = np.log(np.maximum(h.sum(1) - amb0 * B, 10.0))
-    unpack, model, resid, edges = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl)
+    unpack, model, resid, edges, compiled = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl)
     th0 = np.concatenate([prof, [math.log(n_pulses0)], shift0, a0, amb0, np.zeros(B - 1 if options.dnl else 0)])
     w = np.ones(F)
-    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0)), max_iterations=options.max_iterations)
-    mu = np.asarray(jax.jit(model)(th))
+    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0)), max_iterations=options.max_iterations,
+                                compiled=compiled)
+    mu = np.asarray(model(jnp.asarray(th)))
     pdf, logn, shift, loga, amb = (np.asarray(v) for v in unpack(th))
     area = step * (pdf.sum() - 0.5 * (pdf[0] + pdf[-1]))
     chi2 = pearson_chi2(h, mu) / (B - 3)
@@ -328,13 +336,8 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
     ref = None
     if reference is not None:
         rh = np.asarray(reference, float)[idx]
-        ropts = SensorFitOptions(
-            min_distance_m=options.min_distance_m, max_distance_m=options.max_distance_m,
-            knots_per_bin=options.knots_per_bin, pulse_bins=options.pulse_bins, pulse_before_bins=options.pulse_before_bins,
-            pile_up=options.pile_up, smoothness=options.smoothness, max_iterations=options.max_iterations,
-        )
         rp = peak_positions(rh)
-        ref = fit_pulse(rh, np.full(len(rh), np.median(rp)), ropts)
+        ref = fit_pulse(rh, np.full(len(rh), np.median(rp)), dataclasses.replace(options, dnl=False))
         if progress:
             progress(f"reference: median reduced chi2 {np.median(ref['chi2']):.2f}")
     Zs = range(Z)
@@ -346,7 +349,7 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         "bin_width_relative_difference": w / w_peak - 1.0,
         "centre_zone": centre,
         "line_distances_m": [float(ds[line_sel].min()), float(ds[line_sel].max())],
-        "zero_range_s": [zones[z][1] * w for z in Zs],
+        "zero_range_s": None,  # filled below from the model (the pulse peak at zero range)
         "zero_range_se_s": [zones[z][3] * w for z in Zs],
         "bins_per_m": [zones[z][2] for z in Zs],
         "bins_per_m_se": [zones[z][4] for z in Zs],
@@ -382,6 +385,7 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         reference_counts=None if ref is None else float(np.median(ref["amplitude"])),
         report=report,
     )
+    report["zero_range_s"] = model.zero_range_s().tolist()
     details = {
         "frames": idx,
         "distances_m": ds,

@@ -10,6 +10,8 @@ the Fisher information, inflated by the frame's reduced chi-square when that exc
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +73,14 @@ def _grid_start(h, s0, pulse, start, step, span=2.0, n=41):
     return cand[np.arange(len(h)), np.argmin(cost, axis=1)]
 
 
+@functools.lru_cache(maxsize=8)
+def _ranger(start, step, n_bins, pile, iterations):
+    def one(hh, xx, pulse, n):
+        return _fit_one(hh, xx, pulse, start, step, n_bins, n if pile else None, iterations)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None)))
+
+
 def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30):
     """Distances (frames, zones) with standard errors and reduced chi-squares from histograms (frames, zones, bins).
 
@@ -92,9 +102,10 @@ def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30)
         a0 = np.log(np.maximum(h[:, z].sum(1) - amb0 * B, 10.0))
         s0 = _grid_start(h[:, z], peaks[:, z] - peak_offset, model.pulse[z], model.pulse_start_bins, model.pulse_step_bins)
         x0 = np.stack([s0, a0, amb0], 1)
-        N = None if model.pulses_per_histogram is None else float(model.pulses_per_histogram[z])
-        f = jax.jit(jax.vmap(lambda hh, xx: _fit_one(hh, xx, pulse, model.pulse_start_bins, model.pulse_step_bins, B, N, iterations)))
-        x, se, chi2 = (np.asarray(v) for v in f(jnp.asarray(h[:, z]), jnp.asarray(x0)))
+        pile = model.pulses_per_histogram is not None
+        N = float(model.pulses_per_histogram[z]) if pile else 1.0
+        f = _ranger(float(model.pulse_start_bins), float(model.pulse_step_bins), B, pile, iterations)
+        x, se, chi2 = (np.asarray(v) for v in f(jnp.asarray(h[:, z]), jnp.asarray(x0), pulse, jnp.asarray(N)))
         out["shift_bins"][:, z] = x[:, 0]
         out["amplitude"][:, z] = np.exp(x[:, 1])
         out["ambient"][:, z] = x[:, 2]

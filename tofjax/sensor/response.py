@@ -88,9 +88,21 @@ class SensorResponse:
             d = (s - self.zero_range_bins[zone] - self.walk_bins(d, zone)) / self.bins_per_m[zone]
         return d
 
+    def pulse_peak_bins(self) -> np.ndarray:
+        """Where each zone's pulse peaks relative to its position (bins; parabola through the top knots)."""
+        out = []
+        for p in self.pulse:
+            k = int(np.clip(np.argmax(p), 1, len(p) - 2))
+            a, b, c = p[k - 1], p[k], p[k + 1]
+            den = a - 2 * b + c
+            off = 0.5 * (a - c) / den if den < 0 else 0.0
+            out.append(self.pulse_start_bins + self.pulse_step_bins * (k + float(np.clip(off, -1, 1))))
+        return np.asarray(out)
+
     def zero_range_s(self) -> np.ndarray:
-        """Time of the zero-range pulse position per zone, seconds after bin 0's start."""
-        return self.zero_range_bins * self.bin_width_s
+        """Time of the pulse's peak for a target at zero range, per zone, seconds after bin 0's start
+        (the position itself is only defined up to the pulse's own origin)."""
+        return (self.zero_range_bins + self.pulse_peak_bins()) * self.bin_width_s
 
     # ---- files ------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
