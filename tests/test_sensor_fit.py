@@ -151,3 +151,27 @@ def test_cli_single_distance_one_line(tmp_path, capsys):
     assert main(["sensor", "fit", str(tmp_path / "c.h5"), "--out", str(tmp_path / "s.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "bin width cannot be identified" in err
+
+
+def test_simulated_and_emulated_histograms_come_from_the_fitted_model(tmp_path, synthetic):
+    from tofjax.hw import protocol as P
+    from tofjax.hw.bus import SimClock
+    from tofjax.hw.emulator import TMF8828Emulator
+    from tofjax.scene import scene_from_dict
+    from tofjax.sensor.simulate import simulate_free_space
+
+    truth = _truth_model(n_zones=9)
+    truth = SensorResponse(**{**truth.__dict__, "n_bins": 128})
+    path = truth.save(tmp_path / "truth.json")
+    scene = scene_from_dict({"sensor": {"bin_width_s": 94e-12, "n_bins": 128, "zones": 9, "grid": [3, 3], "fov_deg": 40.0,
+                                        "model": str(path)},
+                             "sensors": [{"position_m": [0.0, 0.0], "direction_deg": 0.0}], "target": {"distance_m": 0.2}})
+    cap = simulate_free_space(scene, 3, seed=1)
+    assert cap.histograms.shape == (3, 1, 9, 128) and np.all(cap.target_distance_m == 0.2)
+    res = range_histograms(truth, cap.histograms[:, 0])
+    assert np.all(np.abs(res["distance_m"] - 0.2) < 1e-3) and np.median(res["reduced_chi2"]) < 2
+    emu = TMF8828Emulator.from_sensor_model(truth, 0.15, SimClock())
+    counts, _ = emu._draw_frame(P.layout_for(9))
+    zones = emu.last_frame[0]
+    assert zones.shape == (9, 128) and counts.max() > 0
+    assert np.all(np.abs(range_histograms(truth, zones[None].astype(float))["distance_m"] - 0.15) < 1e-3)
