@@ -112,6 +112,11 @@ def test_free_space_scene_and_grids(tmp_path, synthetic):
     path = synthetic[1].save(tmp_path / "s.json")
     fitted = scene_from_dict({**base, "sensor": {**base["sensor"], "zones": 1, "grid": [1, 1]}}).with_sensor_model(str(path))
     assert fitted.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) and fitted.sensor.model == str(path)
+    # a waveguide scene takes the measured bin width (what `tofjax calibrate --sensor` does)
+    from tofjax import load_scene
+
+    guide = load_scene("optoskin").with_sensor_model(str(path))
+    assert guide.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) and not guide.free_space
 
 
 @pytest.fixture(scope="module")
