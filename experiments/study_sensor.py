@@ -34,6 +34,8 @@ def main(argv=None) -> dict:
     p.add_argument("--knots-per-bin", type=int, default=8)
     p.add_argument("--max-iterations", type=int, default=40)
     p.add_argument("--skip-full", action="store_true", help="only the held-out part")
+    p.add_argument("--no-drift", action="store_true", help="a fixed pulse shape (no first-order change with position)")
+    p.add_argument("--no-echo", action="store_true", help="no double-bounce echo")
     a = p.parse_args(argv)
 
     import jax
@@ -48,7 +50,8 @@ def main(argv=None) -> dict:
     fr = read_tmf882x_json(a.data)
     H, D = fr.histograms, fr.target_distance_m
     onchip = fr.onchip_distance_m
-    opts = SensorFitOptions(knots_per_bin=a.knots_per_bin, max_iterations=a.max_iterations)
+    opts = SensorFitOptions(knots_per_bin=a.knots_per_bin, max_iterations=a.max_iterations, shape_drift=not a.no_drift,
+                            echo=not a.no_echo)
     sel = np.flatnonzero((D >= 0.04 - 1e-9) & (D <= 0.40 + 1e-9))
     train, test = sel[::2], sel[1::2]
     result = {

@@ -44,6 +44,8 @@ class SensorFitOptions:
       the knot spacing and ranging fits find false minima.
     - ``walk_degree``: degree of the range-walk polynomial (position minus the straight line
       against distance, fitted over every fitted frame); -1: none.
+    - ``echo``: model the double bounce (target -> sensor cover -> target) at twice the distance.
+    - ``shape_drift``: let the pulse's shape change (to first order) with its position.
     - ``dnl``: also fit each bin's edges (time-to-digital converter non-linearity).
     - ``max_iterations``: Levenberg-Marquardt steps per zone.
     """
@@ -58,6 +60,8 @@ class SensorFitOptions:
     smoothness: float = 2000.0
     walk_degree: int = 4
     dnl: bool = False
+    shape_drift: bool = False
+    echo: bool = True
     max_iterations: int = 60
 
     def __post_init__(self):
@@ -172,8 +176,13 @@ def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
 
 # ---- the per-zone joint fit ----------------------------------------------------------------
 @functools.lru_cache(maxsize=8)
-def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl):
+def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl, drift=False, echo=False):
     E = n_bins - 1 if dnl else 0
+    P0 = K + 1 + 3 * F + E  # where the drift knots start
+    Q0 = P0 + (K if drift else 0)  # where the per-frame echo amplitudes (log) start
+
+    def drift_of(th):
+        return th[P0 : P0 + K] if drift else None
 
     def unpack(th):
         pdf = th[:K]
@@ -189,14 +198,16 @@ def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl):
         inner = jnp.arange(1, n_bins, dtype=th.dtype) + th[K + 1 + 3 * F : K + 1 + 3 * F + E]
         return jnp.concatenate([jnp.zeros((1,), th.dtype), inner, jnp.full((1,), float(n_bins), th.dtype)])
 
-    def model(th):
+    def model(th, zero_shift):
         pdf, logn, shift, loga, amb = unpack(th)
         area = step * (jnp.sum(pdf) - 0.5 * (pdf[0] + pdf[-1]))
-        return zone_counts(pdf / area, start, step, n_bins, shift, jnp.exp(loga), amb, jnp.exp(logn) if pile else None, edges(th))
+        dr = drift_of(th)
+        return zone_counts(pdf / area, start, step, n_bins, shift, jnp.exp(loga), amb, jnp.exp(logn) if pile else None, edges(th),
+                           None if dr is None else dr / area, jnp.exp(th[Q0 : Q0 + F]) if echo else None, zero_shift)
 
-    def resid(th, h, w, shift0):
+    def resid(th, h, w, shift0, zero_shift):
         pdf, logn, shift, *_ = unpack(th)
-        r = poisson_deviance_residuals(h, model(th)) * w[:, None]
+        r = poisson_deviance_residuals(h, model(th, zero_shift)) * w[:, None]
         area = step * (jnp.sum(pdf) - 0.5 * (pdf[0] + pdf[-1]))
         extra = [
             jnp.atleast_1d(100.0 * (area - 1.0)),  # the pulse's scale belongs to the amplitudes
@@ -207,13 +218,18 @@ def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl):
         if smooth > 0:
             # lambda * integral of (pulse'' / max pulse)^2 over bins, on knots ``step`` apart
             extra.append(math.sqrt(smooth / step**3) * jnp.diff(pdf, 2) / jnp.max(jnp.abs(pdf)))
+        if drift:
+            dr = drift_of(th)
+            extra.append(jnp.atleast_1d(100.0 * step * (jnp.sum(dr) - 0.5 * (dr[0] + dr[-1]))))  # no area change
+            if smooth > 0:
+                extra.append(math.sqrt(smooth / step**3) * jnp.diff(dr, 2) / jnp.max(jnp.abs(pdf)))
         return jnp.concatenate([r.ravel(), *extra])
 
     compiled = (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
     return unpack, jax.jit(model), resid, edges, compiled
 
 
-def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6):
+def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift=None):
     """Fit one channel's pulse to many frames (F, B) whose rough positions are ``shift0`` (F,).
 
     Returns a dict with the pulse, pulses per histogram, per-frame shift/amplitude/ambient with
@@ -235,12 +251,15 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6):
     prof = np.maximum(prof / F, 0.0)
     prof /= step * prof.sum()
     a0 = np.log(np.maximum(h.sum(1) - amb0 * B, 10.0))
-    unpack, model, resid, edges, compiled = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl)
-    th0 = np.concatenate([prof, [math.log(n_pulses0)], shift0, a0, amb0, np.zeros(B - 1 if options.dnl else 0)])
+    unpack, model, resid, edges, compiled = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl,
+                                                          options.shape_drift, options.echo and zero_shift is not None)
+    th0 = np.concatenate([prof, [math.log(n_pulses0)], shift0, a0, amb0, np.zeros(B - 1 if options.dnl else 0),
+                          np.zeros(K if options.shape_drift else 0), np.log(np.exp(a0) * 1e-3) if options.echo and zero_shift is not None else []])
     w = np.ones(F)
-    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0)), max_iterations=options.max_iterations,
+    zs = jnp.asarray(0.0 if zero_shift is None else float(zero_shift))
+    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0), zs), max_iterations=options.max_iterations,
                                 compiled=compiled)
-    mu = np.asarray(model(jnp.asarray(th)))
+    mu = np.asarray(model(jnp.asarray(th), zs))
     pdf, logn, shift, loga, amb = (np.asarray(v) for v in unpack(th))
     area = step * (pdf.sum() - 0.5 * (pdf[0] + pdf[-1]))
     chi2 = pearson_chi2(h, mu) / (B - 3)
@@ -250,7 +269,11 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6):
     cov = np.linalg.pinv(A)
     infl = max(1.0, float(np.median(chi2)))
     se = np.sqrt(np.maximum(np.diag(cov), 0.0) * infl)
+    P0 = K + 1 + 3 * F + (B - 1 if options.dnl else 0)
+    Q0 = P0 + (K if options.shape_drift else 0)
     return {
+        "echo": np.exp(th[Q0 : Q0 + F]) if options.echo and zero_shift is not None else None,
+        "drift": th[P0 : P0 + K] / area if options.shape_drift else None,
         "pulse": pdf / area,
         "start": start,
         "step": step,
@@ -314,7 +337,7 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
     for z in range(Z):
         a, b, *_ = line_fit(ds, peaks[:, z])
         shift0 = a + b * ds
-        res = fit_pulse(hs[:, z], shift0, options)
+        res = fit_pulse(hs[:, z], shift0, options, zero_shift=a)
         t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], res["shift"][line_sel])
         pa, pb, pa_se, pb_se, prms = line_fit(ds[line_sel], peaks[line_sel, z])
         gain = res["amplitude"] * ds**2
@@ -322,7 +345,12 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         if options.walk_degree >= 0 and len(np.unique(ds)) > options.walk_degree + 2:
             walk = np.polyfit(ds, res["shift"] - (t0 + slope * ds), options.walk_degree)
         res["walk"] = walk
-        zones.append((res, t0, slope, t0_se, slope_se, rms, pa, pb, pa_se, pb_se, prms, gain))
+        echo_law = None
+        if res["echo"] is not None:  # the echo's ratio to the first return as a power law of distance
+            ratio = np.maximum(res["echo"] / res["amplitude"], 1e-9)
+            pw, lc = np.polyfit(np.log(ds / 0.2), np.log(ratio), 1)
+            echo_law = (float(np.exp(lc)), float(pw))
+        zones.append((res, t0, slope, t0_se, slope_se, rms, pa, pb, pa_se, pb_se, prms, gain, None, echo_law))
         if progress:
             progress(f"zone {z}: pulse fit {res['iterations']} steps, median reduced chi2 {np.median(res['chi2']):.2f}")
     centre = (grid[0] // 2) * grid[1] + grid[1] // 2
@@ -337,7 +365,11 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
     if reference is not None:
         rh = np.asarray(reference, float)[idx]
         rp = peak_positions(rh)
-        ref = fit_pulse(rh, np.full(len(rh), np.median(rp)), dataclasses.replace(options, dnl=False))
+        # The reference pulse's tail runs to the end of the histogram (light inside the package):
+        # give it the whole range after its peak, on coarser knots.
+        span = float(B - np.ceil(np.median(rp)) - 1 - options.pulse_before_bins)
+        ropts = dataclasses.replace(options, dnl=False, pulse_bins=max(span, 8.0), knots_per_bin=min(options.knots_per_bin, 4))
+        ref = fit_pulse(rh, np.full(len(rh), np.median(rp)), dataclasses.replace(ropts, shape_drift=False))
         if progress:
             progress(f"reference: median reduced chi2 {np.median(ref['chi2']):.2f}")
     Zs = range(Z)
@@ -377,12 +409,16 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         pulse_start_bins=zones[0][0]["start"],
         pulse_step_bins=zones[0][0]["step"],
         pulses_per_histogram=np.array([zones[z][0]["pulses"] for z in Zs]) if options.pile_up else None,
+        echo_ratio=None if zones[0][0]["echo"] is None else np.array([zones[z][13][0] for z in Zs]),
+        echo_power=None if zones[0][0]["echo"] is None else np.array([zones[z][13][1] for z in Zs]),
+        pulse_drift=np.stack([zones[z][0]["drift"] for z in Zs]) if options.shape_drift else None,
         walk_coeffs=None if zones[0][0]["walk"] is None else np.stack([zones[z][0]["walk"] for z in Zs]),
         gain_m2=np.array(report["gain_m2"]),
         ambient_counts=np.array([float(np.median(zones[z][0]["ambient"])) for z in Zs]),
         reference_pulse=None if ref is None else ref["pulse"],
         reference_shift_bins=None if ref is None else float(np.median(ref["shift"])),
         reference_counts=None if ref is None else float(np.median(ref["amplitude"])),
+        reference_pulse_step_bins=None if ref is None else float(ref["step"]),
         report=report,
     )
     report["zero_range_s"] = model.zero_range_s().tolist()

@@ -64,7 +64,8 @@ def plot_sensor_fit(model, details, out) -> list[Path]:
     for z in range(model.n_zones):
         ax.semilogy(knots, np.maximum(model.pulse[z], 1e-5), lw=1 if z != c else 2, label=f"zone {z}" if z in (0, c) else None)
     if model.reference_pulse is not None:
-        ax.semilogy(knots, np.maximum(model.reference_pulse, 1e-5), "k--", lw=1, label="reference")
+        rk = model.pulse_start_bins + (model.reference_pulse_step_bins or model.pulse_step_bins) * np.arange(len(model.reference_pulse))
+        ax.semilogy(rk, np.maximum(model.reference_pulse, 1e-5), "k--", lw=1, label="reference")
     ax.set_xlabel("bins after the pulse position")
     ax.set_ylabel("pulse (per bin)")
     ax.legend(fontsize=8)

@@ -22,9 +22,16 @@ from .response import SensorModelError, SensorResponse, zone_counts
 __all__ = ["range_histograms", "ranges_to_json"]
 
 
-def _fit_one(h, x0, pulse, start, step, n_bins, pulses, iterations):
+def _fit_one(h, x0, pulse, start, step, n_bins, pulses, iterations, drift=None, echo=None):
+    def counts(x):
+        e = None
+        if echo is not None:  # its own amplitude (x[3], log), at twice the distance
+            e = jnp.exp(x[3])
+        return zone_counts(pulse, start, step, n_bins, x[0], jnp.exp(x[1]), x[2], pulses, drift=drift,
+                           echo=e, zero_shift=0.0 if echo is None else echo[2])
+
     def resid(x):
-        mu = zone_counts(pulse, start, step, n_bins, x[0], jnp.exp(x[1]), x[2], pulses)
+        mu = counts(x)
         return poisson_deviance_residuals(h, mu)
 
     jac = jax.jacfwd(resid)
@@ -48,8 +55,8 @@ def _fit_one(h, x0, pulse, start, step, n_bins, pulses, iterations):
     r = resid(x)
     J = jac(x)
     cov = jnp.linalg.pinv(J.T @ J)
-    mu = zone_counts(pulse, start, step, n_bins, x[0], jnp.exp(x[1]), x[2], pulses)
-    chi2 = jnp.sum((h - mu) ** 2 / jnp.maximum(mu, 1e-9)) / (n_bins - 3)
+    mu = counts(x)
+    chi2 = jnp.sum((h - mu) ** 2 / jnp.maximum(mu, 1e-9)) / (n_bins - x.shape[0])
     return x, jnp.sqrt(jnp.maximum(cov[0, 0], 0.0)), chi2
 
 
@@ -74,11 +81,12 @@ def _grid_start(h, s0, pulse, start, step, span=2.0, n=41):
 
 
 @functools.lru_cache(maxsize=8)
-def _ranger(start, step, n_bins, pile, iterations):
-    def one(hh, xx, pulse, n):
-        return _fit_one(hh, xx, pulse, start, step, n_bins, n if pile else None, iterations)
+def _ranger(start, step, n_bins, pile, iterations, with_drift, with_echo):
+    def one(hh, xx, pulse, n, drift, echo):
+        return _fit_one(hh, xx, pulse, start, step, n_bins, n if pile else None, iterations, drift if with_drift else None,
+                        echo if with_echo else None)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None)))
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None, None, None)))
 
 
 def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30):
@@ -102,10 +110,18 @@ def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30)
         a0 = np.log(np.maximum(h[:, z].sum(1) - amb0 * B, 10.0))
         s0 = _grid_start(h[:, z], peaks[:, z] - peak_offset, model.pulse[z], model.pulse_start_bins, model.pulse_step_bins)
         x0 = np.stack([s0, a0, amb0], 1)
+        if model.echo_ratio is not None:  # start the echo at the fitted law's ratio
+            d0 = np.maximum((s0 - model.zero_range_bins[z]) / model.bins_per_m[z], 1e-3)
+            x0 = np.concatenate([x0, (a0 + np.log(model.echo_ratio[z] * (d0 / 0.2) ** model.echo_power[z]))[:, None]], 1)
         pile = model.pulses_per_histogram is not None
         N = float(model.pulses_per_histogram[z]) if pile else 1.0
-        f = _ranger(float(model.pulse_start_bins), float(model.pulse_step_bins), B, pile, iterations)
-        x, se, chi2 = (np.asarray(v) for v in f(jnp.asarray(h[:, z]), jnp.asarray(x0), pulse, jnp.asarray(N)))
+        with_drift = model.pulse_drift is not None
+        with_echo = model.echo_ratio is not None
+        f = _ranger(float(model.pulse_start_bins), float(model.pulse_step_bins), B, pile, iterations, with_drift, with_echo)
+        drift = jnp.asarray(model.pulse_drift[z]) if with_drift else jnp.zeros_like(pulse)
+        echo = jnp.asarray([model.echo_ratio[z], model.echo_power[z], model.zero_range_bins[z], model.bins_per_m[z]]
+                           if with_echo else [0.0, 0.0, 0.0, 1.0])
+        x, se, chi2 = (np.asarray(v) for v in f(jnp.asarray(h[:, z]), jnp.asarray(x0), pulse, jnp.asarray(N), drift, echo))
         out["shift_bins"][:, z] = x[:, 0]
         out["amplitude"][:, z] = np.exp(x[:, 1])
         out["ambient"][:, z] = x[:, 2]

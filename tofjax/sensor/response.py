@@ -55,6 +55,11 @@ class SensorResponse:
     #: Range walk: position minus the straight line, a polynomial in distance (m) per zone (Z, degree + 1),
     #: highest power first (numpy.polyval); None: the line alone.
     walk_coeffs: np.ndarray | None = None
+    #: Double-bounce echo: its amplitude relative to the first return, ``echo_ratio[z] * (d / 0.2 m)^echo_power[z]``.
+    echo_ratio: np.ndarray | None = None
+    echo_power: np.ndarray | None = None
+    #: (Z, K) first-order change of the pulse shape with its position (None: a fixed shape).
+    pulse_drift: np.ndarray | None = None
     #: Signal amplitude model for simulation: amplitude = gain_m2[z] / d^2 (counts at 1 m), ambient counts per bin.
     gain_m2: np.ndarray | None = None
     ambient_counts: np.ndarray | None = None
@@ -62,6 +67,7 @@ class SensorResponse:
     reference_pulse: np.ndarray | None = None
     reference_shift_bins: float | None = None
     reference_counts: float | None = None
+    reference_pulse_step_bins: float | None = None
     #: Standard errors and fit diagnostics, as written by ``tofjax sensor fit``.
     report: dict[str, Any] = field(default_factory=dict)
 
@@ -122,11 +128,15 @@ class SensorResponse:
             "pulse_step_bins": float(self.pulse_step_bins),
             "pulses_per_histogram": arr(self.pulses_per_histogram),
             "walk_coeffs": arr(self.walk_coeffs),
+            "pulse_drift": arr(self.pulse_drift),
+            "echo_ratio": arr(self.echo_ratio),
+            "echo_power": arr(self.echo_power),
             "gain_m2": arr(self.gain_m2),
             "ambient_counts": arr(self.ambient_counts),
             "reference_pulse": arr(self.reference_pulse),
             "reference_shift_bins": self.reference_shift_bins,
             "reference_counts": self.reference_counts,
+            "reference_pulse_step_bins": self.reference_pulse_step_bins,
             "report": self.report,
         }
 
@@ -158,11 +168,15 @@ class SensorResponse:
                 pulse_step_bins=float(d["pulse_step_bins"]),
                 pulses_per_histogram=arr("pulses_per_histogram"),
                 walk_coeffs=arr("walk_coeffs"),
+                pulse_drift=arr("pulse_drift"),
+                echo_ratio=arr("echo_ratio"),
+                echo_power=arr("echo_power"),
                 gain_m2=arr("gain_m2"),
                 ambient_counts=arr("ambient_counts"),
                 reference_pulse=arr("reference_pulse"),
                 reference_shift_bins=d.get("reference_shift_bins"),
                 reference_counts=d.get("reference_counts"),
+                reference_pulse_step_bins=d.get("reference_pulse_step_bins"),
                 report=d.get("report", {}),
             )
         except (KeyError, TypeError, ValueError, IndexError) as e:
@@ -185,15 +199,31 @@ def load_sensor_model(path: str | Path) -> SensorResponse:
     return SensorResponse.from_json(d, str(path))
 
 
-def zone_counts(pulse, start, step, n_bins, shift, amplitude, ambient, pulses=None, edges=None):
+#: The pulse's shape drift is ``(shift - SHAPE_REF_BINS) / SHAPE_SCALE_BINS`` times ``pulse_drift``.
+SHAPE_REF_BINS = 28.0
+SHAPE_SCALE_BINS = 10.0
+
+
+def zone_counts(pulse, start, step, n_bins, shift, amplitude, ambient, pulses=None, edges=None, drift=None,
+                echo=None, zero_shift=0.0):
     """The model of one zone for many frames (jax): shift, amplitude, ambient (...,) -> (..., n_bins).
 
     ``edges`` (n_bins + 1,): the bin edges in nominal bins when the bins are unequal (the
-    ambient floor then scales with each bin's width too).
+    ambient floor then scales with each bin's width too). ``drift`` (K,): how the pulse's
+    shape changes with its position (a first-order term; the bin integrals are linear in the
+    pulse, so it costs one more pass). ``echo`` (...,): the amplitude of the double bounce
+    (target -> sensor cover -> target -> sensor), the same pulse at twice the distance:
+    position ``2 shift - zero_shift``.
     """
     m = template_bin_masses(shift, pulse, start, step, n_bins, edges)
+    if drift is not None:
+        a = (jnp.asarray(shift) - SHAPE_REF_BINS) / SHAPE_SCALE_BINS
+        m = m + a[..., None] * template_bin_masses(shift, drift, start, step, n_bins, edges)
     width = 1.0 if edges is None else jnp.diff(edges)
     lam = jnp.asarray(ambient)[..., None] * width + jnp.asarray(amplitude)[..., None] * m
+    if echo is not None:
+        s2 = 2.0 * jnp.asarray(shift) - zero_shift
+        lam = lam + jnp.asarray(echo)[..., None] * template_bin_masses(s2, pulse, start, step, n_bins, edges)
     return lam if pulses is None else pile_up(lam, pulses)
 
 
@@ -221,6 +251,10 @@ def expected_counts(model: SensorResponse, distance_m, amplitude=None, ambient=N
             zone_counts(
                 jnp.asarray(model.pulse[z]), model.pulse_start_bins, model.pulse_step_bins, model.n_bins,
                 jnp.asarray(shift), jnp.asarray(amplitude[:, z]), jnp.asarray(ambient[:, z]), N,
+                drift=None if model.pulse_drift is None else jnp.asarray(model.pulse_drift[z]),
+                echo=None if model.echo_ratio is None else jnp.asarray(
+                    amplitude[:, z] * model.echo_ratio[z] * (d / 0.2) ** model.echo_power[z]),
+                zero_shift=float(model.zero_range_bins[z]),
             )
         )
     return np.stack([np.asarray(o) for o in out], axis=1)
@@ -232,6 +266,6 @@ def expected_reference(model: SensorResponse, n_frames: int = 1) -> np.ndarray |
         return None
     r = template_bin_masses(
         jnp.asarray(model.reference_shift_bins), jnp.asarray(model.reference_pulse),
-        model.pulse_start_bins, model.pulse_step_bins, model.n_bins,
+        model.pulse_start_bins, model.reference_pulse_step_bins or model.pulse_step_bins, model.n_bins,
     )
     return np.broadcast_to(np.asarray(r) * float(model.reference_counts), (n_frames, model.n_bins)).copy()
