@@ -63,6 +63,8 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if value is None:
             return None
+        if len(args) == 1:  # Optional[X]: X's own error (naming the inner key) is the useful one
+            return _convert(value, args[0], where)
         for a in args:
             try:
                 return _convert(value, a, where)
