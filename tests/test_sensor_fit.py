@@ -125,7 +125,7 @@ def real(tmp_path_factory):
     d = tmp_path_factory.mktemp("real")
     assert main(["import", str(DATA), "--format", "tmf882x-json", "--out", str(d / "c.h5")]) == 0
     assert main(["sensor", "fit", str(d / "c.h5"), "--out", str(d / "s.json"), "--knots-per-bin", "2",
-                 "--max-iterations", "20", "--plots", str(d / "plots")]) == 0
+                 "--max-iterations", "12", "--plots", str(d / "plots")]) == 0
     assert main(["range", str(d / "c.h5"), "--sensor", str(d / "s.json"), "--json", str(d / "r.json")]) == 0
     return d
 
