@@ -14,7 +14,7 @@ from tofjax.sensor import SensorFitOptions, SensorModelError, SensorResponse, ex
 from tofjax.sensor.response import C_AIR
 
 DATA = Path(__file__).parent / "data" / "tmf8820-plane-sweep" / "captures.json"
-FAST = SensorFitOptions(knots_per_bin=2, pulse_bins=16.0, max_iterations=25, walk_degree=-1)
+FAST = SensorFitOptions(knots_per_bin=2, pulse_bins=16.0, max_iterations=25, walk_degree=-1, shape_drift=False)
 
 
 def test_template_cdf_is_exact_for_a_triangle():
@@ -125,7 +125,7 @@ def real(tmp_path_factory):
     d = tmp_path_factory.mktemp("real")
     assert main(["import", str(DATA), "--format", "tmf882x-json", "--out", str(d / "c.h5")]) == 0
     assert main(["sensor", "fit", str(d / "c.h5"), "--out", str(d / "s.json"), "--knots-per-bin", "2",
-                 "--max-iterations", "12", "--plots", str(d / "plots")]) == 0
+                 "--max-iterations", "12", "--no-shape-drift", "--plots", str(d / "plots")]) == 0
     assert main(["range", str(d / "c.h5"), "--sensor", str(d / "s.json"), "--json", str(d / "r.json")]) == 0
     return d
 

@@ -60,7 +60,7 @@ class SensorFitOptions:
     smoothness: float = 2000.0
     walk_degree: int = 4
     dnl: bool = False
-    shape_drift: bool = False
+    shape_drift: bool = True
     echo: bool = True
     max_iterations: int = 60
 
