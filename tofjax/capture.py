@@ -84,6 +84,11 @@ class Capture:
     frame_index: np.ndarray | None = None
     #: Frames dropped on reading: {index in the file: reason}.
     dropped: dict[int, str] = field(default_factory=dict)
+    #: Free-space ground truth and the sensor's own results (imported TMF882x recordings):
+    #: target distance (frames,) m; on-chip distance and confidence (frames, sensors, zones).
+    target_distance_m: np.ndarray | None = None
+    onchip_distance_m: np.ndarray | None = None
+    onchip_confidence: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -174,6 +179,8 @@ class CaptureWriter:
         max_touches: int = 0,
         truth: dict[str, Any] | None = None,
         overwrite: bool = False,
+        with_target: bool = False,
+        with_onchip: bool = False,
     ):
         self.path = Path(path)
         self.scene = scene
@@ -195,11 +202,11 @@ class CaptureWriter:
         except OSError as e:
             raise CaptureError(f"{self.path}: cannot create the capture: {_oserror(e)}") from None
         try:
-            self._setup(scene, source, with_force, with_reference, max_touches, truth)
+            self._setup(scene, source, with_force, with_reference, max_touches, truth, with_target, with_onchip)
         except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
             self._fail(e)
 
-    def _setup(self, scene, source, with_force, with_reference, max_touches, truth) -> None:
+    def _setup(self, scene, source, with_force, with_reference, max_touches, truth, with_target, with_onchip) -> None:
         _root_attrs(self._f, scene, source, None)
         self._f.attrs[COMMITTED] = np.int64(0)
         S, Z, B = scene.shape
@@ -218,6 +225,18 @@ class CaptureWriter:
             g.attrs["parameters"] = json.dumps(truth or {})
             if max_touches:
                 self._touch = _extendable(g, "touches", (max_touches, 3), np.float64, fill=np.nan)
+        self._target = self._onchip = self._onchip_conf = None
+        if with_target:
+            g = self._f.require_group("truth")
+            if "parameters" not in g.attrs:
+                g.attrs["parameters"] = json.dumps(truth or {})
+            self._target = _extendable(g, "target_distance_m", (), np.float64, fill=np.nan)
+            self._target.attrs["units"] = "m"
+        if with_onchip:
+            g = self._f.create_group("onchip")
+            self._onchip = _extendable(g, "distance_m", (S, Z), np.float64, fill=np.nan)
+            self._onchip.attrs["units"] = "m"
+            self._onchip_conf = _extendable(g, "confidence", (S, Z), np.float64, fill=np.nan)
         self._f.flush()
 
     def _fail(self, e: OSError):
@@ -271,6 +290,9 @@ class CaptureWriter:
                     row = np.full(self._touch.shape[1:], np.nan)
                     row[: len(t)] = t
                     self._touch[i] = row
+            for ds in (self._target, self._onchip, self._onchip_conf):  # free-space extras: NaN unless extended
+                if ds is not None:
+                    ds.resize(i + 1, 0)
             self._hist.resize(i + 1, 0)
             self._hist[i] = histogram
             self._time.resize(i + 1, 0)
@@ -279,7 +301,8 @@ class CaptureWriter:
         except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
             self._fail(e)
 
-    def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None) -> None:
+    def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None,
+               target_distance_m=None, onchip_distance_m=None, onchip_confidence=None) -> None:
         """Write many whole frames at once (one resize and one commit: fast for long simulated captures)."""
         histograms = np.asarray(histograms, HIST_DTYPE)
         n = histograms.shape[0]
@@ -303,6 +326,11 @@ class CaptureWriter:
                     rows = np.full((n, *self._touch.shape[1:]), np.nan)
                     rows[:, : t.shape[1]] = t
                     self._touch[i:] = rows
+            for ds, v in ((self._target, target_distance_m), (self._onchip, onchip_distance_m),
+                          (self._onchip_conf, onchip_confidence)):
+                if ds is not None:
+                    ds.resize(i + n, 0)
+                    ds[i:] = np.asarray(v, np.float64) if v is not None else np.nan
             self._hist.resize(i + n, 0)
             self._hist[i:] = histograms
             self._time.resize(i + n, 0)
@@ -354,9 +382,13 @@ def write_capture(path: str | Path, cap: Capture, *, overwrite: bool = False) ->
             max_touches=max_touches,
             truth=cap.truth or None,
             overwrite=True,
+            with_target=cap.target_distance_m is not None,
+            with_onchip=cap.onchip_distance_m is not None,
         ) as w:
             w._f.attrs["created"] = cap.created
-            w.extend(cap.histograms, cap.timestamps, force=cap.force, reference=cap.reference, touches=cap.truth_touches)
+            w.extend(cap.histograms, cap.timestamps, force=cap.force, reference=cap.reference, touches=cap.truth_touches,
+                     target_distance_m=cap.target_distance_m, onchip_distance_m=cap.onchip_distance_m,
+                     onchip_confidence=cap.onchip_confidence)
         _prepare_target(path, overwrite)
         if overwrite:
             os.replace(tmp, path)
@@ -452,7 +484,8 @@ def read_capture(path: str | Path) -> Capture:
                     raise CaptureError(f"{path}: dataset '{name}' is missing")
                 if not isinstance(f[name], h5py.Dataset):
                     raise CaptureError(f"{path}: '{name}' is not a dataset")
-            _check_numeric(f, ("histograms", "timestamps", "force", "reference", "truth/touches"), path)
+            _check_numeric(f, ("histograms", "timestamps", "force", "reference", "truth/touches", "truth/target_distance_m",
+                               "onchip/distance_m", "onchip/confidence"), path)
             if f["timestamps"].ndim != 1:
                 raise CaptureError(f"{path}: 'timestamps' has shape {f['timestamps'].shape}, expected (frames,)")
             n = f["timestamps"].shape[0]
@@ -477,6 +510,11 @@ def read_capture(path: str | Path) -> Capture:
                     raise CaptureError(f"{path}: attribute truth/parameters is not a JSON object")
                 if "touches" in f["truth"]:
                     touches = np.asarray(f["truth/touches"][:n], np.float64)
+            extras = {
+                k: np.asarray(f[name][:n], np.float64) if name in f else None
+                for k, name in (("target_distance_m", "truth/target_distance_m"), ("onchip_distance_m", "onchip/distance_m"),
+                                ("onchip_confidence", "onchip/confidence"))
+            }
             source = f.attrs.get("source", "unknown")
             created = f.attrs.get("created", "")
         except CaptureError:
@@ -488,7 +526,7 @@ def read_capture(path: str | Path) -> Capture:
             f"{path}: histograms have shape {hist.shape[1:]} per frame but the scene says "
             f"(sensors, zones, bins) = {scene.shape}"
         )
-    for name, arr in (("force", force), ("reference", ref), ("truth/touches", touches)):
+    for name, arr in (("force", force), ("reference", ref), ("truth/touches", touches), *extras.items()):
         if arr is not None and arr.shape[0] != n:
             raise CaptureError(f"{path}: '{name}' has {arr.shape[0]} frames, timestamps {n}")
     if n == 0:
@@ -506,6 +544,7 @@ def read_capture(path: str | Path) -> Capture:
         force = None if force is None else force[keep]
         ref = None if ref is None else ref[keep]
         touches = None if touches is None else touches[keep]
+        extras = {k: None if v is None else v[keep] for k, v in extras.items()}
     return Capture(
         histograms=hist,
         timestamps=times,
@@ -518,6 +557,7 @@ def read_capture(path: str | Path) -> Capture:
         truth=truth or {},
         frame_index=keep,
         dropped=bad,
+        **extras,
     )
 
 

@@ -26,7 +26,12 @@ def _cmd_simulate(a) -> int:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
     _check_size(scene, a.frames)
     check_capture_target(a.out, a.overwrite)
-    cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
+    if scene.free_space:  # a TMF882x in air: the fitted sensor model makes the histograms (issue 12)
+        from .sensor.simulate import simulate_free_space
+
+        cap = simulate_free_space(scene, a.frames, a.seed)
+    else:
+        cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
     write_capture(a.out, cap, overwrite=a.overwrite)
     print(f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}'")
     return 0
@@ -88,6 +93,9 @@ def _cmd_calibrate(a) -> int:
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
         )
     config = load_fit_config(a.config) if a.config else FitConfig()
+    if a.sensor:  # a sensor model fitted on real histograms (issue 12): its bin width, not the nominal one
+        scene = (scene or cap.scene).with_sensor_model(a.sensor)
+        print(f"sensor model {a.sensor}: bin width {scene.sensor.bin_width_s * 1e12:.2f} ps")
     calibrator = Calibrator((scene or cap.scene), config)
     result = calibrator.fit(cap)
     from .outputs import atomic_write_text
@@ -163,9 +171,13 @@ _OUTPUTS = {
     "force-data": (("out", True),),
     "mc": (("out", False), ("json", False)),
     "prune": (("out", False),),
+    "import": (("out", False),),
+    "sensor": (("out", False), ("plots", True)),
+    "range": (("json", False),),
 }
 #: Arguments naming files a command reads: no output may be one of them.
-_INPUTS = ("scene", "capture", "baseline", "touch", "calibration", "config", "run", "rig", "protocol", "chain", "image")
+_INPUTS = ("scene", "capture", "baseline", "touch", "calibration", "config", "run", "rig", "protocol", "chain", "image",
+           "sensor", "file")
 #: Numeric arguments: (lowest, highest). argparse takes "nan" and "inf" for floats; these do not.
 _RANGES = {
     "frames": (1, 10**8),
@@ -190,6 +202,12 @@ _RANGES = {
     "thickness_m": (1e-9, 100.0),
     "mu_s_per_m": (0.0, 1e8),
     "mu_a_per_m": (0.0, 1e8),
+    # tofjax import, sensor fit
+    "distance_m": (0.0, 100.0),
+    "min_distance_m": (0.0, 100.0),
+    "max_distance_m": (0.0, 100.0),
+    "knots_per_bin": (1, 64),
+    "max_iterations": (1, 10**6),
 }
 #: Largest capture held in memory (frames x sensors x zones x bins values): 1.6 GB as float64.
 _MAX_VALUES = 2 * 10**8
@@ -297,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
+    s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (its bin width replaces the scene's)")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")
@@ -309,11 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .hw.cli import register as register_hw  # acquire, baseline, replay (issue 6)
     from .invert.cli import register as register_invert  # process, detect (issue 4)
     from .mc.cli import register as register_mc  # mc, mc slab, prune (issues 7, 14)
+    from .sensor.cli import register as register_sensor  # import, sensor fit, range (issue 12)
 
     register_invert(sub)
     register_force(sub)
     register_hw(sub)
     register_mc(sub)
+    register_sensor(sub)
     _add_overwrite(p)
     return p
 

@@ -26,6 +26,7 @@ from .config import ConfigError, from_dict, load_toml, to_dict, toml_value
 
 __all__ = [
     "COMPONENTS",
+    "FreeSpaceTarget",
     "ModelSpec",
     "Noise",
     "Scene",
@@ -153,6 +154,12 @@ class SensorModel:
     iterations: int = 250_000
     #: Largest count a bin can hold (24-bit on the TMF8828).
     saturation_counts: float = float(2**24 - 1)
+    #: Two-dimensional zone grid (rows, cols) of a TMF882x in free space (3x3, 4x4, 8x8);
+    #: ``rows * cols`` must equal ``zones``. None: the angular fan of zones along the waveguide.
+    grid: tuple[int, int] | None = None
+    #: A sensor model fitted by ``tofjax sensor fit`` (JSON path, relative to the working
+    #: directory): its bin width, pulse, pile-up and zone offsets replace the nominal ones.
+    model: str | None = None
 
     def __post_init__(self):
         _positive(self.bin_width_s, "bin_width_s")
@@ -176,6 +183,9 @@ class SensorModel:
         if not 1 <= self.iterations <= MAX_ITERATIONS:
             raise ConfigError(f"iterations: must be in [1, {MAX_ITERATIONS}], got {self.iterations!r}")
         _positive(self.saturation_counts, "saturation_counts")
+        if self.grid is not None:
+            if min(self.grid) < 1 or self.grid[0] * self.grid[1] != self.zones:
+                raise ConfigError(f"grid: {self.grid[0]} x {self.grid[1]} zones do not make zones = {self.zones}")
 
     @property
     def emission_time(self) -> float:
@@ -258,6 +268,19 @@ class Touch:
 
 
 @dataclass(frozen=True)
+class FreeSpaceTarget:
+    """A flat target in air, perpendicular to the sensor's axis (a free-space scene: no waveguide)."""
+
+    distance_m: float
+    #: Scales the return relative to the target the sensor model was fitted on.
+    reflectance: float = 1.0
+
+    def __post_init__(self):
+        _positive(self.distance_m, "distance_m")
+        _positive(self.reflectance, "reflectance", strict=False)
+
+
+@dataclass(frozen=True)
 class Noise:
     """How expected counts become a measured histogram."""
 
@@ -293,13 +316,18 @@ class ModelSpec:
                 raise ConfigError(f"exclude: unknown component {c!r}; known: {', '.join(COMPONENTS)}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Scene:
-    """A whole scene. Build it with :func:`load_scene` or :func:`scene_from_dict`."""
+    """A whole scene. Build it with :func:`load_scene` or :func:`scene_from_dict`.
 
-    waveguide: Waveguide
+    A free-space scene (a TMF882x looking at a flat target in air) has no ``[waveguide]``;
+    its sensor positions are not checked against an edge and ``[target]`` gives the target.
+    """
+
+    waveguide: Waveguide | None = None
     sensor: SensorModel
     sensors: tuple[SensorPlacement, ...]
+    target: FreeSpaceTarget | None = None
     touches: tuple[Touch, ...] = ()
     noise: Noise = field(default_factory=Noise)
     model: ModelSpec = field(default_factory=ModelSpec)
@@ -314,6 +342,12 @@ class Scene:
             raise ConfigError(f"sensors: at most {MAX_SENSORS} sensors (8 muxes of 8), got {len(self.sensors)}")
         if len(self.touches) > MAX_TOUCHES:
             raise ConfigError(f"touches: at most {MAX_TOUCHES} contacts, got {len(self.touches)}")
+        if wg is None:
+            if self.touches:
+                raise ConfigError("touches: a free-space scene (no [waveguide]) has no contacts")
+            return
+        if self.target is not None:
+            raise ConfigError("target: a flat target in air belongs to a free-space scene; remove [waveguide] or [target]")
         for i, s in enumerate(self.sensors):
             key = f"sensors[{i}]"
             x, y = s.position_m
@@ -359,8 +393,26 @@ class Scene:
             return np.zeros((0, 4))
         return np.concatenate([t.elements() for t in self.touches], 0)
 
+    @property
+    def free_space(self) -> bool:
+        """True for a sensor in air looking at a flat target (no waveguide)."""
+        return self.waveguide is None
+
+    def with_sensor_model(self, path: str) -> "Scene":
+        """This scene with ``[sensor] model`` set to a fitted sensor model (``tofjax sensor fit``);
+        its bin width replaces the nominal one, so a waveguide fit no longer absorbs it into n1."""
+        from .sensor.response import load_sensor_model
+
+        fitted = load_sensor_model(path)
+        sm = dataclasses.replace(self.sensor, model=str(path), bin_width_s=float(fitted.bin_width_s))
+        if self.waveguide is None and fitted.n_zones == sm.zones and sm.grid is None:
+            sm = dataclasses.replace(sm, grid=tuple(fitted.grid))
+        return dataclasses.replace(self, sensor=sm)
+
     def components(self) -> tuple[str, ...]:
         """The model components this scene requires (see :class:`ModelSpec`)."""
+        if self.waveguide is None:
+            return ("target", "ambient")
         if not isinstance(self.model.components, str):
             return tuple(c for c in COMPONENTS if c in self.model.components and c not in self.model.exclude)
         wg, sm = self.waveguide, self.sensor

@@ -123,6 +123,16 @@ class TMF8828Emulator:
         self.enabled = False
         self._power_off()
 
+    @classmethod
+    def from_sensor_model(cls, model, distance_m: float, clock: SimClock, **kwargs) -> "TMF8828Emulator":
+        """An emulator whose histograms come from a sensor model fitted on real data
+        (``tofjax sensor fit``): a TMF882x looking at a flat target at ``distance_m``, with the
+        learned pulse, pile-up and the reference channel's own pulse."""
+        from ..sensor.simulate import emulator_signals
+
+        lam, ref = emulator_signals(model, distance_m)
+        return cls(lam[0], ref[0], clock, bin_width_s=float(model.bin_width_s), **kwargs)
+
     # ---- power --------------------------------------------------------------------------
     def _power_off(self) -> None:
         self.address = P.ADDRESS

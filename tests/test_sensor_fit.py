@@ -1,0 +1,182 @@
+"""The TMF882x sensor model (issue 12): the learned pulse, the sensor fit, ranging, the
+free-space scene, and the CLI on a slice of the real TMF8820 sweep (tests/data)."""
+
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tofjax.cli import main
+from tofjax.model.pulse import emg_mixture_cdf, template_bin_masses, template_cdf
+from tofjax.sensor import SensorFitOptions, SensorModelError, SensorResponse, expected_counts, fit_sensor, range_histograms
+from tofjax.sensor.response import C_AIR
+
+DATA = Path(__file__).parent / "data" / "tmf8820-plane-sweep" / "captures.json"
+FAST = SensorFitOptions(knots_per_bin=2, pulse_bins=16.0, max_iterations=25, walk_degree=-1, shape_drift=False)
+
+
+def test_template_cdf_is_exact_for_a_triangle():
+    # pdf: a triangle on [0, 2] peaking at 1 (area 1) on knots 0.5 apart
+    pdf = jnp.array([0.0, 0.5, 1.0, 0.5, 0.0])
+    u = jnp.linspace(-1.0, 3.0, 81)
+    ref = np.where(u < 0, 0, np.where(u < 1, u**2 / 2, np.where(u < 2, 1 - (2 - u) ** 2 / 2, 1)))
+    np.testing.assert_allclose(template_cdf(u, pdf, 0.0, 0.5), ref, atol=1e-12)
+    m = template_bin_masses(jnp.array([3.3, 40.25]), pdf, 0.0, 0.5, 64)
+    np.testing.assert_allclose(m.sum(-1), 1.0, atol=1e-12)
+
+
+def _truth_model(n_zones=1, bin_width=94e-12, pile=3e6):
+    step = 0.5
+    knots = -2.0 + step * np.arange(int(16 / step) + 1)
+    edges = np.concatenate([knots - step / 2, [knots[-1] + step / 2]])
+    c = np.asarray(emg_mixture_cdf(jnp.asarray(edges), [0.8, 0.2], [0.35, 0.5], [0.7, 4.0], [0.0, 0.4]))
+    pdf = np.diff(c) / step
+    slope = 2.0 / (C_AIR * bin_width)
+    return SensorResponse(
+        bin_width_s=bin_width, n_bins=64, grid=(1, n_zones), zero_range_bins=np.full(n_zones, 12.4),
+        bins_per_m=np.full(n_zones, slope), pulse=np.tile(pdf, (n_zones, 1)), pulse_start_bins=-2.0, pulse_step_bins=step,
+        pulses_per_histogram=np.full(n_zones, pile), gain_m2=np.full(n_zones, 8e3), ambient_counts=np.full(n_zones, 100.0),
+    )
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    truth = _truth_model()
+    rng = np.random.default_rng(3)
+    d = np.linspace(0.05, 0.35, 14)  # enough sub-bin phases to pin the pulse between its knots
+    lam = expected_counts(truth, d)
+    model, details = fit_sensor(rng.poisson(lam).astype(float), d, FAST, grid=(1, 1))
+    return truth, model, details, rng
+
+
+def test_fit_recovers_a_known_sensor(synthetic):
+    truth, model, details, _ = synthetic
+    r = model.report
+    assert abs(model.bin_width_s / truth.bin_width_s - 1) < 0.01
+    assert r["bin_width_se_s"] < 0.01 * truth.bin_width_s
+    assert 0.7 < r["median_reduced_chi2"] < 1.5  # the model reaches the Poisson floor
+    assert abs(r["pulses_per_histogram"][0] / 3e6 - 1) < 0.3
+    # the zero-range time of the pulse peak, not of the pulse's arbitrary origin
+    assert abs(model.zero_range_s()[0] / truth.zero_range_s()[0] - 1) < 0.01
+
+
+def test_range_on_fresh_noise(synthetic):
+    truth, model, _, rng = synthetic
+    d = np.array([0.07, 0.155, 0.31])
+    res = range_histograms(model, rng.poisson(expected_counts(truth, d)).astype(float))
+    err = res["distance_m"][:, 0] - d
+    assert np.all(np.abs(err) < 5 * res["stderr_m"][:, 0] + 2e-4)
+    assert np.all(res["stderr_m"] < 1e-3) and np.median(res["reduced_chi2"]) < 3
+
+
+def test_single_distance_is_an_error():
+    truth = _truth_model()
+    lam = expected_counts(truth, np.full(4, 0.2))
+    with pytest.raises(SensorModelError, match="bin width cannot be identified: 1 distinct"):
+        fit_sensor(lam, np.full(4, 0.2), FAST)
+
+
+def test_saturated_frames_are_named_and_left_out():
+    truth = _truth_model()
+    d = np.linspace(0.05, 0.35, 5)
+    lam = expected_counts(truth, d)
+    lam[2, 0, 20] = 2**24 - 1
+    with pytest.warns(UserWarning, match="frames 2 have saturated bins"):
+        model, _ = fit_sensor(np.round(lam), d, FAST)
+    assert 2 not in model.report["frames"]
+
+
+def test_model_file_round_trip(tmp_path, synthetic):
+    from tofjax.sensor import load_sensor_model
+
+    _, model, _, _ = synthetic
+    back = load_sensor_model(model.save(tmp_path / "s.json"))
+    np.testing.assert_allclose(expected_counts(back, [0.1]), expected_counts(model, [0.1]))
+    (tmp_path / "bad.json").write_text(json.dumps({"format": "other"}))
+    with pytest.raises(SensorModelError, match="not a tofjax sensor model"):
+        load_sensor_model(tmp_path / "bad.json")
+
+
+def test_free_space_scene_and_grids(tmp_path, synthetic):
+    from tofjax.config import ConfigError
+    from tofjax.scene import scene_from_dict
+
+    base = {"sensor": {"bin_width_s": 1e-10, "n_bins": 128, "zones": 16, "grid": [4, 4], "fov_deg": 45.0},
+            "sensors": [{"position_m": [0.0, 0.0], "direction_deg": 0.0}], "target": {"distance_m": 0.2}}
+    s = scene_from_dict(base)
+    assert s.free_space and s.shape == (1, 16, 128) and s.components() == ("target", "ambient")
+    with pytest.raises(ConfigError, match="grid: 3 x 3 zones do not make zones = 16"):
+        scene_from_dict({**base, "sensor": {**base["sensor"], "grid": [3, 3]}})
+    path = synthetic[1].save(tmp_path / "s.json")
+    fitted = scene_from_dict({**base, "sensor": {**base["sensor"], "zones": 1, "grid": [1, 1]}}).with_sensor_model(str(path))
+    assert fitted.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) and fitted.sensor.model == str(path)
+    # a waveguide scene takes the measured bin width (what `tofjax calibrate --sensor` does)
+    from tofjax import load_scene
+
+    guide = load_scene("optoskin").with_sensor_model(str(path))
+    assert guide.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) and not guide.free_space
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory):
+    """The CLI on the real slice: import, sensor fit, range."""
+    d = tmp_path_factory.mktemp("real")
+    assert main(["import", str(DATA), "--format", "tmf882x-json", "--out", str(d / "c.h5")]) == 0
+    assert main(["sensor", "fit", str(d / "c.h5"), "--out", str(d / "s.json"), "--knots-per-bin", "2",
+                 "--max-iterations", "12", "--no-shape-drift", "--plots", str(d / "plots")]) == 0
+    assert main(["range", str(d / "c.h5"), "--sensor", str(d / "s.json"), "--json", str(d / "r.json")]) == 0
+    return d
+
+
+def test_real_slice_sensor_fit(real):
+    rep = json.loads((real / "s.json").read_text())["report"]
+    # a bin near 94 ps (not the nominal 100), agreeing with the raw peak-time line within 1%
+    assert 90e-12 < rep["bin_width_s"] < 97e-12
+    assert abs(rep["bin_width_relative_difference"]) < 0.01
+    assert np.all(np.isfinite(rep["frame_reduced_chi2"])) and rep["median_reduced_chi2"] < 30
+    assert len(rep["frame_reduced_chi2"]) == 8 and (real / "plots" / "residuals.png").is_file()
+
+
+def test_real_slice_range_json(real):
+    out = json.loads((real / "r.json").read_text())
+    assert len(out["frames"]) == 8 and all(len(f["zones"]) == 9 for f in out["frames"])
+    truth = [e["dist_to_plane"] for e in json.loads(DATA.read_text())]
+    centre = np.array([f["zones"][4]["distance_m"] for f in out["frames"]])
+    assert np.all(np.abs(centre - truth) < 3e-3)
+    assert all(f["zones"][4]["stderr_m"] > 0 for f in out["frames"])
+
+
+def test_cli_single_distance_one_line(tmp_path, capsys):
+    entries = json.loads(DATA.read_text())[3:4] * 3
+    p = tmp_path / "one.json"
+    p.write_text(json.dumps(entries))
+    assert main(["import", str(p), "--format", "tmf882x-json", "--out", str(tmp_path / "c.h5")]) == 0
+    assert main(["sensor", "fit", str(tmp_path / "c.h5"), "--out", str(tmp_path / "s.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "bin width cannot be identified" in err
+
+
+def test_simulated_and_emulated_histograms_come_from_the_fitted_model(tmp_path, synthetic):
+    from tofjax.hw import protocol as P
+    from tofjax.hw.bus import SimClock
+    from tofjax.hw.emulator import TMF8828Emulator
+    from tofjax.scene import scene_from_dict
+    from tofjax.sensor.simulate import simulate_free_space
+
+    truth = _truth_model(n_zones=9)
+    truth = SensorResponse(**{**truth.__dict__, "n_bins": 128})
+    path = truth.save(tmp_path / "truth.json")
+    scene = scene_from_dict({"sensor": {"bin_width_s": 94e-12, "n_bins": 128, "zones": 9, "grid": [3, 3], "fov_deg": 40.0,
+                                        "model": str(path)},
+                             "sensors": [{"position_m": [0.0, 0.0], "direction_deg": 0.0}], "target": {"distance_m": 0.2}})
+    cap = simulate_free_space(scene, 3, seed=1)
+    assert cap.histograms.shape == (3, 1, 9, 128) and np.all(cap.target_distance_m == 0.2)
+    res = range_histograms(truth, cap.histograms[:, 0])
+    assert np.all(np.abs(res["distance_m"] - 0.2) < 1e-3) and np.median(res["reduced_chi2"]) < 2
+    emu = TMF8828Emulator.from_sensor_model(truth, 0.15, SimClock())
+    counts, _ = emu._draw_frame(P.layout_for(9))
+    zones = emu.last_frame[0]
+    assert zones.shape == (9, 128) and counts.max() > 0
+    assert np.all(np.abs(range_histograms(truth, zones[None].astype(float))["distance_m"] - 0.15) < 1e-3)
