@@ -114,7 +114,7 @@ def test_model_threshold_is_relative_to_noise(optoskin):
     det = inv.detect(m)
     k, d = match(det.positions(), C[0, :, :2])
     assert k == 3 == len(det.touches) and d.max() < 0.015
-    assert inv.options.detect.threshold == 0.0 and inv.options.detect.n_sigma == 3.0
+    assert inv.options.detect.threshold == 0.0 and inv.options.detect.n_sigma == 1.0
     old = dataclasses.replace(inv, options=dataclasses.replace(
         inv.options, detect=dataclasses.replace(inv.options.detect, threshold=0.2, n_sigma=0.0)))
     assert len(old.detect(m).touches) < 3

@@ -138,7 +138,7 @@ def _common(s):
         "--n-sigma",
         type=float,
         help="detection threshold in noise standard deviations: of the no-touch map at each pixel "
-        "(back-projection, default 7) or of each cell's strength (--method model, default 3)",
+        "(back-projection, default 7) or of each cell's strength (--method model, default 1)",
     )
     s.add_argument(
         "--relative",

@@ -70,7 +70,7 @@ class ReconstructOptions:
     sum_cells: bool = True
     min_strength: float = 0.0
     edge_exclusion_m: float = 0.012
-    n_sigma: float = 3.0
+    n_sigma: float = 1.0
     relative: float = 0.1
     dtype: str = "float32"
 
