@@ -31,7 +31,7 @@ class DetectOptions:
     """- ``threshold``: absolute floor, in map units.
     - ``relative``: fraction of the map's maximum below which nothing is a touch.
     - ``n_sigma``: multiple of the per-pixel noise (when a noise map is given).
-    - ``cfar``: test ``(map - floor) / noise`` against ``n_sigma``, with the floor and noise of
+    - ``cfar``: (methods with a baseline: ``baseline``, ``full``) test ``(map - floor) / noise`` against ``n_sigma``, with the floor and noise of
       no-touch maps measured by an ensemble (``cfar_draws`` Poisson draws around the
       baseline mean, seeded by ``cfar_seed``, or the baseline's own frames when given);
       otherwise ``map`` against ``n_sigma`` times the linear (unclipped) Poisson noise.

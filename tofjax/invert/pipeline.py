@@ -322,7 +322,9 @@ def build_inverter(
                 cfar=False,
             ),
         )
-    elif options.detect.cfar and corr_method != "raw":
+    elif options.detect.cfar and corr_method in ("baseline", "full"):
+        # Only for the methods that use a baseline: subtracting the mean no-touch map would
+        # be a baseline removal, which raw and decay (seed 000's ablations) must not have.
         inv.floor, inv.noise = _ensemble_floor(
             corrector,
             operator,
