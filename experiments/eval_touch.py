@@ -15,6 +15,19 @@ sensor that sees them has another contact in front, in the same zone) get their 
 Shapes are scored by coverage: the share of the shape's length within 1 cm of a detected
 contact area, and the share of detected area within 1.5 cm of the shape.
 
+Two data sources, scored the same way (the README reports both columns):
+
+* ``own``: tofjax's forward model (:func:`tofjax.invert.synth.simulate_contacts`), baseline
+  from :func:`tofjax.simulate.simulate`;
+* ``independent``: the NumPy simulator ``tests/indep_sim.py`` (different discretisation,
+  pulse, emission time, per-zone gains, crosstalk, shadowing, no multiple scattering), its
+  own 100-frame baseline. The inversion uses the scene's stated optics (``n1``, ``mu_s``,
+  ``mu_a``: the truth) or, with ``calibration``, a calibrated set.
+
+Recall is also split by the contact's distance to the nearest edge (``border_m``: border
+band vs interior). ``attenuations`` repeats the six-contact scenario on guides with other
+``(mu_s, mu_a)``.
+
 Writes ``eval_touch.json``, ``eval_touch.md`` (the table) and figures
 ``fig5_single.png``, ``fig6_multi.png``, ``fig7_shapes.png``, ``metrics.png``.
 
@@ -27,6 +40,7 @@ import argparse
 import dataclasses
 import json
 import math
+import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,9 +50,11 @@ from tqdm import tqdm
 
 import tofjax
 from tofjax.config import from_dict, load_toml
+from tofjax.invert.correction import OpticalParams
 from tofjax.invert.detect import DetectOptions, match
 from tofjax.invert.maps import MapOptions
 from tofjax.invert.pipeline import InvertOptions, build_inverter
+from tofjax.invert.reconstruct import ReconstructOptions
 from tofjax.invert.synth import random_contacts, shadowed, simulate_contacts
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
@@ -48,17 +64,31 @@ from tofjax.simulate import simulate
 class EvalConfig:
     scene: str = "optoskin"
     methods: tuple[str, ...] = ("raw", "decay", "baseline", "full", "model")
+    sources: tuple[str, ...] = ("own", "independent")
     baseline_frames: int = 100
-    single_grid: int = 7  # single touches on an n x n grid
+    single_grid: int = 7  # single touches on an n x n grid (0: none)
     multi_counts: tuple[int, ...] = (3, 6)
     multi_configs: int = 100
     min_separation_m: float = 0.04
     match_radius_m: float = 0.02
+    border_m: float = 0.05  # recall is split: contacts nearer the edge than this vs the interior
     resolution_m: float = 0.0025
-    relative: float = 0.3
-    n_sigma: float = 6.0
+    relative: float = 0.2
+    n_sigma: float = 7.0
+    cfar: bool = True
+    no_touch_frames: int = 40  # no-touch frames: false touches per frame  # detection on the map divided by its noise (see DetectOptions)
+    model_n_sigma: float | None = None  # model method's threshold in noise sigma (None: its default)
+    # Six-contact runs on other guides: [mu_s_per_m, mu_a_per_m] pairs.
+    attenuations: tuple[tuple[float, float], ...] = ()
     shapes: tuple[str, ...] = ("configs/touch-stick.toml", "configs/touch-ring.toml")
+    calibration: str | None = None  # calibration JSON for the inversion (default: the scene's optics)
+    rig_seed: int = 1  # the independent simulator's rig (per-zone gains, crosstalk, sampling)
     seed: int = 0
+
+
+def _edge_distance(scene, xy):
+    lx, ly = scene.waveguide.size_m
+    return np.minimum.reduce([xy[..., 0], lx - xy[..., 0], xy[..., 1], ly - xy[..., 1]])
 
 
 def _score(detections, contacts, radius):
@@ -85,6 +115,7 @@ def _score(detections, contacts, radius):
         "detections": nd,
         "contacts": nt,
         "matched": tp,
+        "false_per_frame": (nd - tp) / max(len(contacts), 1),
     }, found
 
 
@@ -100,76 +131,167 @@ def _shape_score(det, elements, grid):
     }
 
 
-def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
-    t0 = time.perf_counter()
-    scene = load_scene(config.scene).without_touches()
-    rng_seed = config.seed
-    baseline = simulate(scene, config.baseline_frames, rng_seed)
-    B = baseline.mean()
-    opts = {
-        m: InvertOptions(
-            method=m,
-            maps=MapOptions(resolution_m=config.resolution_m),
-            detect=DetectOptions(relative=config.relative, n_sigma=config.n_sigma),
-        )
-        for m in config.methods
-    }
-    bar = tqdm(total=len(config.methods), desc="building inverters", disable=not progress)
-    inverters = {}
+def _indep():
+    """The independent simulator (a test fixture, imported from tests/)."""
+    import sys
+
+    root = Path(__file__).resolve().parents[1] / "tests"
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    import indep_sim
+
+    return indep_sim
+
+
+class _Source:
+    """Baseline and touch frames of one scene from one simulator."""
+
+    def __init__(self, kind: str, scene, config: EvalConfig):
+        self.kind, self.scene, self.config = kind, scene, config
+        if kind == "own":
+            self.baseline_frames = simulate(scene, config.baseline_frames, config.seed).histograms
+        elif kind == "independent":
+            sim = _indep()
+            self.rig = sim.IndepRig.from_scene(scene, seed=config.rig_seed)
+            self.baseline_frames = sim.simulate(self.rig, np.zeros((0, 3)), config.baseline_frames, config.seed).histograms
+        else:
+            raise ValueError(f"sources: unknown source {kind!r} (own, independent)")
+        self.baseline = self.baseline_frames.mean(0)
+
+    def frames(self, contacts, seed):
+        if self.kind == "own":
+            return simulate_contacts(self.scene, contacts, seed=seed)
+        return self.rig.histograms(contacts, seed=seed)
+
+    def shape_frame(self, shape_scene, seed):
+        if self.kind == "own":
+            return simulate(shape_scene, 1, seed).histograms
+        el = shape_scene.contact_elements()
+        return self.rig.histograms(el[None, :, [0, 1, 3]], seed=seed)
+
+
+def _options(config: EvalConfig) -> dict:
+    out = {}
     for m in config.methods:
-        inverters[m] = build_inverter(scene, B, opts[m], n_baseline=config.baseline_frames)
-        bar.update()
-    bar.close()
-    lx, ly = scene.waveguide.size_m
-    margin = 0.02
-    g = np.linspace(margin, lx - margin, config.single_grid)
-    gy = np.linspace(margin, ly - margin, config.single_grid)
-    single = np.array([[[x, y, 1.0]] for y in gy for x in g])
-    scenarios = {"single": single}
-    for n in config.multi_counts:
-        scenarios[f"multi{n}"] = random_contacts(
-            scene, config.multi_configs, n, seed=config.seed + n, min_separation_m=config.min_separation_m
+        det = DetectOptions(relative=config.relative, n_sigma=config.n_sigma, cfar=config.cfar)
+        rec = ReconstructOptions()
+        if m == "model" and config.model_n_sigma is not None:
+            rec = dataclasses.replace(rec, n_sigma=config.model_n_sigma)
+        out[m] = InvertOptions(method=m, maps=MapOptions(resolution_m=config.resolution_m), detect=det, reconstruct=rec)
+    return out
+
+
+def _optics(config: EvalConfig, scene):
+    if config.calibration is None:
+        return None
+    return OpticalParams.from_calibration(config.calibration, scene)
+
+
+def _evaluate(source: _Source, scenarios: dict, config: EvalConfig, progress: bool, examples: dict | None):
+    scene = source.scene
+    opts = _options(config)
+    optical = _optics(config, scene)
+    inverters = {}
+    for m in tqdm(config.methods, desc=f"building inverters ({source.kind})", disable=not progress):
+        inverters[m] = build_inverter(
+            scene,
+            source.baseline,
+            opts[m],
+            optical,
+            n_baseline=config.baseline_frames,
+            baseline_frames=source.baseline_frames,
         )
-    results: dict = {"scenarios": {}}
-    examples: dict = {}
+    rows = {}
     for k, (name, contacts) in enumerate(scenarios.items()):
-        H = simulate_contacts(scene, contacts, seed=config.seed + 100 + k)
+        H = source.frames(contacts, seed=config.seed + 100 + k)
         shadow = np.concatenate([shadowed(scene, c) for c in contacts])
+        border = np.concatenate([_edge_distance(scene, c[:, :2]) < config.border_m for c in contacts])
         row = {
             "configs": len(contacts),
             "contacts_per_config": contacts.shape[1],
             "shadowed_contacts": int(shadow.sum()),
+            "border_contacts": int(border.sum()),
             "methods": {},
         }
-        for m in tqdm(config.methods, desc=name, disable=not progress):
+        for m in tqdm(config.methods, desc=f"{name} ({source.kind})", disable=not progress):
             res = inverters[m].process(H)
             score, found = _score(res.detections, contacts, config.match_radius_m)
             found = np.concatenate(found)
             score["recall_shadowed"] = float(found[shadow].mean()) if shadow.any() else float("nan")
             score["recall_unshadowed"] = float(found[~shadow].mean()) if (~shadow).any() else float("nan")
+            score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
+            score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
             row["methods"][m] = score
-            idx = [0, len(contacts) // 2, len(contacts) - 1] if name == "single" else [0, 1]
-            examples.setdefault(name, {})[m] = [
-                (res.maps[i], res.detections[i], contacts[i, :, :2], res.grid) for i in idx
-            ]
-        results["scenarios"][name] = row
-    # Shapes.
-    shape_rows = {}
-    for i, path in enumerate(config.shapes):
-        sc = load_scene(path)
-        cap = simulate(sc, 1, config.seed + 200 + i)
-        el = sc.contact_elements()
-        shape_rows[sc.name] = {}
-        for m in config.methods:
-            res = inverters[m].process(cap.histograms)
-            shape_rows[sc.name][m] = _shape_score(res.detections[0], el, inverters[m].grid)
-            examples.setdefault("shapes", {}).setdefault(m, []).append(
-                (res.maps[0], res.detections[0], el[:, :2], res.grid)
-            )
-    results["shapes"] = shape_rows
+            if examples is not None:
+                idx = [0, len(contacts) // 2, len(contacts) - 1] if name == "single" else [0, 1]
+                examples.setdefault(name, {})[m] = [
+                    (res.maps[i], res.detections[i], contacts[i, :, :2], res.grid) for i in idx
+                ]
+        rows[name] = row
+    return rows, inverters
+
+
+def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
+    t0 = time.perf_counter()
+    scene = load_scene(config.scene).without_touches()
+    lx, ly = scene.waveguide.size_m
+    margin = 0.02
+    scenarios = {}
+    if config.single_grid:
+        g = np.linspace(margin, lx - margin, config.single_grid)
+        gy = np.linspace(margin, ly - margin, config.single_grid)
+        scenarios["single"] = np.array([[[x, y, 1.0]] for y in gy for x in g])
+    for n in config.multi_counts:
+        scenarios[f"multi{n}"] = random_contacts(
+            scene, config.multi_configs, n, seed=config.seed + n, min_separation_m=config.min_separation_m
+        )
+    if config.no_touch_frames:
+        scenarios["none"] = np.zeros((config.no_touch_frames, 0, 3))
+    results: dict = {"scenarios": {}, "independent": {}, "attenuation": []}
+    examples: dict = {}
+    inverters = {}
+    for kind in config.sources:
+        src = _Source(kind, scene, config)
+        rows, inv = _evaluate(src, scenarios, config, progress, examples if kind == config.sources[0] else None)
+        if kind == "own":
+            results["scenarios"] = rows
+        else:
+            results["independent"] = {"scenarios": rows}
+        if kind == config.sources[0]:
+            inverters = inv
+        # Shapes.
+        shape_rows = {}
+        for i, path in enumerate(config.shapes):
+            sc = load_scene(path)
+            H = src.shape_frame(sc, config.seed + 200 + i)
+            el = sc.contact_elements()
+            shape_rows[sc.name] = {}
+            for m in config.methods:
+                res = inv[m].process(H)
+                shape_rows[sc.name][m] = _shape_score(res.detections[0], el, inv[m].grid)
+                if kind == config.sources[0]:
+                    examples.setdefault("shapes", {}).setdefault(m, []).append(
+                        (res.maps[0], res.detections[0], el[:, :2], res.grid)
+                    )
+        if kind == "own":
+            results["shapes"] = shape_rows
+        else:
+            results["independent"]["shapes"] = shape_rows
+    six = {k: v for k, v in scenarios.items() if k == "multi6"} or {
+        "multi6": random_contacts(scene, config.multi_configs, 6, seed=config.seed + 6, min_separation_m=config.min_separation_m)
+    }
+    for mu_s, mu_a in config.attenuations:
+        wg = dataclasses.replace(scene.waveguide, mu_s_per_m=float(mu_s), mu_a_per_m=float(mu_a))
+        sc = scene.replace(waveguide=wg)
+        entry = {"mu_s_per_m": mu_s, "mu_a_per_m": mu_a}
+        for kind in config.sources:
+            rows, _ = _evaluate(_Source(kind, sc, config), six, config, progress, None)
+            entry[kind] = rows["multi6"]
+        results["attenuation"].append(entry)
     result = {
         "study": "touch detection (seed 000 section 5)",
         "data": "simulated",
+        "machine": platform.platform(),
         "config": dataclasses.asdict(config),
         "seconds": time.perf_counter() - t0,
         **results,
@@ -177,9 +299,10 @@ def run(config: EvalConfig, out: Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "eval_touch.json").write_text(json.dumps(result, indent=2))
     (out / "eval_touch.md").write_text(table(result))
-    grid = inverters[config.methods[0]].grid
-    _figures(examples, grid, scene, config.methods, out)
-    _metrics_plot(result, out / "metrics.png")
+    if inverters and scenarios:
+        grid = inverters[config.methods[0]].grid
+        _figures(examples, grid, scene, config.methods, out)
+        _metrics_plot(result, out / "metrics.png")
     return result
 
 
@@ -189,7 +312,7 @@ def _metrics_plot(result, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = list(result["scenarios"])
+    names = [n for n in result["scenarios"] if n != "none"]
     methods = list(result["scenarios"][names[0]]["methods"])
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     w = 0.8 / len(methods)
@@ -208,27 +331,61 @@ def _metrics_plot(result, path):
     plt.close(fig)
 
 
+def _pct(v):
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else "%.1f%%" % (100 * v)
+
+
 def table(result: dict) -> str:
-    lines = [
-        "| scenario | method | precision | recall | recall (shadowed) | mean error [cm] |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, row in result["scenarios"].items():
-        label = "single" if name == "single" else f"{row['contacts_per_config']} contacts"
-        label += f" ({row['configs']} configs)"
-        for m, s in row["methods"].items():
-            sh = s["recall_shadowed"]
-            shs = "-" if math.isnan(sh) else "%.0f%% of %d" % (100 * sh, row["shadowed_contacts"])
-            lines.append(
-                f"| {label} | {m} | {100 * s['precision']:.1f}% | {100 * s['recall']:.1f}% | {shs} | {s['mean_error_cm']:.2f} |"
-            )
-    if result.get("shapes"):
-        lines += ["", "| shape | method | length covered | detected area on the shape |", "|---|---|---|---|"]
-        for name, row in result["shapes"].items():
-            for m, s in row.items():
-                p = s["shape_precision"]
-                ps = "-" if math.isnan(p) else "%.0f%%" % (100 * p)
-                lines.append(f"| {name} | {m} | {100 * s['shape_recall']:.0f}% | {ps} |")
+    """Markdown tables: every scenario and method, one column group per data source."""
+    srcs = [("own", result.get("scenarios") or {})]
+    if result.get("independent", {}).get("scenarios"):
+        srcs.append(("independent", result["independent"]["scenarios"]))
+    head = " | ".join(f"{k}: precision | {k}: recall | {k}: recall border / interior | {k}: error [cm]" for k, _ in srcs)
+    lines = [f"| scenario | method | {head} |", "|---|---|" + "---|" * (4 * len(srcs))]
+    names = list(srcs[0][1]) or (list(srcs[1][1]) if len(srcs) > 1 else [])
+    for name in names:
+        row0 = next(r[name] for _, r in srcs if name in r)
+        label = "single" if name == "single" else f"{row0['contacts_per_config']} contacts"
+        label = "no touch" if name == "none" else label
+        label += f" ({row0['configs']} configs)" if name != "none" else f" ({row0['configs']} frames)"
+        for m in row0["methods"]:
+            cells = []
+            for _, rows in srcs:
+                s = rows.get(name, {}).get("methods", {}).get(m)
+                if s is None:
+                    cells.append("- | - | - | -")
+                    continue
+                if name == "none":
+                    cells.append(f"- | {s['false_per_frame']:.3f} false touches per frame | - | -")
+                    continue
+                cells.append(
+                    f"{_pct(s['precision'])} | {_pct(s['recall'])} | "
+                    f"{_pct(s.get('recall_border'))} / {_pct(s.get('recall_interior'))} | {s['mean_error_cm']:.2f}"
+                )
+            lines.append(f"| {label} | {m} | " + " | ".join(cells) + " |")
+    if result.get("attenuation"):
+        lines += ["", "Six contacts on attenuating guides:", ""]
+        kinds = [k for k in ("own", "independent") if k in result["attenuation"][0]]
+        head = " | ".join(f"{k}: precision | {k}: recall | {k}: recall border / interior | {k}: error [cm]" for k in kinds)
+        lines += [f"| mu_s + mu_a [/m] | method | {head} |", "|---|---|" + "---|" * (4 * len(kinds))]
+        for e in result["attenuation"]:
+            for m in e[kinds[0]]["methods"]:
+                cells = []
+                for k in kinds:
+                    s = e[k]["methods"][m]
+                    cells.append(
+                        f"{_pct(s['precision'])} | {_pct(s['recall'])} | "
+                        f"{_pct(s['recall_border'])} / {_pct(s['recall_interior'])} | {s['mean_error_cm']:.2f}"
+                    )
+                lines.append(f"| {e['mu_s_per_m'] + e['mu_a_per_m']:g} | {m} | " + " | ".join(cells) + " |")
+    for key, shapes in (("own", result.get("shapes")), ("independent", result.get("independent", {}).get("shapes"))):
+        if shapes:
+            lines += ["", f"| shape ({key}) | method | length covered | detected area on the shape |", "|---|---|---|---|"]
+            for name, row in shapes.items():
+                for m, s in row.items():
+                    p = s["shape_precision"]
+                    ps = "-" if math.isnan(p) else "%.0f%%" % (100 * p)
+                    lines.append(f"| {name} | {m} | {100 * s['shape_recall']:.0f}% | {ps} |")
     return "\n".join(lines) + "\n"
 
 

@@ -2,6 +2,7 @@
 reconstruction, and the fast version of the evaluation study."""
 
 import json
+import math
 from pathlib import Path
 
 import jax
@@ -141,6 +142,7 @@ def test_eval_study_fast(tmp_path):
         single_grid=2,
         multi_counts=(6,),
         multi_configs=4,
+        no_touch_frames=4,
         resolution_m=0.005,
         shapes=(str(ROOT / "configs" / "touch-ring.toml"),),
     )
@@ -148,6 +150,12 @@ def test_eval_study_fast(tmp_path):
     full, bl = r["scenarios"]["multi6"]["methods"]["full"], r["scenarios"]["multi6"]["methods"]["baseline"]
     assert full["recall"] > bl["recall"] and full["precision"] > 0.9
     assert r["scenarios"]["single"]["methods"]["full"]["recall"] == 1.0
+    # The independent simulator's column, scored the same way, border and interior apart.
+    ind = r["independent"]["scenarios"]["multi6"]["methods"]["full"]
+    assert ind["precision"] > 0.9 and ind["recall"] > 0.8
+    assert 0 < r["independent"]["scenarios"]["multi6"]["border_contacts"] < 24
+    assert not math.isnan(ind["recall_border"]) and not math.isnan(ind["recall_interior"])
+    assert r["scenarios"]["none"]["methods"]["full"]["false_per_frame"] <= 0.5
     assert r["shapes"]["touch-ring"]["full"]["shape_recall"] > 0.8
     assert json.loads((tmp_path / "eval_touch.json").read_text())["data"] == "simulated"
     assert "| 6 contacts (4 configs) | full |" in (tmp_path / "eval_touch.md").read_text()

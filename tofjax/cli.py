@@ -186,6 +186,7 @@ _RANGES = {
     "resolution_mm": (0.05, 1000.0),
     "relative": (1e-6, 1.0),
     "n_sigma": (0.0, 1e6),
+    "min_strength": (0.0, 1e12),
     "walkers": (2, 100_000),
     "max_steps": (1, 10**8),
     "photons": (1, 10**10),

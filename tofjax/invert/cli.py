@@ -6,6 +6,7 @@ Without ``--calibration`` the scene's stated optics are used and a warning says 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import warnings
@@ -15,14 +16,30 @@ __all__ = ["register"]
 
 
 def _options(a):
+    from .correction import InversionError
     from .detect import DetectOptions
     from .maps import MapOptions
     from .pipeline import InvertOptions
+    from .reconstruct import ReconstructOptions
 
+    model = a.method == "model"
+    # Reject what the chosen method would ignore instead of dropping it silently.
+    if model and a.no_cfar:
+        raise InversionError("--no-cfar applies to back-projection, not --method model")
+    if not model and a.min_strength is not None:
+        raise InversionError("--min-strength applies to --method model only")
+    detect, rec = DetectOptions(), ReconstructOptions()
+    if model:
+        changes = {"n_sigma": a.n_sigma, "relative": a.relative, "min_strength": a.min_strength}
+        rec = dataclasses.replace(rec, **{k: v for k, v in changes.items() if v is not None})
+    else:
+        changes = {"n_sigma": a.n_sigma, "relative": a.relative, "cfar": not a.no_cfar}
+        detect = dataclasses.replace(detect, **{k: v for k, v in changes.items() if v is not None})
     return InvertOptions(
         method=a.method,
         maps=MapOptions(resolution_m=a.resolution_mm / 1000.0),
-        detect=DetectOptions(relative=a.relative, n_sigma=a.n_sigma),
+        detect=detect,
+        reconstruct=rec,
     )
 
 
@@ -32,6 +49,7 @@ def _run(a, *, want_detect: bool):
 
     if a.dynamic_baseline and a.method not in ("baseline", "full"):  # before the inversion is built
         raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
+    options = _options(a)  # option errors first, before any reading
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
@@ -44,7 +62,9 @@ def _run(a, *, want_detect: bool):
             file=sys.stderr,
             flush=True,
         )
-    inv = build_inverter(base.scene, base.mean(), _options(a), optical, n_baseline=base.n_frames)
+    inv = build_inverter(
+        base.scene, base.mean(), options, optical, n_baseline=base.n_frames, baseline_frames=base.histograms
+    )
     if a.dynamic_baseline:
         from .baseline import run_dynamic
         from .correction import InversionError
@@ -142,8 +162,28 @@ def _common(s):
     )
     s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")
-    s.add_argument("--relative", type=float, default=0.3, help="detection threshold, fraction of the map maximum (0.3)")
-    s.add_argument("--n-sigma", type=float, default=6.0, help="detection threshold in per-pixel noise (6)")
+    s.add_argument(
+        "--n-sigma",
+        type=float,
+        help="detection threshold in noise standard deviations: of the no-touch map at each pixel "
+        "(back-projection, default 7) or of each cell's strength (--method model, default 1)",
+    )
+    s.add_argument(
+        "--relative",
+        type=float,
+        help="also require this fraction of the frame's maximum (default 0.2; --method model: 0.1)",
+    )
+    s.add_argument(
+        "--no-cfar",
+        action="store_true",
+        help="back-projection: compare the map with n-sigma times the linear Poisson noise instead of "
+        "normalising it by the measured no-touch floor (constant false-alarm rate, the default)",
+    )
+    s.add_argument(
+        "--min-strength",
+        type=float,
+        help="--method model: also require this summed strength, in the forward model's units (default: none)",
+    )
     s.add_argument(
         "--dynamic-baseline",
         action="store_true",

@@ -1,7 +1,12 @@
 """Touch detection on a tactile map: threshold, local maxima, connected components.
 
-A pixel is *on* when the map exceeds the threshold ``max(threshold, relative x max,
-n_sigma x noise)``; each connected region of on pixels is a contact area (its pixels are
+A pixel is *on* when the map exceeds the threshold ``max(threshold, relative x max)`` and
+its noise test: ``map > n_sigma x noise`` or, with ``cfar`` (constant false-alarm rate, the
+default for back-projection), ``(map - floor) / noise > n_sigma`` where ``floor`` and ``noise``
+are the mean and standard deviation of maps without touch (measured on the baseline's frames
+or on Poisson draws around it, see :func:`tofjax.invert.pipeline.build_inverter`): the
+normalised map has the same no-touch statistics everywhere, at the borders as in the middle,
+so one ``n_sigma`` gives the same false-alarm rate at every pixel; each connected region of on pixels is a contact area (its pixels are
 its shape: a stick or a mug's rim comes out as one elongated or ring-shaped component),
 and each local maximum inside it (at least ``min_separation_m`` from a stronger one) is a
 touch, placed at the weighted centroid of the map around it (sub-pixel).
@@ -26,18 +31,35 @@ class DetectOptions:
     """- ``threshold``: absolute floor, in map units.
     - ``relative``: fraction of the map's maximum below which nothing is a touch.
     - ``n_sigma``: multiple of the per-pixel noise (when a noise map is given).
+    - ``cfar``: (methods with a baseline: ``baseline``, ``full``) test ``(map - floor) / noise`` against ``n_sigma``, with the floor and noise of
+      no-touch maps measured by an ensemble (``cfar_draws`` Poisson draws around the
+      baseline mean, seeded by ``cfar_seed``, or the baseline's own frames when given);
+      otherwise ``map`` against ``n_sigma`` times the linear (unclipped) Poisson noise.
     - ``min_separation_m``: two touches closer than this are one.
     - ``refine_radius_m``: radius of the weighted centroid around each maximum.
-    - ``min_area_m2``: components smaller than this are ignored (isolated noisy pixels)."""
+    - ``min_area_m2``: components smaller than this are ignored (isolated noisy pixels).
+    - ``saddle``: a weaker maximum joined to an accepted stronger one (within
+      ``saddle_radius_m``) by a straight path that never dips below ``saddle`` times its own
+      height is a shoulder of that contact (a pulse tail, a range smear), not another contact.
+      1 turns the test off."""
 
     threshold: float = 0.0
-    relative: float = 0.3
-    n_sigma: float = 6.0
+    relative: float = 0.2
+    n_sigma: float = 7.0
     min_separation_m: float = 0.02
     refine_radius_m: float = 0.008
     min_area_m2: float = 2e-5
+    saddle: float = 0.4
+    saddle_radius_m: float = 0.06
+    cfar: bool = True
+    cfar_draws: int = 64
+    cfar_seed: int = 0
 
     def __post_init__(self):
+        if self.cfar_draws < 2:
+            raise ConfigError(f"cfar_draws: must be >= 2, got {self.cfar_draws!r}")
+        if not 0.0 < self.saddle <= 1.0:
+            raise ConfigError(f"saddle: must be in (0, 1], got {self.saddle!r}")
         if not 0.0 <= self.relative < 1.0:
             raise ConfigError(f"relative: must be in [0, 1), got {self.relative!r}")
         for k in ("threshold", "n_sigma", "min_separation_m", "refine_radius_m", "min_area_m2"):
@@ -75,16 +97,23 @@ def detect(
     options: DetectOptions = DetectOptions(),
     noise: np.ndarray | None = None,
     strength_scale: float = 1.0,
+    floor: np.ndarray | None = None,
 ) -> Detection:
     """Touches and contact areas in one map (ny, nx).
 
-    ``noise`` (ny, nx) is the per-pixel standard deviation of the map without touch;
-    ``strength_scale`` converts map values to contact strength.
+    ``noise`` (ny, nx) is the per-pixel standard deviation of the map without touch and
+    ``floor`` (ny, nx) its mean (used with ``options.cfar``); ``strength_scale`` converts
+    map values to contact strength.
     """
     m = np.nan_to_num(np.asarray(tactile_map, float), nan=0.0, posinf=0.0, neginf=0.0)
     peak = float(m.max()) if m.size else 0.0
     thr = max(options.threshold, options.relative * peak)
-    if noise is not None:
+    if noise is not None and options.cfar and floor is not None:
+        sd = np.asarray(noise, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(sd > 0, (m - np.asarray(floor, float)) / sd, 0.0)
+        on_noise = z > options.n_sigma
+    elif noise is not None:
         on_noise = m > options.n_sigma * np.asarray(noise, float)
     else:
         on_noise = np.ones(m.shape, bool)
@@ -124,6 +153,7 @@ def detect(
     cand = cand[np.argsort(-m[is_max])]
     rr = max(1, int(round(options.refine_radius_m / min(grid.dx, grid.dy))))
     taken: list[tuple[float, float]] = []
+    peaks: list[tuple[int, int]] = []
     for j, i in cand:
         j0, j1, i0, i1 = max(0, j - rr), min(m.shape[0], j + rr + 1), max(0, i - rr), min(m.shape[1], i + rr + 1)
         win = m[j0:j1, i0:i1]
@@ -134,11 +164,31 @@ def detect(
         y = float(np.sum(ww * Y[j0:j1, i0:i1]) / ww.sum())
         if any(math.hypot(x - a, y - b) < options.min_separation_m for a, b in taken):
             continue
+        if options.saddle < 1.0 and _is_shoulder(m, (j, i), peaks, options.saddle, options.saddle_radius_m, grid):
+            continue
         taken.append((x, y))
+        peaks.append((j, i))
         out.touches.append(
             {"x_m": x, "y_m": y, "strength": float(m[j, i] * strength_scale), "component": int(labels[j, i])}
         )
     return out
+
+
+def _is_shoulder(m, p, peaks, saddle, radius_m, grid) -> bool:
+    """True when ``m`` stays above ``saddle x m[p]`` all along the segment from pixel ``p`` to
+    one of the (stronger) ``peaks`` within ``radius_m``."""
+    j, i = p
+    h = saddle * m[j, i]
+    for pj, pi in peaks:
+        dist = math.hypot((pj - j) * grid.dy, (pi - i) * grid.dx)
+        if dist > radius_m:
+            continue
+        n = max(2, int(math.ceil(max(abs(pj - j), abs(pi - i)))) + 1)
+        jj = np.round(np.linspace(j, pj, n)).astype(int)
+        ii = np.round(np.linspace(i, pi, n)).astype(int)
+        if m[jj, ii].min() >= h:
+            return True
+    return False
 
 
 def match(detected: np.ndarray, truth: np.ndarray, radius_m: float = 0.02) -> tuple[int, np.ndarray]:

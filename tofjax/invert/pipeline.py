@@ -11,6 +11,7 @@ baseline and the calibration (gain, masks, projection, noise map); the returned
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,6 +157,7 @@ class Inverter:
     noise: np.ndarray  # (ny, nx)
     strength_scale: float
     reconstructor: object | None = None
+    floor: np.ndarray | None = None  # (ny, nx) mean no-touch map (CFAR detection subtracts it)
 
     # Module-level jitted functions: inverters of the same shapes share one compilation.
     _frame = staticmethod(_map_one)
@@ -185,7 +187,14 @@ class Inverter:
         return self._frame(self.corrector, self.operator, histogram)
 
     def detect(self, tactile_map: np.ndarray) -> Detection:
-        return detect(tactile_map, self.grid, self.options.detect, noise=self.noise, strength_scale=self.strength_scale)
+        return detect(
+            tactile_map,
+            self.grid,
+            self.options.detect,
+            noise=self.noise,
+            strength_scale=self.strength_scale,
+            floor=self.floor,
+        )
 
     def process(self, histograms: np.ndarray, *, detect: bool = True) -> ProcessResult:
         maps, ok = self.maps(histograms)
@@ -195,10 +204,10 @@ class Inverter:
         )
 
 
-def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray, n_baseline: int) -> np.ndarray:
-    """Per-pixel std of the map under Poisson noise without touch: the projection is linear,
-    so var(map) = W^2 var(h) with var(h) = gain^2 B (1 + 1/N) (photon noise of the frame and
-    of the N-frame baseline mean)."""
+def _corrected_variance(corrector: Corrector, baseline: np.ndarray, n_baseline: int) -> np.ndarray:
+    """Variance (S, Z, B) of each corrected bin without touch under Poisson noise:
+    ``gain^2 B (1 + 1/N)`` (photon noise of the frame and of the N-frame baseline mean), plus
+    the ambient estimate's own noise."""
     g = np.asarray(corrector.gain, float)
     var_h = (
         g**2
@@ -208,10 +217,52 @@ def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray
     e = np.asarray(corrector.early, float)
     if corrector.method in ("baseline", "full") and e.any():  # the ambient estimate's own noise
         var_h = var_h + g**2 * (np.maximum(baseline, 1.0) @ e**2)[..., None] * (1.0 + 1.0 / n_baseline)
-    var_flat = var_h.ravel()
+    return var_h
+
+
+def _noise_map(corrector: Corrector, operator: MapOperator, baseline: np.ndarray, n_baseline: int) -> np.ndarray:
+    """Per-pixel std of the map under Poisson noise without touch: the projection is linear,
+    so var(map) = W^2 var(h) (clipping of negative signals ignored)."""
+    var_flat = _corrected_variance(corrector, baseline, n_baseline).ravel()
     w = np.asarray(operator.weight, float)
     var = np.sum(w**2 * var_flat[np.asarray(operator.index)], axis=-1)
     return np.sqrt(var).reshape(operator.ny, operator.nx)
+
+
+def _ensemble_floor(
+    corrector: Corrector,
+    operator: MapOperator,
+    baseline: np.ndarray,
+    n_baseline: int,
+    frames: np.ndarray | None,
+    n_draws: int,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std (ny, nx) of no-touch maps: the floor a constant-false-alarm-rate detector
+    divides by. From the recorded baseline frames when there are enough (whatever their noise
+    is), else from Poisson draws around the baseline mean. Includes the clipping of negative
+    signals, which the linear noise map ignores (it makes the no-touch map positive on
+    average and narrower than the linear std). The std is scaled by sqrt(1 + 1/N): every touch
+    frame is compared with the same N-frame mean, whose own noise adds once more."""
+    if frames is not None and len(frames) >= 16:
+        h = np.asarray(frames, float)
+        inflate = math.sqrt((1.0 + 1.0 / n_baseline) / max(1.0 - 1.0 / len(h), 1e-9))
+    else:
+        rng = np.random.default_rng(seed)
+        h = rng.poisson(np.maximum(np.asarray(baseline, float), 0.0), size=(n_draws, *np.shape(baseline))).astype(float)
+        inflate = math.sqrt(1.0 + 1.0 / n_baseline)
+    maps = []
+    for i in range(0, len(h), 32):
+        chunk = h[i : i + 32]
+        n = len(chunk)
+        if n < 32:  # one compiled shape
+            chunk = np.concatenate([chunk, np.repeat(chunk[-1:], 32 - n, 0)])
+        m, _ = _map_batch(corrector, operator, jnp.asarray(chunk, corrector.gain.dtype))
+        maps.append(np.asarray(m, float)[:n])
+    maps = np.concatenate(maps)
+    mean = maps.mean(0)
+    std = maps.std(0, ddof=1) * inflate
+    return mean, std
 
 
 def build_inverter(
@@ -221,6 +272,7 @@ def build_inverter(
     optical: OpticalParams | None = None,
     *,
     n_baseline: int = 1,
+    baseline_frames: np.ndarray | None = None,
 ) -> Inverter:
     """Precompute the inversion of ``scene``.
 
@@ -231,14 +283,20 @@ def build_inverter(
     - ``options``: :class:`InvertOptions`.
     - ``optical``: calibrated optics (default: the scene's stated values).
     - ``n_baseline``: frames averaged into ``baseline`` (for the noise map).
+    - ``baseline_frames``: the baseline's frames (F, S, Z, B), if at hand: with
+      ``options.detect.cfar`` the no-touch floor is measured on them (their real noise)
+      instead of on Poisson draws around ``baseline``.
     """
     optical = OpticalParams.from_scene(scene) if optical is None else optical
     dtype = options.jnp_dtype
+    if options.method != "model" and options.reconstruct != ReconstructOptions():
+        raise ConfigError(f"reconstruct: options of the model-based method; method is {options.method!r}")
     corr_method = "full" if options.method == "model" else options.method
     corr_opts = CorrectionOptions(**{**options.correction.__dict__, "method": corr_method})
     corrector = build_corrector(scene, baseline, optical, corr_opts, dtype)
-    operator, grid = build_map_operator(scene, optical, options.maps, dtype)
     base = np.zeros(scene.shape) if baseline is None else np.asarray(baseline, float)
+    variance = _corrected_variance(corrector, base, n_baseline)
+    operator, grid = build_map_operator(scene, optical, options.maps, dtype, variance=variance)
     noise = _noise_map(corrector, operator, base, n_baseline)
     delay = optical.response_delay_s(scene.sensor.bin_width_s) if options.maps.response_delay else 0.0
     scale = 1.0 / _unit_peak(optical, scene.sensor.bin_width_s, delay) if corr_method in ("full", "decay") else 1.0
@@ -246,14 +304,35 @@ def build_inverter(
     if options.method == "model":
         from .reconstruct import build_reconstructor
 
-        inv.reconstructor = build_reconstructor(scene, base, optical, options.reconstruct, n_baseline=n_baseline)
+        rec = options.reconstruct
+        inv.reconstructor = build_reconstructor(scene, base, optical, rec, n_baseline=n_baseline)
         inv.grid = inv.reconstructor.grid
         inv.noise = inv.reconstructor.noise_map()
         inv.strength_scale = 1.0
-        # Strengths are absolute: one threshold in strength units, none relative to the maximum.
+        # Strengths sit on the forward model's amplitude scale, which a rig need not share: the
+        # threshold is in noise units (rec.n_sigma times each cell's strength noise) and relative
+        # to the frame's strongest contact; min_strength adds an absolute floor (default none).
         inv.options = dataclasses.replace(
             options,
-            detect=dataclasses.replace(options.detect, threshold=options.reconstruct.min_strength, relative=0.0),
+            detect=dataclasses.replace(
+                options.detect,
+                threshold=rec.min_strength,
+                relative=rec.relative,
+                n_sigma=rec.n_sigma,
+                cfar=False,
+            ),
+        )
+    elif options.detect.cfar and corr_method in ("baseline", "full"):
+        # Only for the methods that use a baseline: subtracting the mean no-touch map would
+        # be a baseline removal, which raw and decay (seed 000's ablations) must not have.
+        inv.floor, inv.noise = _ensemble_floor(
+            corrector,
+            operator,
+            base,
+            n_baseline,
+            baseline_frames,
+            options.detect.cfar_draws,
+            options.detect.cfar_seed,
         )
     return inv
 
@@ -281,7 +360,9 @@ def process_captures(
 ) -> ProcessResult:
     """The whole job on captures: check them, build the inversion, process every frame."""
     check_compatible(touch.scene, baseline.scene)
-    inv = build_inverter(baseline.scene, baseline.mean(), options, optical, n_baseline=baseline.n_frames)
+    inv = build_inverter(
+        baseline.scene, baseline.mean(), options, optical, n_baseline=baseline.n_frames, baseline_frames=baseline.histograms
+    )
     return inv.process(touch.histograms, detect=detect)
 
 

@@ -20,6 +20,7 @@ response tail is not mistaken for another.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import jax
@@ -49,8 +50,16 @@ class ReconstructOptions:
       (a contact between cells splits its strength among them).
     - ``edge_exclusion_m``: no cells whose centre is nearer the edge than this: there the
       contact response and the far-edge reflection (and its shadow) are confounded.
-    - ``min_strength``: detection threshold on that summed strength (absolute: strengths
-      are in the forward model's units, so no threshold relative to the maximum is needed).
+    - ``n_sigma``: detection threshold on that summed strength in units of its noise: each
+      cell's strength noise is ``1/sqrt((A^T A / sigma^2)_kk)`` (the matched filter's), and a
+      3 x 3 sum adds nine in quadrature. Relative to the noise, not to tofjax's amplitude
+      scale: a rig whose contacts come out at a tenth of the model's strength (another gain,
+      another coupling) is thresholded the same way.
+    - ``relative``: also require this fraction of the frame's largest summed strength: the
+      model never fits a rig exactly, and what it cannot explain of a contact lands in cells
+      around it, in proportion to the contact (scale-free, like the noise threshold).
+    - ``min_strength``: an extra absolute floor on the summed strength, in the forward
+      model's units (default 0: none; it was the only threshold before, 0.2).
     - ``dtype``: float32 or float64 for the solve."""
 
     cell_m: float = 0.0075
@@ -59,8 +68,10 @@ class ReconstructOptions:
     iterations: int = 300
     shadow: bool = True
     sum_cells: bool = True
-    min_strength: float = 0.2
+    min_strength: float = 0.0
     edge_exclusion_m: float = 0.012
+    n_sigma: float = 1.0
+    relative: float = 0.1
     dtype: str = "float32"
 
     def __post_init__(self):
@@ -70,6 +81,12 @@ class ReconstructOptions:
             raise ConfigError(f"contact_radius_m: must be > 0, got {self.contact_radius_m!r}")
         if self.tau < 0 or self.iterations < 1:
             raise ConfigError("tau must be >= 0 and iterations >= 1")
+        if not 0.0 <= self.relative < 1.0:
+            raise ConfigError(f"relative: must be in [0, 1), got {self.relative!r}")
+        for k in ("n_sigma", "min_strength"):
+            v = getattr(self, k)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{k}: must be a finite number >= 0, got {v!r}")
 
 
 def _params_with_optics(scene: Scene, optical: OpticalParams, dtype) -> Params:
@@ -146,7 +163,8 @@ class Reconstructor:
         sigma = np.sqrt(np.maximum(np.asarray(baseline, float).ravel()[rows], 1.0) * (1.0 + 1.0 / n_baseline))
         Aw = A[rows] / sigma[:, None]
         G = Aw.T @ Aw
-        self.lam = options.tau * np.sqrt(np.maximum(np.diag(G), 1e-30))
+        self._g_diag = np.diag(G).copy()
+        self.lam = options.tau * np.sqrt(np.maximum(self._g_diag, 1e-30))
         L = float(np.linalg.eigvalsh(G)[-1])
         dt = jnp.float64 if options.dtype == "float64" and jax.config.jax_enable_x64 else jnp.float32
         self._Aw = jnp.asarray(Aw, dt)
@@ -197,8 +215,19 @@ class Reconstructor:
         return s, ok
 
     def noise_map(self) -> np.ndarray:
-        """The sparsity term already thresholds at ``tau`` sigma: no separate noise floor."""
-        return np.zeros((self.grid.ny, self.grid.nx))
+        """Noise (std) of what :meth:`maps` returns, per cell: ``1/sqrt(G_kk)`` for one cell's
+        strength (the matched filter's noise, in strength units), nine added in quadrature
+        for the 3 x 3 sums. Cells left out (near the edge) get +inf (never detected)."""
+        var = np.full(self.grid.ny * self.grid.nx, np.inf)
+        var[self.cells] = 1.0 / np.maximum(self._g_diag[: self.n_cells], 1e-30)
+        var = var.reshape(self.grid.ny, self.grid.nx)
+        if self.options.sum_cells:
+            from scipy import ndimage
+
+            finite = np.isfinite(var)
+            v = np.where(finite, var, 0.0)
+            var = np.where(finite, 9.0 * ndimage.uniform_filter(v, size=3, mode="constant"), np.inf)
+        return np.sqrt(var)
 
 
 def build_reconstructor(
