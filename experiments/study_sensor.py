@@ -1,6 +1,6 @@
 """Study: the TMF882x sensor model on the real TMF8820 plane sweep (issue 12).
 
-Real data (80 captures of a flat plane at 5-400 mm, `/work/shared/data/tmf8820-plane-sweep/`):
+Real data (80 captures of a flat plane at 5-400 mm, `../shared/data/tmf8820-plane-sweep/`):
 
 1. **Held-out ranging.** Fit the sensor model on every other distance of 40-400 mm (even
    frames) and range the others (odd frames, never seen by the fit). Centre zone: the
@@ -13,7 +13,7 @@ Real data (80 captures of a flat plane at 5-400 mm, `/work/shared/data/tmf8820-p
 
 Writes ``study_sensor.json`` and figures to ``--out`` (default ``out/study_sensor``)::
 
-    python experiments/study_sensor.py --data /work/shared/data/tmf8820-plane-sweep/captures.json
+    python experiments/study_sensor.py --data ../shared/data/tmf8820-plane-sweep/captures.json
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import numpy as np
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", default="/work/shared/data/tmf8820-plane-sweep/captures.json")
+    p.add_argument("--data", default="../shared/data/tmf8820-plane-sweep/captures.json")
     p.add_argument("--out", default="out/study_sensor")
     p.add_argument("--knots-per-bin", type=int, default=8)
     p.add_argument("--max-iterations", type=int, default=40)

@@ -1,7 +1,7 @@
 """A register-level TMF8828 emulator whose histograms come from tofjax's forward model.
 
 It answers the byte-level transfers of :class:`~tofjax.hw.bus.SimBus` as the protocol
-page (``/work/shared/tmf8828-protocol.md``) describes the device: power-up and cpu_ready,
+page (``../shared/tmf8828-protocol.md``) describes the device: power-up and cpu_ready,
 the bootloader (frames with checksums, status bytes, RAM download, remap-reset into the
 application), the application registers, commands with pending/ok/error replies, the
 common config page, the I2C address change, interrupts, raw histogram packets offered one

@@ -1,6 +1,6 @@
 """TMF8828 I2C protocol: registers, commands, bootloader frames, record layouts, zone layouts.
 
-Every constant here comes from ``/work/shared/tmf8828-protocol.md`` (facts gathered from
+Every constant here comes from ``../shared/tmf8828-protocol.md`` (facts gathered from
 public drivers, not from the datasheet). Where this module needs something that page does
 not give, it says so next to the constant (``NOT ON THE PROTOCOL PAGE``) and
 ``docs/acquisition.md`` lists those assumptions. The driver and the emulator share this
