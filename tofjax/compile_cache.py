@@ -13,8 +13,10 @@ The CLI turns the cache on at its entry point (never on import). Where it lives,
 3. ``~/.cache/tofjax/jax``.
 
 Library users call :func:`enable_compilation_cache` themselves (a notebook, a study script).
-Entries are safe to delete at any time; ``max_size_bytes`` bounds the folder (least recently
-used entries go first).
+Entries are safe to delete at any time. The folder is not size-bounded: JAX's bounded (LRU)
+mode keeps access-time files that processes without the bound do not write, and two such
+processes sharing a folder (pytest-xdist workers, a study beside a CLI call) then fail to read
+each other's entries. A calibration's programs take a few MB; delete the folder to reclaim it.
 """
 
 from __future__ import annotations
@@ -44,7 +46,6 @@ def enable_compilation_cache(
     path: str | os.PathLike | None = None,
     *,
     min_compile_time_s: float = 0.5,
-    max_size_bytes: int = 2 * 1024**3,
 ) -> Path | None:
     """Keep compiled XLA programs on disk so later processes skip compilation.
 
@@ -54,7 +55,6 @@ def enable_compilation_cache(
       turned the cache off with ``$TOFJAX_COMPILATION_CACHE=0``, and nothing is changed).
     - `min_compile_time_s`: only programs that took at least this long to compile are stored
       (small programs are faster to recompile than to read back).
-    - `max_size_bytes`: the cache folder's size bound.
 
     **Returns:** the folder in use, or ``None`` if the cache is off or the folder cannot be
     created (a read-only home directory must not stop a fit: the cache is only an optimisation).
@@ -73,5 +73,4 @@ def enable_compilation_cache(
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    jax.config.update("jax_compilation_cache_max_size", int(max_size_bytes))
     return folder
