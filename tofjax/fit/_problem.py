@@ -268,9 +268,14 @@ class CalibrationProblem(eqx.Module):
     def prior_residuals(self, u, prior):
         """A weak Gaussian prior ``(u - prior) / width`` on the nonlinear coordinates: keeps a
         parameter the data cannot pin (mu_a -> 0 in log space) finite, barely moves the rest."""
-        if self.prior_width <= 0:
-            return jnp.zeros((0,), jnp.result_type(float))
-        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in LINEAR]
+        parts = []
+        if self.prior_width > 0:
+            parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in LINEAR]
+        if "n1" in u and "n1_anchor" in prior:
+            # the timing estimate of n1 (edge returns, known geometry) as a measurement:
+            # (centre, width); an infinite width (no edge seen) makes it zero
+            centre, width = prior["n1_anchor"][0], prior["n1_anchor"][1]
+            parts.append(jnp.ravel((self.transform("n1").to_physical(u["n1"]) - centre) / width))
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.result_type(float))
 
     def profiled_model(self, u, base: Params, data, sigma):
@@ -313,12 +318,14 @@ class CalibrationProblem(eqx.Module):
         data_part = ((m - data) / sigma).ravel()
         return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
-    def covariance_jacobian(self, params: Params, linear: dict, prior_params: Params, data, sigma):
+    def covariance_jacobian(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
         """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
         ``ravel_pytree`` order). Nonlinear columns by forward-mode AD; the linear ones (one per
         sensor or zone, most of the columns) written down from ``linear_parts``."""
         u = self.pack_jax(params, self.free, linear)
         prior = self.pack_jax(prior_params, self.free)
+        if anchor is not None:
+            prior["n1_anchor"] = anchor
         lin = {k: u[k] for k in u if k in LINEAR}
         nl = {k: u[k] for k in u if k not in LINEAR}
         f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
@@ -348,10 +355,10 @@ class CalibrationProblem(eqx.Module):
             cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - S * Z * B, block.shape[1]), ft)])
         return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
 
-    def laplace(self, params: Params, linear: dict, prior_params: Params, data, sigma):
+    def laplace(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
         """``J^T J`` over every free coordinate, and d(physical)/d(coordinates) (physical values
         in ``sorted(free)`` order), at the optimum."""
-        jac = self.covariance_jacobian(params, linear, prior_params, data, sigma)
+        jac = self.covariance_jacobian(params, linear, prior_params, data, sigma, anchor)
         u = self.pack_jax(params, self.free, linear)
         flat, unravel = jax.flatten_util.ravel_pytree(u)
         names = sorted(self.free)

@@ -91,8 +91,9 @@ def _model_at(model, params):
     return model(params)
 
 
-def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, scene: Scene, base: Params) -> Params:
-    """Step 1: emission time, ambient and n1 from the data's timing.
+def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, scene: Scene, base: Params):
+    """Step 1: emission time, ambient and n1 from the data's timing; returns the start and
+    whether n1 came from the data (an edge return was seen).
 
     The same estimators run on the model at ``base`` first; their offsets from ``base``
     (the estimators' bias: a pulse's peak is not its mean) are taken out of the estimates."""
@@ -103,14 +104,16 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
     t_e = max(t_e + float(base.emission_time_s) - ref_t_e, 0.0)
     if n1 is not None and ref_n1 is not None:
         n1 = n1 + float(base.n1) - ref_n1
+    found = n1 is not None
     n1 = float(base.n1) if n1 is None else float(np.clip(n1, 1.05, 3.5))
-    return base.replace(
+    start = base.replace(
         emission_time_s=t_e,
         ambient_counts=np.maximum(ambient, 0.1),
         n1=n1,
         mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
         mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
     )
+    return start, found
 
 
 @eqx.filter_jit

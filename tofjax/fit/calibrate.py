@@ -157,6 +157,17 @@ class FitConfig:
     - ``dtype``: ``float64`` (default) or ``float32`` for the model.
     - ``max_reduced_chi2``: above this the fit is refused (``converged = false``,
       ``result = refused_reduced_chi2``): the model does not describe the capture.
+    - ``model_error``: a relative error of the model added in quadrature to the photon
+      noise, ``sigma^2 = max(mean, 1) / frames + (model_error x mean)^2`` (0, the default:
+      photon noise only). A rig's pulse shape or near field is never exactly the model's:
+      with many frames the photon noise of the bright bins (the light-entry peak, the near
+      field) is far below that mismatch, and those bins then pull n1 and mu_t away; a floor
+      of a few per cent lets the timing and the decay decide. The reduced chi-square is
+      then relative to that floor (the JSON reports it with and without).
+    - ``timing_anchor``: the n1 read from the timing of the far-edge returns enters the fit as
+      a measurement with this relative width (default 2%: several times the estimator's
+      scatter, far below how far amplitude errors pull n1 on data the model does not fully
+      describe); 0 turns it off. Without a visible edge there is no anchor.
     - ``prior_width``: width of a weak Gaussian prior on each nonlinear parameter in the
       unconstrained space, centred on the scene's values; 0 turns it off.
     """
@@ -172,6 +183,8 @@ class FitConfig:
     envelope: bool = True
     restarts: int = 3
     prior_width: float = 3.0
+    model_error: float = 0.0
+    timing_anchor: float = 0.02
     quadrature: int = 2
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
@@ -181,6 +194,10 @@ class FitConfig:
             raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss_tol < 0:
             raise ConfigError(f"loss_tol: must be >= 0, got {self.loss_tol!r}")
+        if not 0 <= self.model_error < 1:
+            raise ConfigError(f"model_error: must be in [0, 1), got {self.model_error!r}")
+        if self.timing_anchor < 0:
+            raise ConfigError(f"timing_anchor: must be >= 0, got {self.timing_anchor!r}")
         if self.prior_width < 0:
             raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
         for k in ("rtol", "atol", "max_reduced_chi2"):
@@ -292,7 +309,7 @@ def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationP
     )
 
 
-def _fit(problem, objective, solver, start, data, sigma, prior_params, max_steps, loss_tol, gn_first, with_cov):
+def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
     names = problem.nonlinear
     if problem.linear:
         p0, _, _, _ = problem.profile(start, data, sigma)
@@ -300,6 +317,7 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, max_steps
         p0 = start
     u0 = problem.pack_jax(p0, names)
     prior = problem.pack_jax(prior_params, names)
+    prior["n1_anchor"] = anchor
     f0, unravel = jax.flatten_util.ravel_pytree(u0)
     args = (p0, data, sigma, prior)
     # the deviance loss is chi-square per bin: the same tolerance in its units
@@ -339,7 +357,7 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, max_steps
     r = (m - data) / sigma
     hessian = dphys = None
     if with_cov:
-        hessian, dphys, _ = problem.laplace(params, lin, prior_params, data, sigma)
+        hessian, dphys, _ = problem.laplace(params, lin, prior_params, data, sigma, anchor)
     return FitSolution(params, lin, out.result, out.steps, out.history, jnp.sum(r**2), r, hessian, dphys)
 
 
@@ -352,6 +370,7 @@ def fit_problem(
     data,
     sigma,
     prior_params: Params,
+    anchor,
     *,
     max_steps: int = 200,
     loss_tol: float = 1e-3,
@@ -363,24 +382,25 @@ def fit_problem(
 
     **Arguments:** the problem, objective and solver objects; ``start`` (its nonlinear
     parameters are the starting point, the rest stay fixed); ``data`` mean histograms
-    (S, Z, B) and ``sigma`` their standard deviations; ``prior_params`` the prior centre.
+    (S, Z, B) and ``sigma`` their standard deviations; ``prior_params`` the prior centre;
+    ``anchor`` = (n1 from timing, its width) (width inf: none).
 
     **Returns:** a :class:`FitSolution`; failures are result codes, never exceptions.
     """
-    return _fit(problem, objective, solver, start, data, sigma, prior_params, max_steps, loss_tol, gn_first, with_cov)
+    return _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov)
 
 
 @eqx.filter_jit
 def fit_problem_batch(
-    problem, objective, solver, starts: Params, data, sigma, prior_params, *, max_steps=200, loss_tol=1e-3, gn_first=10, with_cov=True
+    problem, objective, solver, starts: Params, data, sigma, prior_params, anchors, *, max_steps=200, loss_tol=1e-3, gn_first=10, with_cov=True
 ) -> FitSolution:
     """:func:`fit_problem` over a batch: ``starts`` (every leaf with a leading batch axis),
-    ``data`` and ``sigma`` (N, S, Z, B), all in one compiled, vmapped call."""
+    ``data`` and ``sigma`` (N, S, Z, B), ``anchors`` (N, 2), all in one compiled, vmapped call."""
 
-    def one(s, d, g):
-        return _fit(problem, objective, solver, s, d, g, prior_params, max_steps, loss_tol, gn_first, with_cov)
+    def one(s, d, g, a):
+        return _fit(problem, objective, solver, s, d, g, prior_params, a, max_steps, loss_tol, gn_first, with_cov)
 
-    return jax.vmap(one)(starts, data, sigma)
+    return jax.vmap(one)(starts, data, sigma, anchors)
 
 
 # ---- from a capture to a result -----------------------------------------------------------------
@@ -457,9 +477,18 @@ def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fin
     )
 
 
-def _data(capture: Capture, dtype):
+def _data(capture: Capture, dtype, model_error: float = 0.0):
+    """Mean histograms and their standard deviations (photon noise, and ``model_error``)."""
     mean = capture.mean()
-    return jnp.asarray(mean, dtype), jnp.asarray(np.sqrt(np.maximum(mean, 1.0) / capture.n_frames), dtype)
+    var = np.maximum(mean, 1.0) / capture.n_frames + (model_error * mean) ** 2
+    return jnp.asarray(mean, dtype), jnp.asarray(np.sqrt(var), dtype)
+
+
+def _anchor(start: Params, found: bool, config: FitConfig, dtype):
+    """(n1 from timing, its width): the timing measurement the fit keeps (width inf: none)."""
+    n1 = float(start.n1)
+    width = config.timing_anchor * n1 if (found and config.timing_anchor > 0) else np.inf
+    return jnp.asarray([n1, width], dtype)
 
 
 def _rank(res: CalibrationResult) -> tuple:
@@ -500,9 +529,10 @@ def calibrate(
     objective = config.make_objective() if objective is None else objective
     _check_pair(solver, objective)
     dtype = problem.model.geometry.ray_length.dtype
-    data, sigma = _data(capture, dtype)
+    data, sigma = _data(capture, dtype, config.model_error)
     base = Params.from_scene(scene, dtype)
-    start = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
+    start, found = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
+    anchor = _anchor(start, found, config, dtype)
     stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
     if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
         candidates = envelope_candidates(problem, start, data, sigma, 1 + config.restarts)
@@ -515,7 +545,7 @@ def calibrate(
     best = None
     for k, s in enumerate(candidates):
         sol = fit_problem(
-            problem, objective, solver, s, data, sigma, base,
+            problem, objective, solver, s, data, sigma, base, anchor,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
         )
         sol = jax.device_get(sol)
@@ -550,8 +580,10 @@ def calibrate_many(
     _check_pair(solver, objective)
     dtype = problem.model.geometry.ray_length.dtype
     base = Params.from_scene(scene, dtype)
-    pairs = [_data(c, dtype) for c in captures]
-    starts = [timing_start(problem, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
+    pairs = [_data(c, dtype, config.model_error) for c in captures]
+    timed = [timing_start(problem, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
+    starts = [s for s, _ in timed]
+    anchors = jnp.stack([_anchor(s, f, config, dtype) for s, f in timed])
     if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
         starts = [envelope_candidates(problem, s, d, g, 1)[0] for s, (d, g) in zip(starts, pairs)]
     stack = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *starts)
@@ -559,7 +591,7 @@ def calibrate_many(
     sigma = jnp.stack([g for _, g in pairs])
     sols = jax.device_get(
         fit_problem_batch(
-            problem, objective, solver, stack, data, sigma, base,
+            problem, objective, solver, stack, data, sigma, base, anchors,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
         )
     )
