@@ -20,6 +20,7 @@ Residuals are Poisson-weighted, ``(model - mean) / sqrt(max(mean, 1) / frames)``
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
 
@@ -558,8 +559,37 @@ def calibrate(
             best = res
         if res.result in ("successful", "refused_reduced_chi2"):
             break  # a restart is for failures and bounds; a poor chi-square is the model's, not the start's
+    held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
+    if held is not None:
+        best = held
     best.stages = stages
     return best
+
+
+def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, frames, stages, fingerprint):
+    """Where the model does not describe the data (refused chi-square), amplitude errors pull n1;
+    the timing of the edge returns does not depend on them. If the joint fit left the timing
+    estimate by more than half the anchor's width, refit with n1 held at the timing estimate
+    (the result stays refused; n1 is then the timing's, as the stages say)."""
+    if best.result != "refused_reduced_chi2" or not found or "n1" not in problem.nonlinear or not config.timing_anchor:
+        return None
+    n1_t = float(start.n1)
+    if abs(float(best.params.n1) / n1_t - 1) <= 0.5 * config.timing_anchor:
+        return None
+    cfg = dataclasses.replace(config, free=tuple(k for k in config.free if k != "n1"))
+    p2 = CalibrationProblem.build(problem.model, dict(problem.transforms), cfg.free, zone_gain=config.zone_gain, prior_width=config.prior_width)
+    s2 = best.params.replace(n1=n1_t)
+    no_anchor = jnp.asarray([n1_t, np.inf], data.dtype)
+    sol = jax.device_get(
+        fit_problem(p2, objective, solver, s2, data, sigma, base.replace(n1=n1_t), no_anchor,
+                    max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True)
+    )
+    res = _assemble(p2, scene, cfg, sol, frames, stages, fingerprint)
+    stages.append({"stage": "n1 held at the timing estimate", "n1": n1_t, "result": res.result, "reduced_chi2": res.reduced_chi2})
+    if res.result not in ("refused_reduced_chi2", "successful"):
+        return None
+    res.free, res.solver_converged = tuple(cfg.free), res.solver_converged
+    return res
 
 
 def calibrate_many(
