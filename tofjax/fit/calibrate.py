@@ -569,12 +569,12 @@ def calibrate(
 def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, frames, stages, fingerprint):
     """Where the model does not describe the data (refused chi-square), amplitude errors pull n1;
     the timing of the edge returns does not depend on them. If the joint fit left the timing
-    estimate by more than half the anchor's width, refit with n1 held at the timing estimate
+    estimate by more than a tenth of the anchor's width, refit with n1 held at the timing estimate
     (the result stays refused; n1 is then the timing's, as the stages say)."""
     if best.result != "refused_reduced_chi2" or not found or "n1" not in problem.nonlinear or not config.timing_anchor:
         return None
     n1_t = float(start.n1)
-    if abs(float(best.params.n1) / n1_t - 1) <= 0.5 * config.timing_anchor:
+    if abs(float(best.params.n1) / n1_t - 1) <= 0.1 * config.timing_anchor:
         return None
     cfg = dataclasses.replace(config, free=tuple(k for k in config.free if k != "n1"))
     p2 = CalibrationProblem.build(problem.model, dict(problem.transforms), cfg.free, zone_gain=config.zone_gain, prior_width=config.prior_width)
