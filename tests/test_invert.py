@@ -167,7 +167,7 @@ def test_calibration_json(scene, tmp_path):
     o = OpticalParams.from_calibration(p, scene)
     assert o.n1 == 1.45 and o.mu_s_per_m == 0.5 and o.gain == (120.0,) * 6
     assert o.mu_a_per_m == 0.1
-    bad = dict(cal, parameters={"gain": {"value": [1.0, 2.0]}})
+    bad = dict(cal, parameters={"n1": {"value": 1.45}, "gain": {"value": [1.0, 2.0]}})
     with pytest.raises(InversionError, match="2 values for 6 sensors"):
         OpticalParams.from_calibration(bad, scene)
     with pytest.raises(InversionError, match="not a calibration"):
