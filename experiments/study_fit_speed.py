@@ -31,12 +31,14 @@ from pathlib import Path
 
 import jax
 import jax.flatten_util
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
 import tofjax
 from tofjax.config import from_dict, load_toml
-from tofjax.fit.calibrate import Calibrator, FitConfig, _initial_params
+from tofjax.fit._start import envelope_candidates, timing_start
+from tofjax.fit.calibrate import Calibrator, FitConfig, _anchor, fit_problem
 from tofjax.scene import SensorModel, load_scene
 from tofjax.simulate import simulate
 
@@ -109,41 +111,57 @@ def _errors(res, ref, truth) -> dict:
     }
 
 
+def _data(calibrator: Calibrator, cap):
+    dtype = calibrator.problem.model.geometry.ray_length.dtype
+    mean = cap.mean()
+    return jnp.asarray(mean, dtype), jnp.asarray(np.sqrt(np.maximum(mean, 1.0) / cap.n_frames), dtype)
+
+
 def _start(calibrator: Calibrator, cap):
-    problem = calibrator._problem
-    problem.set_data(cap.mean(), cap.n_frames)
+    """The calibration's own start: timing, then the envelope's best grid point."""
+    problem = calibrator.problem
     base = calibrator.base_params()
-    ref = problem.reference_estimates(calibrator.scene, base, cap.n_frames)
-    return _initial_params(cap, calibrator.scene, base, ref), base
+    data, sigma = _data(calibrator, cap)
+    start, found = timing_start(problem, np.asarray(data), cap.n_frames, calibrator.scene, base)
+    anchor = _anchor(start, found, calibrator.config, data.dtype)
+    if calibrator.config.envelope:
+        start = envelope_candidates(problem, start, data, sigma, 1)[0]
+    return (start, anchor), base
 
 
 def _solve_runner(calibrator: Calibrator):
     """The compiled solve of ``calibrator``'s setting without the covariance (what scipy is
-    compared with): start from the data, solve, profile the end point."""
+    compared with): start, solve, profile the end point."""
     cfg = calibrator.config
-    problem = calibrator._problem
-    gn = min(cfg.gauss_newton_first if cfg.solver in ("levenberg-marquardt", "dogleg") else 0, cfg.max_steps)
-    return problem.core_for(
-        problem.nonlinear, cfg.make_solver(), cfg.max_steps, cfg.solver == "poisson-deviance", cfg.loss_tol, False, gn
-    )
+    problem, solver, objective = calibrator.problem, cfg.make_solver(), cfg.make_objective()
+
+    def run(start_anchor, data, sigma, base):
+        start, anchor = start_anchor
+        sol = fit_problem(
+            problem, objective, solver, start, data, sigma, base, anchor,
+            max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first, with_cov=False,
+        )
+        return {"params": sol.params, "steps": sol.steps, "result": sol.result}
+
+    return run
 
 
 def _time_solve(calibrator: Calibrator, cap, repeats: int) -> tuple[float, object]:
     """Median warm time of the solve alone (start from the data included), and its end point."""
     run = _solve_runner(calibrator)
-    problem = calibrator._problem
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         start, base = _start(calibrator, cap)
-        out = jax.block_until_ready(run(start, problem.data, problem.sigma, base))
+        data, sigma = _data(calibrator, cap)
+        out = jax.block_until_ready(run(start, data, sigma, base))
         times.append(time.perf_counter() - t)
     return float(np.median(times)), out
 
 
 def _scipy_problem(calibrator: Calibrator):
     """Jitted residuals and JAX Jacobian of the same profiled problem, for scipy (compiled once)."""
-    problem = calibrator._problem
+    problem = calibrator.problem
     base = calibrator.base_params()
     u = problem.pack(base)
     _, unravel = jax.flatten_util.ravel_pytree(u)
@@ -157,14 +175,16 @@ def _scipy_solve(calibrator: Calibrator, sp, cap, method: str, tol: float, jacob
     with the JAX Jacobian (``"jax"``) or scipy's own finite differences (``"2-point"``)."""
     from scipy.optimize import least_squares
 
-    problem = calibrator._problem
+    problem = calibrator.problem
     f, jac, _ = sp
+    profile = jax.jit(lambda p, d, g: problem.profile(p, d, g)[0])
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         start, base = _start(calibrator, cap)
-        p0 = problem.profile_jit(start, problem.data, problem.sigma)
-        args = (p0, problem.data, problem.sigma, problem.pack(base))
+        data, sigma = _data(calibrator, cap)
+        p0 = profile(start[0], data, sigma)
+        args = (p0, data, sigma, {**problem.pack(base), "n1_anchor": start[1]})
         x0 = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(p0))[0], np.float64)
         out = least_squares(
             lambda x: np.asarray(f(x, args), np.float64),
@@ -240,7 +260,7 @@ def run_scipy(config: FitSpeedConfig, scene, caps, refs) -> dict:
     methods = [f"{m} {j}" for m in config.scipy_methods for j in config.scipy_jacobians]
     runs = []
     for cap, ref in zip(caps, refs):
-        problem = default._problem
+        problem = default.problem
         ours, out = _time_solve(default, cap, config.repeats)
         x_ours = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(out["params"]))[0])
         flat_ref = np.asarray(jax.flatten_util.ravel_pytree(problem.pack(ref.params))[0])

@@ -185,17 +185,24 @@ def test_posterior_short_run_resume_and_guard(fitted, tmp_path, small):
 
 
 def test_covariance_jacobian_matches_autodiff(fitted):
-    """The linear columns written down from linear_parts equal forward-mode AD of the full residuals."""
+    """The linear columns written down from linear_parts (per-zone gain included) equal
+    forward-mode AD of the full residuals."""
     import jax
     import jax.flatten_util
+    import jax.numpy as jnp
 
-    cal, res, _ = fitted
-    problem = cal._problem
-    u = problem.pack(res.params, problem.free)
+    cal, res, cap = fitted
+    problem = cal.problem
+    lin = {k: jnp.asarray(res.values[k]) for k in problem.linear}
+    u = problem.pack_jax(res.params, problem.free, lin)
     flat, unravel = jax.flatten_util.ravel_pytree(u)
-    prior = problem.pack(cal.base_params(), problem.free)
-    ad = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), res.params, prior))(flat))
-    ours = problem.covariance_jacobian(res.params, cal.base_params())
+    prior = problem.pack_jax(cal.base_params(), problem.free)
+    data = jnp.asarray(cap.mean())
+    sigma = jnp.sqrt(jnp.maximum(data, 1.0) / cap.n_frames)
+    ad = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), res.params, prior, data, sigma))(flat))
+    import equinox as eqx
+
+    ours = np.asarray(eqx.filter_jit(type(problem).covariance_jacobian)(problem, res.params, lin, cal.base_params(), data, sigma))
     assert ours.shape == ad.shape
     np.testing.assert_allclose(ours, ad, rtol=0, atol=1e-9 * np.abs(ad).max())
 
@@ -203,7 +210,7 @@ def test_covariance_jacobian_matches_autodiff(fitted):
 @given(mu_s=st.floats(1e-4, 1e3), mu_a=st.floats(1e-4, 1e3))
 def test_extinction_albedo_coordinates_round_trip(fitted, mu_s, mu_a):
     cal, res, _ = fitted
-    problem = cal._problem
+    problem = cal.problem
     p = res.params.replace(mu_s_per_m=mu_s, mu_a_per_m=mu_a)
     u = problem.pack(p)
     assert "extinction" in u and "albedo" in u and "mu_s_per_m" not in u
@@ -221,3 +228,131 @@ def test_loss_rule_stops_early_within_a_fraction_of_a_standard_error(small):
     assert quick.steps < tight.steps
     for k in ("n1", "mu_s_per_m", "mu_a_per_m", "pulse_sigma_s", "end_reflectance"):
         assert abs(float(quick.values[k]) - float(tight.values[k])) < 0.2 * float(tight.stderr[k]), k
+
+
+# ---- issue 13: a rig's zones, refusals downstream, the pure problem ------------------------
+
+
+def test_zone_gains_of_a_rig_are_profiled_out(small):
+    """Zones whose gains differ by several per cent (as on a real rig): the per-zone gains come
+    back and n1 / mu_t stay right, with an honest chi-square."""
+    _rig_fit(small)
+
+
+def _rig_fit(small):
+    from tofjax.model import build_model, sample_counts
+    import jax
+
+    rng = np.random.default_rng(0)
+    factor = rng.uniform(0.9, 1.1, size=(3, 3))
+    from tofjax.model import Params
+
+    p = Params.from_scene(small.without_touches())
+    import equinox as eqx
+
+    R, P = eqx.filter_jit(lambda m, q: m.linear_parts(q))(build_model(small.without_touches()), p)  # eager: op by op, slow
+    mean = np.asarray(p.gain)[:, None, None] * factor[..., None] * np.asarray(R)
+    mean = mean + np.asarray(p.crosstalk_counts)[..., None] * np.asarray(P) + np.asarray(p.ambient_counts)[..., None]
+    frames = 60
+    h = np.asarray(sample_counts(jax.random.PRNGKey(4), np.broadcast_to(mean, (frames, *mean.shape))))
+    from tofjax.capture import Capture
+
+    cap = Capture(histograms=h, timestamps=np.arange(frames) * 0.1, scene=small.without_touches())
+    res = calibrate(cap)
+    assert res.converged, res.result
+    assert res.values["n1"] == pytest.approx(small.waveguide.n1, rel=0.005)
+    g = res.values["gain"]
+    assert g.shape == (3, 3)
+    ratio = g / g.mean(1, keepdims=True)
+    np.testing.assert_allclose(ratio, factor / factor.mean(1, keepdims=True), rtol=0.03)
+    assert 0.8 < res.reduced_chi2 < 1.3
+    return cap, res
+
+
+@pytest.mark.slow
+def test_one_gain_per_sensor_cannot_describe_a_rig(small):
+    """The same rig fitted with one gain per sensor: a worse chi-square, refused, never converged."""
+    cap, res = _rig_fit(small)
+    per_sensor = calibrate(cap, FitConfig(zone_gain=False, max_reduced_chi2=1.5))
+    assert per_sensor.reduced_chi2 > res.reduced_chi2
+    if per_sensor.reduced_chi2 > 1.5:
+        assert not per_sensor.converged and per_sensor.result == "refused_reduced_chi2"
+
+
+def test_profiled_counts_are_never_negative(fitted):
+    """The non-negative least-squares profile: even far from the optimum no count goes below zero."""
+    import jax.numpy as jnp
+
+    cal, res, cap = fitted
+    problem = cal.problem
+    data = jnp.asarray(cap.mean())
+    sigma = jnp.sqrt(jnp.maximum(data, 1.0) / cap.n_frames)
+    for n1 in (1.2, 1.7):
+        _, m, _, lin = problem.profile(res.params.replace(n1=n1, mu_s_per_m=5.0), data, sigma)
+        for k, v in lin.items():
+            assert (np.asarray(v) >= 0).all(), k
+        assert np.isfinite(np.asarray(m)).all()
+
+
+def test_calibration_json_round_trip_and_refusals(fitted, small, tmp_path):
+    from tofjax.fit import CalibrationRefused, CalibrationResult
+
+    _, res, _ = fitted
+    data = res.to_json()
+    assert data["scene_fingerprint"] and data["discrepancy"]["worst_zones"]
+    w = data["discrepancy"]["worst_zones"][0]
+    assert {"sensor", "zone", "reduced_chi2", "worst_bin"} <= set(w)
+    params = CalibrationResult.from_json(data, small)
+    assert float(params.n1) == pytest.approx(float(res.params.n1))
+    np.testing.assert_allclose(np.asarray(params.gain), np.asarray(res.values["gain"]).mean(1))
+    for change, message in (
+        ({"converged": False, "result": "refused_reduced_chi2"}, "did not converge or was refused"),
+        ({"scene_fingerprint": "0123"}, "another scene"),
+    ):
+        with pytest.raises(CalibrationRefused, match=message):
+            CalibrationResult.from_json({**data, **change}, small)
+    CalibrationResult.from_json({**data, "converged": False}, small, allow_unconverged=True)
+    CalibrationResult.from_json({**data, "scene_fingerprint": "0123"}, small, allow_other_scene=True)
+    other = small.replace(sensors=small.sensors[:2])
+    with pytest.raises(CalibrationRefused, match="another scene"):
+        CalibrationResult.from_json(data, other)
+    incomplete = {**data, "parameters": {k: v for k, v in data["parameters"].items() if k != "n1"}, "fixed": {}}
+    with pytest.raises(CalibrationRefused, match="missing parameters: n1"):
+        CalibrationResult.from_json(incomplete, small)
+
+
+def test_detect_refuses_a_refused_calibration(tmp_path, small, fitted, capsys):
+    """detect stops with one line on a refused calibration, and runs with the explicit override."""
+    _, res, _ = fitted
+    base = write_capture(tmp_path / "b.h5", simulate(small, 20, seed=1))
+    touched = small.replace(touches=(Touch(position_m=(0.12, 0.1), radius_m=0.01, strength=3.0),))
+    touch = write_capture(tmp_path / "t.h5", simulate(touched, 2, seed=2))
+    bad = {**res.to_json(), "converged": False, "result": "refused_reduced_chi2"}
+    (tmp_path / "c.json").write_text(json.dumps(bad))
+    args = ["detect", str(touch), "--baseline", str(base), "--calibration", str(tmp_path / "c.json"), "--json", str(tmp_path / "d.json")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "refused" in err and "--allow-unconverged-calibration" in err and "\n" not in err
+    assert main(args + ["--allow-unconverged-calibration"]) == 0
+
+
+@pytest.mark.slow
+def test_many_fits_in_one_compiled_call_agree_with_single_fits(small, fitted):
+    from tofjax.fit import calibrate_many
+
+    cal, _, _ = fitted
+    caps = [simulate(small, 30, seed=s) for s in (21, 22, 23)]
+    many = calibrate_many(caps, restart_failures=False)
+    for c, r in zip(caps, many):
+        one = cal.fit(c)
+        assert r.result == one.result == "successful"
+        assert float(r.values["n1"]) == pytest.approx(float(one.values["n1"]), abs=0.2 * float(one.stderr["n1"]))
+
+
+def test_objective_and_solver_must_match(small):
+    import optimistix as optx
+
+    from tofjax.fit import PoissonDeviance
+
+    with pytest.raises(ConfigError, match="not a minimiser"):
+        calibrate(simulate(small, 2, seed=0), solver=optx.LevenbergMarquardt(1e-6, 1e-6), objective=PoissonDeviance())

@@ -154,20 +154,30 @@ def test_multi_touch_full_beats_baseline(scene):
 
 
 def test_calibration_json(scene, tmp_path):
+    from tofjax.fit import scene_fingerprint
+
     cal = {
         "parameters": {"n1": {"value": 1.45, "stderr": 0.01}, "gain": {"value": [120.0] * 6, "stderr": [1.0] * 6}},
-        "fixed": {"mu_s_per_m": 0.5},
+        "fixed": {"mu_s_per_m": 0.5, "mu_a_per_m": 0.1, "emission_time_s": 1.45e-9, "pulse_sigma_s": 6e-11, "pulse_tail_s": 1.5e-10},
+        "converged": True,
+        "scene_fingerprint": scene_fingerprint(scene),
     }
     p = tmp_path / "cal.json"
     p.write_text(json.dumps(cal))
     o = OpticalParams.from_calibration(p, scene)
     assert o.n1 == 1.45 and o.mu_s_per_m == 0.5 and o.gain == (120.0,) * 6
-    assert o.mu_a_per_m == scene.waveguide.mu_a_per_m
-    bad = dict(cal, parameters={"gain": {"value": [1.0, 2.0]}})
+    assert o.mu_a_per_m == 0.1
+    bad = dict(cal, parameters={"n1": {"value": 1.45}, "gain": {"value": [1.0, 2.0]}})
     with pytest.raises(InversionError, match="2 values for 6 sensors"):
         OpticalParams.from_calibration(bad, scene)
     with pytest.raises(InversionError, match="not a calibration"):
         OpticalParams.from_calibration({"x": 1}, scene)
+    with pytest.raises(InversionError, match="did not converge or was refused"):
+        OpticalParams.from_calibration(dict(cal, converged=False), scene)
+    with pytest.raises(InversionError, match="another scene"):
+        OpticalParams.from_calibration(dict(cal, scene_fingerprint="x"), scene)
+    with pytest.raises(InversionError, match="missing parameters: pulse_tail_s"):
+        OpticalParams.from_calibration(dict(cal, fixed={k: v for k, v in cal["fixed"].items() if k != "pulse_tail_s"}), scene)
 
 
 @pytest.fixture(scope="module")

@@ -128,29 +128,32 @@ def _cmd_calibrate(a) -> int:
             plot_traces(post.chain, post.names, Path(a.plots) / "traces.png")
             print(f"wrote corner.png and traces.png to {a.plots}/")
     if a.plots:
-        from .model import build_model
+        from .fit._discrepancy import plot_residual_map
         from .plot import plot_fit, plot_loss
 
         used = (scene or cap.scene).without_touches()
-        model = np.asarray(build_model(used)(result.params))
         data = cap.mean()
         sigma = np.sqrt(np.maximum(data, 1.0) / cap.n_frames)
+        model = data + result.residuals * sigma  # the fitted model, per-zone gains included
         paths = plot_fit(data, model, sigma, used, a.plots)
         paths.append(plot_loss(result.loss_history, Path(a.plots) / "loss.png"))
-        print(f"wrote {len(paths)} figures to {a.plots}/")
+        paths.append(plot_residual_map(result.residuals, Path(a.plots) / "residual_map.png", used.sensor.bin_width_s))
+        print(f"wrote {len(paths)} figures to {a.plots}/ (residual_map.png: what the model does not describe)")
     print(f"wrote {out}")
+    if result.result == "refused_reduced_chi2" and not a.allow_unconverged:
+        raise CalibrationError(
+            f"reduced chi-square {result.reduced_chi2:.1f} > {config.max_reduced_chi2:g}: the model does not describe "
+            f"this capture (worst zones under discrepancy in {out}, written with converged = false); is it really a "
+            "no-touch baseline of this scene?"
+        )
     if not result.converged and not a.allow_unconverged:
+        bound = f" on a bound: {', '.join(result.on_bound)};" if result.on_bound else ""
         print(
-            f"tofjax calibrate: error: the fit did not converge ({result.result}); the parameters in {out} are "
+            f"tofjax calibrate: error: the fit did not converge ({result.result});{bound} the parameters in {out} are "
             "not a fit. Raise max_steps or loosen rtol/atol in a --config, or pass --allow-unconverged",
             file=sys.stderr,
         )
         return 3
-    if result.converged and result.reduced_chi2 > config.max_reduced_chi2:
-        raise CalibrationError(
-            f"reduced chi-square {result.reduced_chi2:.1f} > {config.max_reduced_chi2:g}: the model does not describe "
-            "this capture; is it really a no-touch baseline of this scene?"
-        )
     return 0
 
 

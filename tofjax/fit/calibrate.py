@@ -1,35 +1,79 @@
 """Calibration: fit n1, mu_s, mu_a and the nuisance parameters to a baseline capture.
 
-Residuals are Poisson-weighted, ``(model - mean) / sqrt(max(mean, 1) / frames)``,
-so they are O(1) and ``sum(r^2) / dof`` is a reduced chi-square. Parameters
-are fitted in an unconstrained space (:mod:`tofjax.fit.transforms`). The start
-comes from the data: the emission time from the light-entry peak, ambient from
-the bins before it, n1 from the far-edge peak's time, amplitudes from a fit of
-the linear parameters alone; then a fit with a widened pulse, then the real
-one (coarse to fine), so the narrow far-edge peak cannot trap the fit.
+One pure entry, :func:`calibrate`, returns a :class:`CalibrationResult` with a result code
+(``result``; ``converged`` is True only for ``successful``). The pieces, optimistix-style:
+
+- :class:`~tofjax.fit._problem.CalibrationProblem` (an ``eqx.Module``): the profiled
+  residuals; the data are arguments, never state.
+- :mod:`~tofjax.fit._start`: timing, then envelope, then the joint fit.
+- :func:`fit_problem`: one compiled solve from one start (:func:`fit_problem_batch`: many
+  starts and data sets in one compiled, vmapped call).
+- :mod:`~tofjax.fit._laplace` and :mod:`~tofjax.fit._result`: covariance and the result.
+
+The solver is an optimistix solver object and the objective an :class:`AbstractObjective`
+(:class:`ChiSquare` for least-squares solvers, :class:`PoissonDeviance` for minimisers);
+:class:`FitConfig` builds both from a TOML file's strings.
+
+Residuals are Poisson-weighted, ``(model - mean) / sqrt(max(mean, 1) / frames)``, so
+``sum(r^2) / dof`` is a reduced chi-square.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, NamedTuple
 
+import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
 from ..capture import Capture
 from ..config import ConfigError, from_dict, load_toml
-from ..errors import UserError
-from ..model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
+from ..model import ModelOptions, Params, build_model
 from ..scene import Scene
+from ._discrepancy import discrepancy_report
+from ._laplace import laplace_covariance
+from ._problem import LINEAR, CalibrationProblem
+from ._result import (
+    RESULTS,
+    CalibrationError,
+    CalibrationRefused,
+    CalibrationResult,
+    fit_report,
+    load_calibration,
+    scene_fingerprint,
+)
+from ._start import envelope_candidates, timing_start
 from .solve import SolveResult, dense_jvp, solve_with_history
 from .transforms import FITTABLE, default_transforms
 
-__all__ = ["CalibrationError", "CalibrationResult", "Calibrator", "FitConfig", "calibrate", "load_fit_config"]
+__all__ = [
+    "AbstractObjective",
+    "CalibrationError",
+    "CalibrationProblem",
+    "CalibrationRefused",
+    "CalibrationResult",
+    "Calibrator",
+    "ChiSquare",
+    "FitConfig",
+    "FitSolution",
+    "PoissonDeviance",
+    "RESULTS",
+    "build_problem",
+    "calibrate",
+    "calibrate_many",
+    "check_baseline",
+    "fit_problem",
+    "fit_problem_batch",
+    "fit_report",
+    "load_calibration",
+    "load_fit_config",
+    "scene_fingerprint",
+]
 
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "dogleg", "poisson-deviance")
 DEFAULT_FREE = (
@@ -45,44 +89,88 @@ DEFAULT_FREE = (
     "interface_backscatter_per_m",
     "end_reflectance",
 )
-#: Parameters that scale the histogram linearly: fitted first, alone, for a robust start.
-LINEAR = ("gain", "ambient_counts", "crosstalk_counts")
 
 
-class CalibrationError(UserError):
-    """The data cannot be calibrated as given (wrong scene, not a baseline, bad counts)."""
+# ---- objectives ----------------------------------------------------------------------------
+
+
+class AbstractObjective(eqx.Module):
+    """What the solver minimises, given a :class:`CalibrationProblem`."""
+
+    minimise: eqx.AbstractClassVar[bool]
+
+    def __call__(self, problem: CalibrationProblem, u, args):
+        raise NotImplementedError
+
+
+class ChiSquare(AbstractObjective):
+    """Poisson-weighted residuals for a least-squares solver (Gauss-Newton family)."""
+
+    minimise: ClassVar[bool] = False
+
+    def __call__(self, problem, u, args):
+        return problem.residuals(u, args)
+
+
+class PoissonDeviance(AbstractObjective):
+    """The Poisson deviance per bin, a scalar for a minimiser (BFGS)."""
+
+    minimise: ClassVar[bool] = True
+
+    def __call__(self, problem, u, args):
+        return problem.deviance(u, args)
+
+
+def _check_pair(solver, objective: AbstractObjective) -> None:
+    """Refuse a solver the objective cannot drive (instead of silently doing something else)."""
+    if objective.minimise and not isinstance(solver, optx.AbstractMinimiser):
+        raise ConfigError(f"solver: {type(solver).__name__} is not a minimiser; PoissonDeviance needs one (e.g. optx.BFGS)")
+    if not objective.minimise and not isinstance(solver, optx.AbstractLeastSquaresSolver):
+        raise ConfigError(
+            f"solver: {type(solver).__name__} is not a least-squares solver; ChiSquare needs one (e.g. optx.LevenbergMarquardt)"
+        )
+
+
+# ---- configuration ----------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class FitConfig:
-    """Options of a calibration fit (TOML: ``[fit]`` keys at the top level of the file).
+    """Options of a calibration fit (TOML: keys at the top level of the file).
 
-    - ``solver``: ``levenberg-marquardt`` (default), ``gauss-newton``, ``dogleg``,
-      or ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares).
+    - ``solver``: ``levenberg-marquardt`` (default), ``gauss-newton``, ``dogleg``, or
+      ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares).
     - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
-    - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than
-      this (default 1e-3: the fit is then within a few hundredths of a standard error of
-      the optimum, see ``experiments/study_fit_speed.py``; the parameter tolerances
-      alone take two to five times more steps in the flat mu_s / mu_a valley). 0 turns it off.
+    - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than this
+      (a few hundredths of a standard error from the optimum); 0 turns it off.
     - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for the
-      ``levenberg-marquardt`` and ``dogleg`` solvers): from the data-driven start they reach
-      the optimum in 3-6 steps where the damped solvers crawl along the curved valleys
-      (gain against interface backscatter, end reflectance and albedo) for 20-100. Where
-      they fail, or do not lower the loss, the configured solver takes over. 0 = off.
-    - ``max_steps``: per stage.
+      damped solvers); where they fail or do not lower the loss the solver takes over. 0 = off.
+    - ``max_steps``: per start.
     - ``free``: which parameters to fit; the rest stay at the scene's values.
-    - ``multistart``: extra starts with n1 jittered by +-10%; the best fit wins.
-    - ``coarse_to_fine``: first fit with a pulse three times wider (off by default: the start
-      from the data already puts n1 within a few per cent, and a widened pulse lets the
-      near-field terms wander on the default scene).
+    - ``zone_gain``: the gain is free per (sensor, zone), profiled out like ambient and
+      crosstalk (default: a real rig's zones differ by several per cent). False: one gain
+      per sensor, as the scene states it.
+    - ``envelope``: start from the best point of an (n1, mu_t) grid of profiled
+      chi-squares around the timing estimate (default); False: the timing start alone.
+    - ``restarts``: further starts (the next best envelope points) when the fit fails or
+      ends on a bound.
     - ``quadrature``: model fidelity (time nodes per bin).
-    - ``dtype``: ``float64`` (default) or ``float32`` for the model (the solver's own
-      variables stay in the default float precision). float32 is faster per step, but
-      its rounding (~1e-7 relative) limits how far the tolerances can be met.
-    - ``max_reduced_chi2``: above this the capture is not taken for a baseline.
+    - ``dtype``: ``float64`` (default) or ``float32`` for the model.
+    - ``max_reduced_chi2``: above this the fit is refused (``converged = false``,
+      ``result = refused_reduced_chi2``): the model does not describe the capture.
+    - ``model_error``: a relative error of the model added in quadrature to the photon
+      noise, ``sigma^2 = max(mean, 1) / frames + (model_error x mean)^2`` (0, the default:
+      photon noise only). A rig's pulse shape or near field is never exactly the model's:
+      with many frames the photon noise of the bright bins (the light-entry peak, the near
+      field) is far below that mismatch, and those bins then pull n1 and mu_t away; a floor
+      of a few per cent lets the timing and the decay decide. The reduced chi-square is
+      then relative to that floor (the JSON reports it with and without).
+    - ``timing_anchor``: the n1 read from the timing of the far-edge returns enters the fit as
+      a measurement with this relative width (default 2%: several times the estimator's
+      scatter, far below how far amplitude errors pull n1 on data the model does not fully
+      describe); 0 turns it off. Without a visible edge there is no anchor.
     - ``prior_width``: width of a weak Gaussian prior on each nonlinear parameter in the
-      unconstrained space (3 = a factor e^3 ~ 20 for log-scaled ones), centred on the
-      scene's values; it keeps weakly determined parameters finite. 0 turns it off.
+      unconstrained space, centred on the scene's values; 0 turns it off.
     """
 
     solver: str = "levenberg-marquardt"
@@ -92,10 +180,12 @@ class FitConfig:
     max_steps: int = 200
     gauss_newton_first: int = 10
     free: tuple[str, ...] = DEFAULT_FREE
-    multistart: int = 0
-    multistart_seed: int = 0
-    coarse_to_fine: bool = False
+    zone_gain: bool = True
+    envelope: bool = True
+    restarts: int = 3
     prior_width: float = 3.0
+    model_error: float = 0.0
+    timing_anchor: float = 0.02
     quadrature: int = 2
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
@@ -105,6 +195,10 @@ class FitConfig:
             raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss_tol < 0:
             raise ConfigError(f"loss_tol: must be >= 0, got {self.loss_tol!r}")
+        if not 0 <= self.model_error < 1:
+            raise ConfigError(f"model_error: must be in [0, 1), got {self.model_error!r}")
+        if self.timing_anchor < 0:
+            raise ConfigError(f"timing_anchor: must be >= 0, got {self.timing_anchor!r}")
         if self.prior_width < 0:
             raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
         for k in ("rtol", "atol", "max_reduced_chi2"):
@@ -114,8 +208,8 @@ class FitConfig:
             raise ConfigError(f"max_steps: must be >= 1, got {self.max_steps!r}")
         if self.gauss_newton_first < 0:
             raise ConfigError(f"gauss_newton_first: must be >= 0, got {self.gauss_newton_first!r}")
-        if self.multistart < 0:
-            raise ConfigError(f"multistart: must be >= 0, got {self.multistart!r}")
+        if self.restarts < 0:
+            raise ConfigError(f"restarts: must be >= 0, got {self.restarts!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
         if self.quadrature < 1:
@@ -132,6 +226,7 @@ class FitConfig:
             )
 
     def make_solver(self):
+        """The optimistix solver object the ``solver`` string names."""
         if self.solver == "levenberg-marquardt":
             return optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol)
         if self.solver == "gauss-newton":
@@ -139,6 +234,13 @@ class FitConfig:
         if self.solver == "dogleg":
             return optx.Dogleg(rtol=self.rtol, atol=self.atol)
         return optx.BFGS(rtol=self.rtol, atol=self.atol)
+
+    def make_objective(self) -> AbstractObjective:
+        return PoissonDeviance() if self.solver == "poisson-deviance" else ChiSquare()
+
+    @property
+    def gn_first(self) -> int:
+        return min(self.gauss_newton_first, self.max_steps) if self.solver in ("levenberg-marquardt", "dogleg") else 0
 
 
 def load_fit_config(path) -> FitConfig:
@@ -148,86 +250,6 @@ def load_fit_config(path) -> FitConfig:
     except ConfigError as e:
         msg = str(e)
         raise ConfigError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
-
-
-@dataclass
-class CalibrationResult:
-    """A finished fit, in physical units."""
-
-    params: Params  # every model parameter, fitted ones replaced
-    free: tuple[str, ...]
-    values: dict[str, np.ndarray]
-    stderr: dict[str, np.ndarray]
-    interval95: dict[str, tuple[np.ndarray, np.ndarray]]  # Laplace, symmetric in the unconstrained space
-    covariance: np.ndarray  # physical units, over the flattened free parameters
-    labels: list[str]  # one per row of ``covariance``
-    converged: bool
-    result: str
-    steps: int
-    reduced_chi2: float
-    loss_history: list[float]
-    solver: str
-    frames: int
-    stages: list[dict[str, Any]] = dataclasses.field(default_factory=list)
-    #: Laplace standard errors in the fit's unconstrained coordinates (posterior walkers start from them)
-    unconstrained_stderr: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-
-    def to_json(self) -> dict[str, Any]:
-        def pack(k):
-            lo, hi = self.interval95[k]
-            return {
-                "value": np.asarray(self.values[k]).tolist(),
-                "stderr": np.asarray(self.stderr[k]).tolist(),
-                "interval95": [np.asarray(lo).tolist(), np.asarray(hi).tolist()],
-            }
-
-        return {
-            "parameters": {k: pack(k) for k in self.free},
-            "units": {k: FITTABLE[k] for k in self.free},
-            "covariance": {"labels": self.labels, "matrix": np.asarray(self.covariance).tolist()},
-            "converged": self.converged,
-            "result": self.result,
-            "steps": self.steps,
-            "reduced_chi2": self.reduced_chi2,
-            "loss_history": self.loss_history,
-            "solver": self.solver,
-            "frames": self.frames,
-            "stages": self.stages,
-            "fixed": {
-                f.name: np.asarray(getattr(self.params, f.name)).tolist()
-                for f in dataclasses.fields(self.params)
-                if f.name not in self.free and not f.name.startswith("touch_")
-            },
-        }
-
-
-def fit_report(result: CalibrationResult) -> str:
-    """A short text table: each parameter with its standard error and Laplace 95% interval."""
-    lines = [
-        f"calibration: {'converged' if result.converged else 'NOT converged'} ({result.result}) after "
-        f"{result.steps} steps, {result.solver}, {result.frames} frames, reduced chi-square {result.reduced_chi2:.3f}",
-        f"{'parameter':30s} {'value':>12s} {'stderr':>10s}   95% interval (Laplace)",
-    ]
-    for k in result.free:
-        v, e = np.ravel(result.values[k]), np.ravel(result.stderr[k])
-        lo, hi = (np.ravel(x) for x in result.interval95[k])
-        unit = FITTABLE[k]
-        if v.size == 1:
-            lines.append(f"{k:30s} {v[0]:12.6g} {e[0]:10.3g}   [{lo[0]:.6g}, {hi[0]:.6g}] {unit}")
-        else:
-            lines.append(
-                f"{k + f' ({v.size})':30s} {np.mean(v):12.6g} {np.mean(e):10.3g}   values {v.min():.4g} .. {v.max():.4g} {unit}"
-            )
-    i = result.labels.index("mu_s_per_m") if "mu_s_per_m" in result.labels else None
-    j = result.labels.index("mu_a_per_m") if "mu_a_per_m" in result.labels else None
-    if i is not None and j is not None:
-        c = result.covariance
-        corr = c[i, j] / np.sqrt(c[i, i] * c[j, j]) if c[i, i] > 0 and c[j, j] > 0 else float("nan")
-        lines.append(
-            f"correlation(mu_s, mu_a) = {corr:+.2f}"
-            + ("  (strong: a baseline alone barely separates scattering from absorption)" if abs(corr) > 0.8 else "")
-        )
-    return "\n".join(lines)
 
 
 # ---- checks -------------------------------------------------------------------------------
@@ -259,588 +281,220 @@ def check_baseline(capture: Capture, scene: Scene) -> None:
         )
 
 
-# ---- the fit ------------------------------------------------------------------------------
+# ---- the compiled fit ------------------------------------------------------------------------
 
 
-class _Problem:
-    """The residual function of a fit, with the linear parameters profiled out.
+class FitSolution(NamedTuple):
+    """What one compiled fit returns (a pytree: batched along a leading axis by the vmapped form)."""
 
-    The model is ``gain[s] R + crosstalk[s, z] P + ambient[s, z]`` with ``R`` and
-    ``P`` nonlinear in the rest (:meth:`ForwardModel.linear_parts`). For given
-    nonlinear parameters the best linear ones solve a small weighted least-squares
-    problem per sensor (1 + 2 zones unknowns), so the solver only sees the few
-    nonlinear parameters (variable projection); JAX differentiates through the
-    solve, which gives the exact variable-projection Jacobian.
-    """
-
-    def __init__(self, scene: Scene, free: tuple[str, ...], data, frames: int, opts: ModelOptions, prior_width: float):
-        self.transforms = default_transforms(scene)
-        self.dtype = opts.jnp_dtype
-        self.model = build_model(scene.without_touches(), opts)
-        comps = self.model.components
-        present = {"gain": True, "crosstalk_counts": "crosstalk" in comps, "ambient_counts": "ambient" in comps}
-        self.linear = tuple(p for p in LINEAR if p in free and present[p])
-        self.nonlinear = tuple(p for p in free if p not in LINEAR)
-        self.free = tuple(free)
-        self.set_data(data, frames)
-        self._solvers: dict = {}
-        self.prior_width = prior_width
-        # the profile of a start point, jitted (run eagerly it dispatches the model op by op: seconds)
-        self.profile_jit = jax.jit(lambda p, d, s: self.profile(p, d, s))
-        self.model_jit = jax.jit(lambda p: self.model(p))
-
-    def set_data(self, data, frames: int) -> None:
-        """New data of the same shape: the compiled solves are reused."""
-        self.data = jnp.asarray(data, self.dtype)
-        self.frames = frames
-        self.sigma = jnp.sqrt(jnp.maximum(self.data, 1.0) / frames)
-
-    # mu_s and mu_a are fitted as extinction mu_t = mu_s + mu_a (log) and albedo
-    # mu_s / mu_t (logit): a baseline pins mu_t far better than the split, and in
-    # (log mu_s, log mu_a) that makes a curved valley (log(e^a + e^b) = const) in which
-    # Gauss-Newton steps overshoot and Levenberg-Marquardt crawls (~100 steps); in
-    # (mu_t, albedo) the valley is straight. Results are reported as mu_s and mu_a.
-    JOINT = ("mu_s_per_m", "mu_a_per_m")
-
-    def pack(self, params: Params, names=None) -> dict[str, jax.Array]:
-        """Unconstrained coordinates of the physical parameters ``names`` (default: the nonlinear ones)."""
-        names = self.nonlinear if names is None else names
-        joint = all(j in names for j in self.JOINT)
-        u = {
-            k: jnp.asarray(self.transforms[k].to_unconstrained(np.asarray(getattr(params, k))))
-            for k in names
-            if not (joint and k in self.JOINT)
-        }
-        if joint:
-            mu_s = max(float(params.mu_s_per_m), 1e-12)
-            mu_a = max(float(params.mu_a_per_m), 1e-12)
-            u["extinction"] = jnp.asarray(math.log(mu_s + mu_a))
-            u["albedo"] = jnp.asarray(math.log(mu_s) - math.log(mu_a))
-        return u
-
-    def physical(self, u) -> dict[str, jax.Array]:
-        """Physical values of the parameters whose coordinates ``u`` holds (jit- and grad-safe)."""
-        out = {k: self.transforms[k].to_physical(v) for k, v in u.items() if k not in ("extinction", "albedo")}
-        if "extinction" in u:
-            mu_t = jnp.exp(u["extinction"])
-            albedo = jax.nn.sigmoid(u["albedo"])
-            out["mu_s_per_m"] = mu_t * albedo
-            out["mu_a_per_m"] = mu_t * (1.0 - albedo)
-        return out
-
-    def unpack(self, u, base: Params) -> Params:
-        return base.replace(**self.physical(u))
-
-    def pack_jax(self, params: Params, names) -> dict[str, jax.Array]:
-        """:meth:`pack` in JAX (jit-safe), in the default float precision."""
-        ft = jnp.result_type(float)
-        joint = all(j in names for j in self.JOINT)
-        u = {
-            k: self.transforms[k].unconstrain(jnp.asarray(getattr(params, k), ft))
-            for k in names
-            if not (joint and k in self.JOINT)
-        }
-        if joint:
-            mu_s = jnp.maximum(jnp.asarray(params.mu_s_per_m, ft), 1e-12)
-            mu_a = jnp.maximum(jnp.asarray(params.mu_a_per_m, ft), 1e-12)
-            u["extinction"] = jnp.log(mu_s + mu_a)
-            u["albedo"] = jnp.log(mu_s) - jnp.log(mu_a)
-        return u
-
-    def profile_parts(self, params: Params, data, sigma):
-        """Closed-form variable projection: ``(params with the best linear parameters, the
-        model at them, sum_s log det(A_s^T W A_s))``.
-
-        Per sensor the model is ``K R + x_z P_z + a_z`` (gain shared by the zones, light
-        entry and ambient per zone). The zone unknowns are eliminated with an explicit 2 x 2
-        solve per zone, then the gain from its Schur complement (a scalar per sensor): only
-        weighted sums over bins, no batched LU (whose forward-mode derivative cost many
-        times the model on CPU). One evaluation of ``linear_parts`` gives the residuals too.
-        """
-        R, P = self.model.linear_parts(params)
-        comps = self.model.components
-        w = 1.0 / sigma**2
-        fixed = jnp.zeros_like(R)
-        if "gain" not in self.linear:
-            fixed = fixed + params.gain[:, None, None] * R
-        if "crosstalk" in comps and "crosstalk_counts" not in self.linear:
-            fixed = fixed + params.crosstalk_counts[..., None] * P
-        if "ambient" in comps and "ambient_counts" not in self.linear:
-            fixed = fixed + params.ambient_counts[..., None]
-        y = data - fixed
-        basis = []
-        if "crosstalk_counts" in self.linear:
-            basis.append(P)
-        if "ambient_counts" in self.linear:
-            basis.append(jnp.ones_like(R))
-
-        def ip(a, b):  # weighted inner product over bins: (S, Z)
-            return jnp.sum(w * a * b, axis=-1)
-
-        logdet = jnp.zeros((), R.dtype)
-        m = len(basis)
-        if m == 1:
-            g = ip(basis[0], basis[0])
-            g = g + 1e-12 * g + jnp.finfo(R.dtype).tiny
-            ginv = [[1.0 / g]]
-            logdet = logdet + jnp.sum(jnp.log(g))
-        elif m == 2:
-            a, b, c = ip(basis[0], basis[0]), ip(basis[0], basis[1]), ip(basis[1], basis[1])
-            ridge = 1e-12 * (a + c) + jnp.finfo(R.dtype).tiny
-            a, c = a + ridge, c + ridge
-            det = a * c - b * b
-            ginv = [[c / det, -b / det], [-b / det, a / det]]
-            logdet = logdet + jnp.sum(jnp.log(det))
-
-        def zone_coefs(v):
-            proj = [ip(bi, v) for bi in basis]
-            return [sum(ginv[i][j] * proj[j] for j in range(m)) for i in range(m)]
-
-        def q_ip(u, v):  # <u, (I - projection onto the zone basis) v>
-            out = ip(u, v)
-            if m:
-                cv = zone_coefs(v)
-                out = out - sum(ip(u, basis[i]) * cv[i] for i in range(m))
-            return out
-
-        out, fitted = {}, fixed
-        if "gain" in self.linear:
-            rr = jnp.sum(q_ip(R, R), axis=1)  # (S,)
-            rr = rr + jnp.finfo(R.dtype).tiny
-            gain = jnp.sum(q_ip(R, y), axis=1) / rr
-            out["gain"] = gain
-            fitted = fitted + gain[:, None, None] * R
-            logdet = logdet + jnp.sum(jnp.log(rr))
-            y = y - gain[:, None, None] * R
-        if m:
-            coefs = zone_coefs(y)
-            names = [k for k in ("crosstalk_counts", "ambient_counts") if k in self.linear]
-            for k, coef, bi in zip(names, coefs, basis):
-                out[k] = coef
-                fitted = fitted + coef[..., None] * bi
-        return params.replace(**out), fitted, logdet
-
-    def profile(self, params: Params, data=None, sigma=None, with_logdet: bool = False):
-        """``params`` with the free linear parameters at their weighted least-squares values.
-
-        With ``with_logdet`` also returns ``sum_s log det(A_s^T W A_s)``: integrating the
-        linear parameters out of the Gaussian likelihood (flat priors) multiplies the
-        profile likelihood by ``det^-1/2``, which the posterior uses."""
-        data = self.data if data is None else data
-        sigma = self.sigma if sigma is None else sigma
-        if not self.linear:
-            return (params, jnp.zeros((), params.n1.dtype)) if with_logdet else params
-        p, _, logdet = self.profile_parts(params, data, sigma)
-        return (p, logdet) if with_logdet else p
-
-    def prior_residuals(self, u, prior):
-        """A weak Gaussian prior in the unconstrained space, ``(u - prior) / width``, on the
-        nonlinear parameters: it keeps a parameter the data cannot pin (mu_a -> 0 in log
-        space) from running off to infinity, and barely moves well-determined ones."""
-        if self.prior_width <= 0:
-            return jnp.zeros((0,), jnp.result_type(float))
-        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in self.linear]
-        return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.result_type(float))
-
-    def _profiled_model(self, u, base, data, sigma):
-        params = self.unpack(u, base)
-        if not self.linear:
-            return params, self.model(params)
-        p, m, _ = self.profile_parts(params, data, sigma)
-        return p, m
-
-    def residuals(self, u, args):
-        """Profiled residuals; ``args = (base params, mean data, sigma, prior centre)``."""
-        base, data, sigma, prior = args
-        _, m = self._profiled_model(u, base, data, sigma)
-        data_part = ((m - data) / sigma).ravel()
-        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
-
-    def full_residuals(self, u, base, prior, data=None, sigma=None):
-        """Residuals with every free parameter explicit (for the covariance), prior included.
-        Jitted callers pass ``data`` and ``sigma``: read from ``self`` inside a trace they
-        would be frozen into the compiled function and go stale after :meth:`set_data`."""
-        data = self.data if data is None else data
-        sigma = self.sigma if sigma is None else sigma
-        data_part = ((self.model(self.unpack(u, base)) - data) / sigma).ravel()
-        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
-
-    def _covariance_jacobian(self, params: Params, prior_params: Params, data, sigma):
-        """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
-        ``ravel_pytree`` order), in JAX. The nonlinear columns come from forward-mode AD;
-        the linear ones (gain, crosstalk, ambient: one per sensor or zone, most of the
-        columns) are written down from ``linear_parts``, which is much cheaper."""
-        u = self.pack_jax(params, self.free)
-        prior = self.pack_jax(prior_params, self.free)
-        lin = {k: u[k] for k in u if k in LINEAR}
-        nl = {k: u[k] for k in u if k not in LINEAR}
-        f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
-        j_nl = jax.jacfwd(lambda g: self.full_residuals({**unravel_nl(g), **lin}, params, prior, data, sigma))(f_nl)
-        n_rows = j_nl.shape[0]
-        R, P = self.model.linear_parts(params)
-        S, Z, B = R.shape
-        ft = j_nl.dtype
-        R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
-        cols, pos = {}, 0
-        for k in sorted(nl):
-            n = int(np.size(nl[k]))
-            cols[k] = j_nl[:, pos : pos + n]
-            pos += n
-        eye_s, eye_z = jnp.eye(S, dtype=ft), jnp.eye(Z, dtype=ft)
-        comps = self.model.components
-        for k, uk in lin.items():
-            dxdu = self.transforms[k].derivative(uk)
-            if k == "gain":
-                block = jnp.einsum("szb,st->szbt", R / sig, eye_s * dxdu[None, :]).reshape(S * Z * B, S)
-            elif (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
-                part = P if k == "crosstalk_counts" else jnp.ones_like(R)
-                block = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z) * dxdu[None, None, None]
-                block = block.reshape(S * Z * B, S * Z)
-            else:
-                block = jnp.zeros((S * Z * B, int(np.size(uk))), ft)
-            cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - S * Z * B, block.shape[1]), ft)])
-        return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
-
-    def covariance_jacobian(self, params: Params, prior_params: Params) -> np.ndarray:
-        """:meth:`_covariance_jacobian` at ``params`` on the current data (jitted, for tests)."""
-        key = ("covariance", self.free)
-        if key not in self._solvers:
-            self._solvers[key] = jax.jit(self._covariance_jacobian)
-        return np.asarray(self._solvers[key](params, prior_params, self.data, self.sigma))
-
-    def _laplace(self, params: Params, prior_params: Params, data, sigma):
-        """``J^T J`` of the full residuals over every free coordinate, and the Jacobian of the
-        physical values (in ``sorted(free)`` order) over those coordinates."""
-        jac = self._covariance_jacobian(params, prior_params, data, sigma)
-        u = self.pack_jax(params, self.free)
-        flat, unravel = jax.flatten_util.ravel_pytree(u)
-        names = sorted(self.free)
-
-        def phys_flat(f):
-            x = self.physical(unravel(f))
-            return jnp.concatenate([jnp.ravel(x[k]) for k in names])
-
-        return jac.T @ jac, jax.jacfwd(phys_flat)(flat), flat
-
-    def deviance(self, u, args):
-        """Poisson deviance per bin of the profiled model (for the minimiser option), plus the prior."""
-        base, d, sigma, prior = args
-        _, m = self._profiled_model(u, base, d, sigma)
-        mu = jnp.maximum(m, 1e-9)
-        term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
-        # the frame count from the traced arguments (sigma^2 = max(d, 1) / frames, see
-        # set_data), not from self: read from self it would be frozen into the compiled fit
-        # and go stale for a capture with another number of frames
-        frames = jnp.mean(jnp.maximum(d, 1.0) / sigma**2)
-        return (2.0 * frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
-
-    def core_for(
-        self, names: tuple[str, ...], solver, max_steps: int, minimise: bool, loss_tol: float, with_cov: bool, gn_first: int = 0
-    ):
-        """The whole fit from a start as one compiled function (compiled once per setting, reused
-        for every capture of the same shape): profile the start, solve (``gn_first``: a
-        Gauss-Newton fast path first), profile the end point, chi-square, and (``with_cov``)
-        what the Laplace covariance needs."""
-        key = ("core", names, repr(solver), max_steps, minimise, loss_tol, with_cov, gn_first)
-        if key in self._solvers:
-            return self._solvers[key]
-        target = self.deviance if minimise else self.residuals
-        # the deviance loss is chi-square per bin: the same tolerance in its units
-        tol = 2.0 * loss_tol / self.data.size if minimise else loss_tol
-
-        def core(start: Params, data, sigma, prior_params: Params):
-            p0 = self.profile(start, data, sigma)
-            u0 = self.pack_jax(p0, names)
-            prior = self.pack_jax(prior_params, names)
-            f0, unravel = jax.flatten_util.ravel_pytree(u0)
-            args = (p0, data, sigma, prior)
-            # the solver works on the flat vector of unconstrained coordinates
-            def flat_target(f, a):
-                return target(unravel(f), a)
-
-            fn = flat_target if minimise else dense_jvp(flat_target)
-            v0 = f0
-
-            def main(v_start):
-                return solve_with_history(fn, solver, v_start, args, max_steps=max_steps, minimise=minimise, loss_tol=tol)
-
-            if gn_first:
-                # the fast path: undamped Gauss-Newton steps from the data-driven start (the first
-                # one may overshoot along the curved valleys; the next one lands near the optimum);
-                # the configured solver runs only where they fail or do not lower the loss
-                gn = solve_with_history(
-                    fn, optx.GaussNewton(rtol=solver.rtol, atol=solver.atol), v0, args, max_steps=gn_first, loss_tol=tol
-                )
-                hist = gn.history
-                last = hist[jnp.clip(gn.steps, 0, gn_first)]
-                ok = (gn.result == optx.RESULTS.successful) & jnp.isfinite(last) & (last <= hist[0])
-                ok = ok & jnp.all(jnp.isfinite(gn.value))
-                better = jnp.isfinite(last) & (last < hist[0]) & jnp.all(jnp.isfinite(gn.value))
-                pad = jnp.full((max_steps + 1,), jnp.nan, hist.dtype)
-
-                def done(_):
-                    return gn.value, gn.result, gn.steps, jnp.concatenate([hist[: gn_first + 1], pad])
-
-                def fallback(_):
-                    o = main(jnp.where(better, gn.value, v0))
-                    return o.value, o.result, gn.steps + o.steps, jnp.concatenate([hist[: gn_first + 1], o.history])
-
-                value, result, steps, history = jax.lax.cond(ok, done, fallback, None)
-                out = SolveResult(value, result, steps, history)
-            else:
-                out = main(v0)
-            u = unravel(out.value)
-            params, m = self._profiled_model(u, p0, data, sigma)
-            res = {
-                "params": params,
-                "result": out.result,
-                "steps": out.steps,
-                "history": out.history,
-                "chi2": jnp.sum(((m - data) / sigma) ** 2),
-            }
-            if with_cov:
-                res["hessian"], res["dphys"], res["u_flat"] = self._laplace(params, prior_params, data, sigma)
-            return res
-
-        self._solvers[key] = jax.jit(core)
-        return self._solvers[key]
-
-    def reference_estimates(self, scene: Scene, base: Params, frames: int):
-        """What the start's estimators read from the model at the scene's own values (cached):
-        their bias, taken out of the estimates from data."""
-        key = ("reference", frames)
-        if key not in self._solvers:
-            ref = np.asarray(self.model_jit(base), np.float64)
-            self._solvers[key] = _edge_estimates(ref, frames, scene, float(base.pulse_tail_s))
-        return self._solvers[key]
+    params: Params  # profiled end point (gain: mean over zones with zone_gain)
+    linear: dict  # the profiled linear parameters (gain (S, Z) with zone_gain)
+    result: Any  # optx.RESULTS
+    steps: jax.Array
+    history: jax.Array  # loss per step, NaN after the last
+    chi2: jax.Array
+    residuals: jax.Array  # (S, Z, B) (model - data) / sigma
+    hessian: Any  # J^T J over every free coordinate (None without covariance)
+    dphys: Any
 
 
-def _edge_estimates(d: np.ndarray, frames: int, scene: Scene, tau: float):
-    """Emission time, ambient per zone and n1 read off mean histograms ``d`` (S, Z, B):
-    the light-entry peak's centroid, the bins before it, and the time of the far-edge bump
-    of each zone (weighted median over zones); ``n1`` is None when no zone shows the bump."""
-    sm = scene.sensor
-    S, Z, B = d.shape
-    width = sm.bin_width_s
-    total = d.sum(axis=(0, 1))
-    early = max(4, B // 3)
-    peak = int(np.argmax(total[:early]))
-    lo, hi = max(peak - 2, 0), min(peak + 3, B)
-    # ambient: bins well before the light-entry peak, else the last tenth of the histogram
-    pre = max(peak - 4, 0)
-    if pre >= 3:
-        ambient = np.median(d[..., :pre], axis=-1)
-    else:
-        ambient = np.median(d[..., -max(B // 10, 3) :], axis=-1)
-    w = np.clip(total[lo:hi] - ambient.sum(), 0, None)
-    centre = (np.sum(w * (np.arange(lo, hi) + 0.5)) / max(w.sum(), 1e-12)) * width
-    t_e = max(centre - tau, 0.0)
-    # n1: the far-edge bump of each zone, where counts rise again after the decay
-    length = _mean_ray_length(scene)  # (S, Z)
-    c = SPEED_OF_LIGHT_M_PER_S
-    a = ((t_e + 2 * length * 1.0 / c) / width).astype(int) + 1
-    b = np.minimum(((t_e + 2 * length * 3.5 / c) / width).astype(int) + 3, B - 1)
-    x = d - ambient[..., None]
-    # rise over the minimum of the four bins before (inf where there are none)
-    pad = np.concatenate([np.full((S, Z, 4), np.inf), x], axis=-1)
-    before = np.min(np.stack([pad[..., k : k + B] for k in range(4)]), axis=0)
-    rise = x - before
-    idx = np.arange(B)
-    window = (idx >= a[..., None]) & (idx < b[..., None]) & (length[..., None] > 0) & ((b - a)[..., None] >= 3)
-    rise = np.where(window & np.isfinite(rise), rise, -np.inf)
-    i = np.argmax(rise, axis=-1)  # (S, Z)
-    best = np.take_along_axis(rise, i[..., None], -1)[..., 0]
-    noise = np.sqrt(np.maximum(np.take_along_axis(d, i[..., None], -1)[..., 0], 1.0) / frames)
-    ok = np.isfinite(best) & (best >= 5 * noise)
-    if not ok.any():
-        return t_e, ambient, None
-    base_level = np.take_along_axis(before, i[..., None], -1)[..., 0]
-    j = np.clip(i[..., None] + np.arange(-1, 2), 0, B - 1)
-    valid = (i[..., None] + np.arange(-1, 2) >= 0) & (i[..., None] + np.arange(-1, 2) < B)
-    ww = np.where(valid, np.clip(np.take_along_axis(x, j, -1) - base_level[..., None], 0, None), 0.0)
-    t_peak = np.sum(ww * (j + 0.5), -1) / np.maximum(ww.sum(-1), 1e-12) * width
-    est = c * (t_peak - t_e - tau) / (2 * np.where(length > 0, length, 1.0))
-    estimates, weights = est[ok], best[ok]
-    order = np.argsort(estimates)
-    cum = np.cumsum(weights[order])
-    n1 = float(estimates[order][np.searchsorted(cum, cum[-1] / 2)])
-    return t_e, ambient, n1
-
-
-_RAY_LENGTHS: dict = {}
-
-
-def _mean_ray_length(scene: Scene) -> np.ndarray:
-    """Mean far-edge distance of each zone's rays (S, Z), cached per scene."""
-    from ..model.geometry import Geometry
-
-    key = id(scene)
-    if key not in _RAY_LENGTHS or _RAY_LENGTHS[key][0] is not scene:
-        geom = Geometry.from_scene(scene, 8, np.float64)
-        _RAY_LENGTHS[key] = (scene, np.asarray(geom.ray_length).mean(-1))
-    return _RAY_LENGTHS[key][1]
-
-
-def _initial_params(capture: Capture, scene: Scene, base: Params, reference=None) -> Params:
-    """A start from the data: emission time, ambient, n1 from the far-edge peak.
-
-    ``reference``: the same estimates read from the model at ``base`` (see
-    :meth:`_Problem.reference_estimates`); their offsets from ``base`` (the estimators'
-    bias: the pulse's peak is not its mean) are taken out of the estimates from data."""
-    tau = float(base.pulse_tail_s)
-    t_e, ambient, n1 = _edge_estimates(capture.mean(), capture.n_frames, scene, tau)
-    if reference is not None:
-        ref_t_e, _, ref_n1 = reference
-        t_e = max(t_e + float(base.emission_time_s) - ref_t_e, 0.0)
-        if n1 is not None and ref_n1 is not None:
-            n1 = n1 + float(base.n1) - ref_n1
-    n1 = float(base.n1) if n1 is None else float(np.clip(n1, 1.01, 3.9))
-    return base.replace(
-        emission_time_s=t_e,
-        ambient_counts=np.maximum(ambient, 0.1),
-        n1=n1,
-        mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
-        mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
+def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationProblem:
+    """The calibration problem of ``scene`` (touches dropped) with ``config``'s free parameters."""
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype)
+    if scene.noise.pile_up:
+        raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
+    base = scene.without_touches()
+    model = build_model(base, options)
+    return CalibrationProblem.build(
+        model, default_transforms(base), config.free, zone_gain=config.zone_gain, prior_width=config.prior_width
     )
 
 
-def _covariance(problem: _Problem, params: Params, hessian, dphys, u_flat) -> tuple[np.ndarray, list[str], dict, dict, dict]:
-    """Laplace covariance of every free parameter (linear ones included) from ``J^T J`` of the
-    full residuals at the optimum, carried to physical units with ``dphys``."""
-    u_sizes = {k: int(np.size(getattr(params, k))) for k in problem.free if k not in problem.JOINT}
-    if all(j in problem.free for j in problem.JOINT):
-        u_sizes |= {"extinction": 1, "albedo": 1}
+def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
+    names = problem.nonlinear
+    if problem.linear:
+        p0, _, _, _ = problem.profile(start, data, sigma)
     else:
-        u_sizes |= {k: 1 for k in problem.JOINT if k in problem.free}
-    cov_u = np.linalg.pinv(np.asarray(hessian, np.float64), hermitian=True)
-    d = np.asarray(dphys, np.float64)  # d physical / d unconstrained
-    cov = d @ cov_u @ d.T
-    names = sorted(problem.free)
-    x_flat = np.concatenate([np.ravel(np.asarray(getattr(params, k), np.float64)) for k in names])
-    stderr_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
-    stderr, interval, u_stderr, labels, pos = {}, {}, {}, [], 0
-    for k in names:
-        shape = np.shape(getattr(params, k))
-        n = int(np.prod(shape))
-        x = x_flat[pos : pos + n].reshape(shape)
-        stderr[k] = stderr_flat[pos : pos + n].reshape(shape)
-        # the 95% interval is symmetric in the parameter's own unconstrained space
-        # (log, logit), so it respects bounds; its width there is the delta method's.
-        t = problem.transforms[k]
-        w = t.to_unconstrained(x)
-        sw = stderr[k] / np.maximum(t.derivative_np(w), 1e-300)
-        interval[k] = (t.to_physical_np(w - 1.96 * sw), t.to_physical_np(w + 1.96 * sw))
-        labels += [k] if shape == () else [f"{k}[{i}]" for i in range(n)]
-        pos += n
-    pos = 0
-    su_flat = np.sqrt(np.clip(np.diag(cov_u), 0, None))
-    for k in sorted(u_sizes):  # ravel_pytree orders dict keys sorted
-        n = u_sizes[k]
-        shape = () if k in ("extinction", "albedo") else np.shape(getattr(params, k))
-        u_stderr[k] = su_flat[pos : pos + n].reshape(shape)
-        pos += n
-    return cov, labels, stderr, interval, u_stderr
+        p0 = start
+    u0 = problem.pack_jax(p0, names)
+    prior = problem.pack_jax(prior_params, names)
+    prior["n1_anchor"] = anchor
+    f0, unravel = jax.flatten_util.ravel_pytree(u0)
+    args = (p0, data, sigma, prior)
+    # the deviance loss is chi-square per bin: the same tolerance in its units
+    tol = 2.0 * loss_tol / data.size if objective.minimise else loss_tol
+
+    def flat(f, a):
+        return objective(problem, unravel(f), a)
+
+    fn = flat if objective.minimise else dense_jvp(flat)
+
+    def main(v_start):
+        return solve_with_history(fn, solver, v_start, args, max_steps=max_steps, minimise=objective.minimise, loss_tol=tol)
+
+    if gn_first:
+        # undamped Gauss-Newton steps from the start (3-6 reach the optimum where damped
+        # solvers crawl along curved valleys); the configured solver runs where they fail
+        gn = solve_with_history(fn, optx.GaussNewton(rtol=solver.rtol, atol=solver.atol), f0, args, max_steps=gn_first, loss_tol=tol)
+        hist = gn.history
+        last = hist[jnp.clip(gn.steps, 0, gn_first)]
+        finite = jnp.isfinite(last) & jnp.all(jnp.isfinite(gn.value))
+        ok = (gn.result == optx.RESULTS.successful) & finite & (last <= hist[0])
+        better = finite & (last < hist[0])
+        pad = jnp.full((max_steps + 1,), jnp.nan, hist.dtype)
+
+        def done(_):
+            return gn.value, gn.result, gn.steps, jnp.concatenate([hist[: gn_first + 1], pad])
+
+        def fallback(_):
+            o = main(jnp.where(better, gn.value, f0))
+            return o.value, o.result, gn.steps + o.steps, jnp.concatenate([hist[: gn_first + 1], o.history])
+
+        out = SolveResult(*jax.lax.cond(ok, done, fallback, None))
+    else:
+        out = main(f0)
+    u = unravel(out.value)
+    params, m, lin = problem.profiled_model(u, p0, data, sigma)
+    r = (m - data) / sigma
+    hessian = dphys = None
+    if with_cov:
+        hessian, dphys, _ = problem.laplace(params, lin, prior_params, data, sigma, anchor)
+    return FitSolution(params, lin, out.result, out.steps, out.history, jnp.sum(r**2), r, hessian, dphys)
 
 
-def _result_name(result) -> str:
+@eqx.filter_jit
+def fit_problem(
+    problem: CalibrationProblem,
+    objective: AbstractObjective,
+    solver,
+    start: Params,
+    data,
+    sigma,
+    prior_params: Params,
+    anchor,
+    *,
+    max_steps: int = 200,
+    loss_tol: float = 1e-3,
+    gn_first: int = 10,
+    with_cov: bool = True,
+) -> FitSolution:
+    """One fit from ``start`` as one compiled call (compiled once per problem structure and
+    data shape, reused for every capture).
+
+    **Arguments:** the problem, objective and solver objects; ``start`` (its nonlinear
+    parameters are the starting point, the rest stay fixed); ``data`` mean histograms
+    (S, Z, B) and ``sigma`` their standard deviations; ``prior_params`` the prior centre;
+    ``anchor`` = (n1 from timing, its width) (width inf: none).
+
+    **Returns:** a :class:`FitSolution`; failures are result codes, never exceptions.
+    """
+    return _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov)
+
+
+@eqx.filter_jit
+def fit_problem_batch(
+    problem, objective, solver, starts: Params, data, sigma, prior_params, anchors, *, max_steps=200, loss_tol=1e-3, gn_first=10, with_cov=True
+) -> FitSolution:
+    """:func:`fit_problem` over a batch: ``starts`` (every leaf with a leading batch axis),
+    ``data`` and ``sigma`` (N, S, Z, B), ``anchors`` (N, 2), all in one compiled, vmapped call."""
+
+    def one(s, d, g, a):
+        return _fit(problem, objective, solver, s, d, g, prior_params, a, max_steps, loss_tol, gn_first, with_cov)
+
+    return jax.vmap(one)(starts, data, sigma, anchors)
+
+
+# ---- from a capture to a result -----------------------------------------------------------------
+
+
+def _result_name(code) -> str:
     for name in ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence", "nonfinite", "singular"):
-        if hasattr(optx.RESULTS, name) and bool(result == getattr(optx.RESULTS, name)):
+        if hasattr(optx.RESULTS, name) and bool(code == getattr(optx.RESULTS, name)):
             return name
     return "failed"
 
 
-class Calibrator:
-    """Calibration of one scene with one config; compiled once, reused for every capture.
+def _on_bound(problem: CalibrationProblem, scene: Scene, params: Params, linear: dict) -> list[str]:
+    """Parameters at the edge of their range: a fit that should be restarted elsewhere."""
+    out = []
+    free = problem.free
+    if "n1" in free and not (1.02 < float(params.n1) < 3.9):
+        out.append("n1")
+    window = scene.sensor.n_bins * scene.sensor.bin_width_s
+    if "emission_time_s" in free and not (0.005 * window < float(params.emission_time_s) < 0.995 * window):
+        out.append("emission_time_s")
+    if "mu_s_per_m" in free and float(params.mu_s_per_m + params.mu_a_per_m) > 1e3:
+        out.append("mu_s_per_m + mu_a_per_m")
+    if "end_reflectance" in free and float(params.end_reflectance) > 0.999:
+        out.append("end_reflectance")
+    g = np.asarray(linear.get("gain", params.gain))
+    if "gain" in free and np.mean(g <= 0) > 0.25:
+        out.append("gain")
+    return out
 
-    ``Calibrator(scene, config).fit(capture)``; :func:`calibrate` is the one-shot form.
-    """
 
-    def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
-        self.scene = scene.without_touches()
-        self.config = config
-        self.options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype)
-        self._problem: _Problem | None = None
-        if self.scene.noise.pile_up:
-            raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
+def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fingerprint) -> CalibrationResult:
+    """A :class:`CalibrationResult` from one (host-side) :class:`FitSolution`."""
+    params, lin = sol.params, dict(sol.linear)
+    ok = bool(sol.result == optx.RESULTS.successful)
+    bound = _on_bound(problem, scene, params, lin)
+    n_free = int(sum(np.size(lin[k]) if k in lin else np.size(getattr(params, k)) for k in problem.free))
+    residuals = np.asarray(sol.residuals, np.float64)
+    dof = max(int(residuals.size) - n_free, 1)
+    reduced = float(sol.chi2) / dof
+    physical = {k: np.asarray(lin[k] if k in lin else getattr(params, k), np.float64) for k in problem.free}
+    cov, labels, stderr, interval, u_stderr = laplace_covariance(problem, physical, sol.hessian, sol.dphys)
+    if not ok:
+        code = _result_name(sol.result)
+    elif bound:
+        code = "on_bound"
+    elif reduced > config.max_reduced_chi2:
+        code = "refused_reduced_chi2"
+    else:
+        code = "successful"
+    h = np.asarray(sol.history)
+    return CalibrationResult(
+        params=params,
+        free=tuple(config.free),
+        values={k: physical[k] for k in config.free},
+        stderr={k: stderr[k] for k in config.free},
+        interval95={k: interval[k] for k in config.free},
+        covariance=cov,
+        labels=labels,
+        converged=code == "successful",
+        result=code,
+        steps=int(sol.steps),
+        reduced_chi2=reduced,
+        loss_history=h[np.isfinite(h)].tolist(),
+        solver=config.solver,
+        frames=frames,
+        stages=stages,
+        unconstrained_stderr=u_stderr,
+        solver_converged=ok,
+        scene_fingerprint=fingerprint,
+        discrepancy=discrepancy_report(residuals, scene.sensor.bin_width_s),
+        on_bound=bound,
+        residuals=residuals,
+    )
 
-    def base_params(self) -> Params:
-        """The scene's own parameters: the prior centre and the values of fixed parameters."""
-        return Params.from_scene(self.scene, self.options.jnp_dtype)
 
-    def fit(self, capture: Capture) -> CalibrationResult:
-        """Fit to a baseline capture (see :func:`calibrate`)."""
-        scene, config = self.scene, self.config
-        check_baseline(capture, scene)
-        base = self.base_params()
-        if self._problem is None:
-            self._problem = _Problem(scene, config.free, capture.mean(), capture.n_frames, self.options, config.prior_width)
-        else:
-            self._problem.set_data(capture.mean(), capture.n_frames)
-        problem = self._problem
-        start = _initial_params(capture, scene, base, problem.reference_estimates(scene, base, capture.n_frames))
-        solver = config.make_solver()
-        minimise = config.solver == "poisson-deviance"
-        stages: list[dict[str, Any]] = []
+def _data(capture: Capture, dtype, model_error: float = 0.0):
+    """Mean histograms and their standard deviations (photon noise, and ``model_error``)."""
+    mean = capture.mean()
+    var = np.maximum(mean, 1.0) / capture.n_frames + (model_error * mean) ** 2
+    return jnp.asarray(mean, dtype), jnp.asarray(np.sqrt(var), dtype)
 
-        def stage(name, params, names, with_cov):
-            """One compiled fit over the nonlinear parameters ``names`` (the rest held at ``params``)."""
-            gn = config.gauss_newton_first if config.solver in ("levenberg-marquardt", "dogleg") else 0
-            gn = min(gn, config.max_steps)
-            run = problem.core_for(names, solver, config.max_steps, minimise, config.loss_tol, with_cov, gn)
-            out = jax.device_get(run(params, problem.data, problem.sigma, base))
-            h = np.asarray(out["history"])
-            h = h[np.isfinite(h)]
-            ok = bool(out["result"] == optx.RESULTS.successful)
-            stages.append(
-                {"stage": name, "free": list(names), "steps": int(out["steps"]), "converged": ok, "final_loss": float(h[-1])}
-            )
-            return out, ok, h.tolist()
 
-        candidates = [start]
-        if config.multistart:
-            rng = np.random.default_rng(config.multistart_seed)
-            candidates += [start.replace(n1=float(start.n1) * rng.uniform(0.9, 1.1)) for _ in range(config.multistart)]
+def _anchor(start: Params, found: bool, config: FitConfig, dtype):
+    """(n1 from timing, its width): the timing measurement the fit keeps (width inf: none)."""
+    n1 = float(start.n1)
+    width = config.timing_anchor * n1 if (found and config.timing_anchor > 0) else np.inf
+    return jnp.asarray([n1, width], dtype)
 
-        best = None
-        for k, params in enumerate(candidates):
-            history: list[float] = []
-            if config.coarse_to_fine and "pulse_sigma_s" in problem.nonlinear:
-                wide = params.replace(pulse_sigma_s=3.0 * float(params.pulse_sigma_s))
-                coarse = tuple(p for p in problem.nonlinear if p != "pulse_sigma_s")
-                out, _, h = stage(f"start {k}: widened pulse", wide, coarse, False)
-                history += h
-                params = out["params"].replace(pulse_sigma_s=float(start.pulse_sigma_s))
-            out, ok, h = stage(f"start {k}: full", params, problem.nonlinear, True)
-            history += h
-            loss = stages[-1]["final_loss"]
-            if best is None or loss < best[0]:
-                best = (loss, out, ok, history)
 
-        _, out, ok, best_history = best
-        params = out["params"]
-        n_free = int(sum(np.size(getattr(params, k)) for k in problem.free))
-        dof = max(int(np.size(problem.data)) - n_free, 1)
-        reduced = float(out["chi2"]) / dof
-        cov, labels, stderr, interval, u_stderr = _covariance(problem, params, out["hessian"], out["dphys"], out["u_flat"])
-        values = {k: np.asarray(getattr(params, k)) for k in config.free}
-        return CalibrationResult(
-            params=params,
-            free=tuple(config.free),
-            values=values,
-            stderr={k: stderr[k] for k in config.free},
-            interval95={k: interval[k] for k in config.free},
-            covariance=cov,
-            labels=labels,
-            converged=ok,
-            result=_result_name(out["result"]),
-            steps=int(out["steps"]),
-            reduced_chi2=reduced,
-            loss_history=best_history,
-            solver=config.solver,
-            frames=capture.n_frames,
-            stages=stages,
-            unconstrained_stderr=u_stderr,
-        )
+def _rank(res: CalibrationResult) -> tuple:
+    """Order of preference among restarts: usable first, then solver-converged, then chi-square."""
+    return (res.result != "successful", not res.solver_converged, res.result == "on_bound", res.reduced_chi2)
 
 
 def calibrate(
@@ -848,20 +502,158 @@ def calibrate(
     config: FitConfig = FitConfig(),
     *,
     scene: Scene | None = None,
+    solver=None,
+    objective: AbstractObjective | None = None,
+    problem: CalibrationProblem | None = None,
 ) -> CalibrationResult:
     """Fit the scene's optical and nuisance parameters to a baseline capture.
 
     **Arguments:**
 
     - ``capture``: a baseline (no touch), any number of frames; they are averaged.
-    - ``config``: solver, tolerances, free parameters (:class:`FitConfig`).
+    - ``config``: tolerances, free parameters, starts (:class:`FitConfig`).
     - ``scene``: the scene to start from (default: the capture's own).
+    - ``solver``, ``objective``: optimistix solver and :class:`AbstractObjective` objects
+      (default: from ``config``); a solver the objective cannot drive is refused.
+    - ``problem``: a prebuilt :func:`build_problem` (saves rebuilding the model).
 
-    **Returns:** a :class:`CalibrationResult`. A fit that did not converge has
-    ``converged = False``; it is never reported as if it had. ``reduced_chi2``
-    far above 1 means the model does not describe the data (a touch in the
-    baseline, a wrong scene).
+    **Returns:** a :class:`CalibrationResult`. ``converged`` is True only when ``result`` is
+    ``successful``: a fit that ran out of steps, ends on a bound after every restart, or
+    whose reduced chi-square exceeds ``max_reduced_chi2`` is never reported as converged.
 
     Raises :class:`CalibrationError` for data that cannot be a baseline.
     """
-    return Calibrator(scene or capture.scene, config).fit(capture)
+    scene = (scene or capture.scene).without_touches()
+    check_baseline(capture, scene)
+    problem = build_problem(scene, config) if problem is None else problem
+    solver = config.make_solver() if solver is None else solver
+    objective = config.make_objective() if objective is None else objective
+    _check_pair(solver, objective)
+    dtype = problem.model.geometry.ray_length.dtype
+    data, sigma = _data(capture, dtype, config.model_error)
+    base = Params.from_scene(scene, dtype)
+    start, found = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
+    anchor = _anchor(start, found, config, dtype)
+    stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
+    if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
+        candidates = envelope_candidates(problem, start, data, sigma, 1 + config.restarts)
+        stages.append(
+            {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": float(c.mu_s_per_m + c.mu_a_per_m)} for c in candidates]}
+        )
+    else:
+        candidates = [start]
+    fingerprint = scene_fingerprint(scene)
+    best = None
+    for k, s in enumerate(candidates):
+        sol = fit_problem(
+            problem, objective, solver, s, data, sigma, base, anchor,
+            max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
+        )
+        sol = jax.device_get(sol)
+        res = _assemble(problem, scene, config, sol, capture.n_frames, stages, fingerprint)
+        stages.append(
+            {"stage": f"fit from start {k}", "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
+             "n1": float(res.params.n1), "on_bound": res.on_bound}
+        )
+        if best is None or _rank(res) < _rank(best):
+            best = res
+        if res.result in ("successful", "refused_reduced_chi2"):
+            break  # a restart is for failures and bounds; a poor chi-square is the model's, not the start's
+    held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
+    if held is not None:
+        best = held
+    best.stages = stages
+    return best
+
+
+def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, frames, stages, fingerprint):
+    """Where the model does not describe the data (refused chi-square), amplitude errors pull n1;
+    the timing of the edge returns does not depend on them. If the joint fit left the timing
+    estimate by more than a tenth of the anchor's width, refit with n1 held at the timing estimate
+    (the result stays refused; n1 is then the timing's, as the stages say)."""
+    if best.result != "refused_reduced_chi2" or not found or "n1" not in problem.nonlinear or not config.timing_anchor:
+        return None
+    n1_t = float(start.n1)
+    if abs(float(best.params.n1) / n1_t - 1) <= 0.1 * config.timing_anchor:
+        return None
+    cfg = dataclasses.replace(config, free=tuple(k for k in config.free if k != "n1"))
+    p2 = CalibrationProblem.build(problem.model, dict(problem.transforms), cfg.free, zone_gain=config.zone_gain, prior_width=config.prior_width)
+    s2 = best.params.replace(n1=n1_t)
+    no_anchor = jnp.asarray([n1_t, np.inf], data.dtype)
+    sol = jax.device_get(
+        fit_problem(p2, objective, solver, s2, data, sigma, base.replace(n1=n1_t), no_anchor,
+                    max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True)
+    )
+    res = _assemble(p2, scene, cfg, sol, frames, stages, fingerprint)
+    stages.append({"stage": "n1 held at the timing estimate", "n1": n1_t, "result": res.result, "reduced_chi2": res.reduced_chi2})
+    if res.result not in ("refused_reduced_chi2", "successful"):
+        return None
+    res.free, res.solver_converged = tuple(cfg.free), res.solver_converged
+    return res
+
+
+def calibrate_many(
+    captures: list[Capture],
+    config: FitConfig = FitConfig(),
+    *,
+    scene: Scene | None = None,
+    restart_failures: bool = True,
+) -> list[CalibrationResult]:
+    """:func:`calibrate` for many captures of one scene: the starts and the fits each run as
+    one compiled, vmapped call over the batch (the failures are then refitted one by one with
+    restarts unless ``restart_failures`` is False)."""
+    scene = (scene or captures[0].scene).without_touches()
+    for c in captures:
+        check_baseline(c, scene)
+    problem = build_problem(scene, config)
+    solver, objective = config.make_solver(), config.make_objective()
+    _check_pair(solver, objective)
+    dtype = problem.model.geometry.ray_length.dtype
+    base = Params.from_scene(scene, dtype)
+    pairs = [_data(c, dtype, config.model_error) for c in captures]
+    timed = [timing_start(problem, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
+    starts = [s for s, _ in timed]
+    anchors = jnp.stack([_anchor(s, f, config, dtype) for s, f in timed])
+    if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
+        starts = [envelope_candidates(problem, s, d, g, 1)[0] for s, (d, g) in zip(starts, pairs)]
+    stack = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *starts)
+    data = jnp.stack([d for d, _ in pairs])
+    sigma = jnp.stack([g for _, g in pairs])
+    sols = jax.device_get(
+        fit_problem_batch(
+            problem, objective, solver, stack, data, sigma, base, anchors,
+            max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
+        )
+    )
+    fingerprint = scene_fingerprint(scene)
+    out = []
+    for i, c in enumerate(captures):
+        sol = jax.tree_util.tree_map(lambda x: x[i], sols)
+        res = _assemble(problem, scene, config, sol, c.n_frames, [{"stage": "batch"}], fingerprint)
+        if restart_failures and res.result not in ("successful", "refused_reduced_chi2"):
+            res = calibrate(c, config, scene=scene, problem=problem)
+        out.append(res)
+    return out
+
+
+class Calibrator:
+    """A scene and a config with their problem built once: ``Calibrator(scene, config).fit(capture)``.
+
+    Holds no data: :meth:`fit` is :func:`calibrate` with the prebuilt problem (the compiled
+    fit is cached by ``eqx.filter_jit`` on the problem's structure, not on this object).
+    """
+
+    def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
+        self.scene = scene.without_touches()
+        self.config = config
+        self.problem = build_problem(self.scene, config)
+
+    def base_params(self) -> Params:
+        """The scene's own parameters: the prior centre and the values of fixed parameters."""
+        return Params.from_scene(self.scene, self.problem.model.geometry.ray_length.dtype)
+
+    def fit(self, capture: Capture) -> CalibrationResult:
+        return calibrate(capture, self.config, scene=self.scene, problem=self.problem)
+
+    def fit_many(self, captures: list[Capture], restart_failures: bool = True) -> list[CalibrationResult]:
+        return calibrate_many(captures, self.config, scene=self.scene, restart_failures=restart_failures)

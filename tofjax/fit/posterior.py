@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from .calibrate import CalibrationError, CalibrationResult, Calibrator
+from .calibrate import CalibrationError, CalibrationResult, Calibrator, scene_fingerprint
 
 __all__ = ["PosteriorOptions", "PosteriorResult", "sample_posterior"]
 
@@ -97,9 +97,9 @@ def sample_posterior(
     ``max_steps``; with ``chain`` set, an interrupted run resumes where it stopped (refused if
     the data or settings differ).
     """
-    problem = calibrator._problem
-    if problem is None:
-        raise CalibrationError("run the point fit with this calibrator first")
+    problem = calibrator.problem
+    if fit.scene_fingerprint and fit.scene_fingerprint != scene_fingerprint(calibrator.scene):
+        raise CalibrationError("the point fit was made for another scene than this calibrator's")
     names = tuple(sorted(problem.nonlinear))
     base = fit.params
     u_fit = problem.pack(base, names)
@@ -109,13 +109,16 @@ def sample_posterior(
     W = options.walkers or max(32, 4 * P)
     if W < 2 * P:
         raise CalibrationError(f"walkers: emcee needs at least 2 x {P} = {2 * P} walkers, got {W}")
-    data, sigma = problem.data, problem.sigma
+    dtype = problem.model.geometry.ray_length.dtype
+    mean = capture.mean()
+    data = jnp.asarray(mean, dtype)
+    sigma = jnp.asarray(np.sqrt(np.maximum(mean, 1.0) / capture.n_frames), dtype)
 
     def log_prob(flat):
         u = unravel(flat)
         params = problem.unpack(u, base)
         if problem.linear:
-            _, m, logdet = problem.profile_parts(params, data, sigma)
+            _, m, logdet, _ = problem.profile(params, data, sigma)
         else:
             m, logdet = problem.model(params), 0.0
         r = (m - data) / sigma

@@ -52,7 +52,13 @@ def _run(a, *, want_detect: bool):
     options = _options(a)  # option errors first, before any reading
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        touch, base, optical = load_inputs(a.touch, a.baseline, a.calibration)
+        touch, base, optical = load_inputs(
+            a.touch,
+            a.baseline,
+            a.calibration,
+            allow_unconverged=a.allow_unconverged_calibration,
+            allow_other_scene=a.allow_other_scene_calibration,
+        )
     for w in caught:
         print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
     if a.method == "model":
@@ -159,6 +165,16 @@ def _common(s):
     s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
     s.add_argument(
         "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
+    )
+    s.add_argument(
+        "--allow-unconverged-calibration",
+        action="store_true",
+        help="use a calibration that did not converge or was refused (at your own risk)",
+    )
+    s.add_argument(
+        "--allow-other-scene-calibration",
+        action="store_true",
+        help="use a calibration whose scene fingerprint differs from the baseline's scene",
     )
     s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")

@@ -100,62 +100,42 @@ class OpticalParams:
         )
 
     @classmethod
-    def from_calibration(cls, data: dict[str, Any] | str | Path, scene: Scene) -> "OpticalParams":
-        """Fitted values from a calibration JSON (a dict, or a path); the scene fills the rest."""
-        source = "calibration"
-        if not isinstance(data, dict):
-            path = Path(data)
-            source = str(path)
-            try:
-                data = json.loads(path.read_text())
-            except FileNotFoundError:
-                raise InversionError(f"{path}: no such file") from None
-            except (json.JSONDecodeError, UnicodeDecodeError) as e:
-                raise InversionError(f"{path}: not valid JSON: {e}") from None
-        if not isinstance(data, dict) or not isinstance(data.get("parameters"), dict):
-            raise InversionError(
-                f"{source}: not a calibration (no 'parameters' table; write it with `tofjax calibrate`)"
-            )
-        values: dict[str, Any] = dict(data.get("fixed") or {})
-        for k, v in data["parameters"].items():
-            if not isinstance(v, dict) or "value" not in v:
-                raise InversionError(f"{source}: parameters.{k} has no 'value'")
-            values[k] = v["value"]
-        base = cls.from_scene(scene)
-        S = scene.n_sensors
-
-        def scalar(name, default):
-            if name not in values:
-                return default
-            v = np.asarray(values[name], float)
-            if v.size != 1 or not np.isfinite(v).all():
-                raise InversionError(f"{source}: {name} must be one finite number, got {values[name]!r}")
-            return float(v.reshape(()))
-
-        gain = base.gain
-        if "gain" in values:
-            g = np.asarray(values["gain"], float).ravel()
-            if g.size == 1:
-                g = np.full(S, g[0])
-            if g.size != S or not np.isfinite(g).all() or (g <= 0).any():
-                raise InversionError(
-                    f"{source}: gain has {g.size} values for {S} sensors (or is not positive): a calibration of another scene?"
-                )
-            gain = tuple(float(x) for x in g)
-        out = cls(
-            n1=scalar("n1", base.n1),
-            mu_s_per_m=scalar("mu_s_per_m", base.mu_s_per_m),
-            mu_a_per_m=scalar("mu_a_per_m", base.mu_a_per_m),
-            gain=gain,
-            emission_time_s=scalar("emission_time_s", base.emission_time_s),
-            pulse_sigma_s=scalar("pulse_sigma_s", base.pulse_sigma_s),
-            pulse_tail_s=scalar("pulse_tail_s", base.pulse_tail_s),
-            near_field_m=scalar("near_field_m", base.near_field_m),
+    def from_params(cls, params, source: str = "params") -> "OpticalParams":
+        """The optics in a :class:`tofjax.model.Params` (what a calibration gives)."""
+        return cls(
+            n1=float(params.n1),
+            mu_s_per_m=float(params.mu_s_per_m),
+            mu_a_per_m=float(params.mu_a_per_m),
+            gain=tuple(float(g) for g in np.ravel(np.asarray(params.gain))),
+            emission_time_s=float(params.emission_time_s),
+            pulse_sigma_s=float(params.pulse_sigma_s),
+            pulse_tail_s=float(params.pulse_tail_s),
+            near_field_m=float(params.near_field_m),
             source=source,
         )
-        if out.n1 <= 1.0 or out.mu_s_per_m < 0 or out.mu_a_per_m < 0:
-            raise InversionError(f"{source}: unphysical n1={out.n1}, mu_s={out.mu_s_per_m}, mu_a={out.mu_a_per_m}")
-        return out
+
+    @classmethod
+    def from_calibration(
+        cls,
+        data: dict[str, Any] | str | Path,
+        scene: Scene,
+        *,
+        allow_unconverged: bool = False,
+        allow_other_scene: bool = False,
+    ) -> "OpticalParams":
+        """The optics of a calibration JSON (a dict, or a path), read by the one reader,
+        :meth:`tofjax.fit.CalibrationResult.from_json`: an unconverged or refused calibration,
+        one of another scene, or one with missing parameters is refused with one line."""
+        from ..fit._result import CalibrationRefused, load_calibration
+
+        source = "calibration" if isinstance(data, dict) else str(data)
+        try:
+            params = load_calibration(
+                data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene
+            )
+        except CalibrationRefused as e:
+            raise InversionError(str(e)) from None
+        return cls.from_params(params, source)
 
     def replace(self, **changes) -> "OpticalParams":
         import dataclasses

@@ -337,8 +337,11 @@ def build_inverter(
     return inv
 
 
-def load_inputs(touch_path, baseline_path, calibration_path=None) -> tuple[Capture, Capture, OpticalParams]:
-    """Read and check the captures and calibration the commands take."""
+def load_inputs(
+    touch_path, baseline_path, calibration_path=None, *, allow_unconverged: bool = False, allow_other_scene: bool = False
+) -> tuple[Capture, Capture, OpticalParams]:
+    """Read and check the captures and calibration the commands take (a calibration that did
+    not converge, was refused, or is of another scene is refused unless allowed)."""
     touch = read_capture(touch_path)
     base = read_capture(baseline_path)
     check_compatible(touch.scene, base.scene)
@@ -346,7 +349,9 @@ def load_inputs(touch_path, baseline_path, calibration_path=None) -> tuple[Captu
         warn_no_calibration(base.scene)
         optical = OpticalParams.from_scene(base.scene)
     else:
-        optical = OpticalParams.from_calibration(calibration_path, base.scene)
+        optical = OpticalParams.from_calibration(
+            calibration_path, base.scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene
+        )
     return touch, base, optical
 
 

@@ -1,0 +1,201 @@
+"""Study: calibration on tofjax's own simulator and on an independent one, side by side.
+
+For every true (n1, mu_t) of the grid a baseline is simulated twice: by ``tofjax.simulate``
+("own") and by ``tests/indep_sim.py`` ("independent": NumPy, area sampling, a two-tail pulse,
+an emission-time offset, per-zone gains, its own crosstalk and near field, no multiple
+scattering). Both are calibrated from the nominal scene (start and prior centre) with the
+same fit config. Reported per column: convergence (``result == successful``), n1 and
+mu_t = mu_s + mu_a errors, reduced chi-square, and the share within the targets (n1 within
+1%, mu_t within 25%).
+
+Then the batch speed-up: the same compiled fit run on ``batch`` captures as separate calls
+and as one vmapped call (``tofjax.fit.fit_problem_batch``), from the same starts.
+
+    python experiments/study_calib_independent.py --out out/calib_independent [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import tofjax
+from tofjax.fit import Calibrator, FitConfig, fit_problem, fit_problem_batch
+from tofjax.fit._start import envelope_candidates, timing_start
+from tofjax.fit.calibrate import _anchor, _data
+from tofjax.scene import SensorModel, load_scene
+from tofjax.simulate import simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from indep_sim import IndepRig  # noqa: E402
+from indep_sim import simulate as simulate_independent  # noqa: E402
+
+FULL = {"sensors": 3, "zones": 7, "bins": 128, "frames": 60, "n1": (1.3, 1.45, 1.6), "mu_t": (0.05, 0.5, 2.0, 4.0), "batch": 100}
+QUICK = {"sensors": 2, "zones": 3, "bins": 96, "frames": 30, "n1": (1.45,), "mu_t": (0.5,), "batch": 4}
+ALBEDO = 0.8  # mu_s / mu_t of the truths
+
+
+def _scene(base, sensors, zones, bins):
+    sm = base.sensor
+    small = SensorModel(bin_width_s=sm.bin_width_s, n_bins=bins, zones=zones, fov_deg=sm.fov_deg * zones / sm.zones)
+    return base.replace(sensor=small, sensors=base.sensors[:sensors])
+
+
+def _row(res, n1, mu_t, seconds):
+    f_n1 = float(res.params.n1)
+    f_mu = float(res.params.mu_s_per_m + res.params.mu_a_per_m)
+    return {
+        "result": res.result,
+        "converged": bool(res.converged),
+        "n1": f_n1,
+        "mu_t_per_m": f_mu,
+        "n1_rel_error": f_n1 / n1 - 1,
+        "mu_t_rel_error": f_mu / mu_t - 1,
+        "reduced_chi2": res.reduced_chi2,
+        "worst_zone": (res.discrepancy.get("worst_zones") or [None])[0],
+        "seconds": seconds,
+    }
+
+
+def _summary(rows):
+    n = len(rows)
+    n1e = np.abs([r["n1_rel_error"] for r in rows])
+    mue = np.abs([r["mu_t_rel_error"] for r in rows])
+    ok = [r["converged"] for r in rows]
+    return {
+        "fits": n,
+        "converged": int(sum(ok)),
+        "n1_within_1pct": int(np.sum(n1e <= 0.01)),
+        "mu_t_within_25pct": int(np.sum(mue <= 0.25)),
+        "all_targets": int(sum(o and a <= 0.01 and b <= 0.25 for o, a, b in zip(ok, n1e, mue))),
+        "n1_rel_error_median": float(np.median(n1e)),
+        "n1_rel_error_max": float(np.max(n1e)),
+        "mu_t_rel_error_median": float(np.median(mue)),
+        "mu_t_rel_error_max": float(np.max(mue)),
+        "reduced_chi2_median": float(np.median([r["reduced_chi2"] for r in rows])),
+        "reduced_chi2_max": float(np.max([r["reduced_chi2"] for r in rows])),
+    }
+
+
+def batch_speed(cal: Calibrator, truth, frames: int, batch: int, seed: int) -> dict:
+    """The same compiled fit (no covariance) on ``batch`` captures: separate calls against one
+    vmapped call, from the same starts."""
+    cfg, problem = cal.config, cal.problem
+    solver, objective = cfg.make_solver(), cfg.make_objective()
+    base = cal.base_params()
+    caps = [simulate(truth, frames, seed=seed + i) for i in range(batch)]
+    starts, anchors, data, sigma = [], [], [], []
+    for c in caps:
+        d, g = _data(c, base.n1.dtype, cfg.model_error)
+        s, found = timing_start(problem, np.asarray(d), c.n_frames, cal.scene, base)
+        anchors.append(_anchor(s, found, cfg, base.n1.dtype))
+        starts.append(envelope_candidates(problem, s, d, g, 1)[0])
+        data.append(d)
+        sigma.append(g)
+    kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first, with_cov=False)
+
+    def one(i):
+        return fit_problem(problem, objective, solver, starts[i], data[i], sigma[i], base, anchors[i], **kw)
+
+    stack = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *starts)
+    D, G, A = jnp.stack(data), jnp.stack(sigma), jnp.stack(anchors)
+
+    def many():
+        return fit_problem_batch(problem, objective, solver, stack, D, G, base, A, **kw)
+
+    t = time.perf_counter()
+    jax.block_until_ready(one(0))
+    compile_single = time.perf_counter() - t
+    t = time.perf_counter()
+    jax.block_until_ready(many())
+    compile_batch = time.perf_counter() - t
+    t = time.perf_counter()
+    singles = [jax.block_until_ready(one(i)) for i in range(batch)]
+    separate = time.perf_counter() - t
+    t = time.perf_counter()
+    out = jax.block_until_ready(many())
+    batched = time.perf_counter() - t
+    n1_single = np.array([float(s.params.n1) for s in singles])
+    n1_batch = np.asarray(out.params.n1)
+    return {
+        "batch": batch,
+        "separate_calls_s": separate,
+        "one_vmapped_call_s": batched,
+        "speedup": separate / batched,
+        "warm_fit_s_per_fit_separate": separate / batch,
+        "first_call_s_single (compile + 1 fit)": compile_single,
+        "first_call_s_batch (compile + batch)": compile_batch,
+        "max_n1_difference_batch_vs_single": float(np.max(np.abs(n1_single - n1_batch))),
+        "successful_batch": int(np.sum(np.asarray(out.result._value) == 0)) if hasattr(out.result, "_value") else None,
+    }
+
+
+def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progress: bool = True) -> dict:
+    p = QUICK if quick else FULL
+    nominal = _scene(load_scene("optoskin"), p["sensors"], p["zones"], p["bins"])
+    cal = Calibrator(nominal, config)
+    rows = {"own": [], "independent": []}
+    truths = []
+    for k, (n1, mu_t) in enumerate(itertools.product(p["n1"], p["mu_t"])):
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
+        truth = nominal.replace(waveguide=wg)
+        truths.append({"n1": n1, "mu_t_per_m": mu_t, "albedo": ALBEDO})
+        own = simulate(truth, p["frames"], seed=100 + k)
+        rig = IndepRig.from_scene(truth, seed=200 + k)
+        ind = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=p["frames"], seed=300 + k)
+        for name, cap in (("own", own), ("independent", ind)):
+            t = time.perf_counter()
+            res = cal.fit(cap)
+            rows[name].append(_row(res, n1, mu_t, time.perf_counter() - t))
+            if progress:
+                r = rows[name][-1]
+                print(
+                    f"n1 {n1:.2f} mu_t {mu_t:5.2f} {name:12s}: {r['result']:22s} n1 err {100 * r['n1_rel_error']:+6.2f}% "
+                    f"mu_t err {100 * r['mu_t_rel_error']:+7.1f}% chi2 {r['reduced_chi2']:7.2f} ({r['seconds']:.1f} s)",
+                    flush=True,
+                )
+    wg = dataclasses.replace(nominal.waveguide, n1=1.45, mu_s_per_m=0.4, mu_a_per_m=0.1)
+    speed = batch_speed(cal, nominal.replace(waveguide=wg), p["frames"], p["batch"], seed=5000)
+    result = {
+        "study": "calibration on own and independent simulated data",
+        "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared",
+        "scene": {k: p[k] for k in ("sensors", "zones", "bins", "frames")} | {"base": "optoskin", "albedo": ALBEDO},
+        "fit_config": dataclasses.asdict(config),
+        "truths": truths,
+        "own": {"summary": _summary(rows["own"]), "fits": rows["own"]},
+        "independent": {"summary": _summary(rows["independent"]), "fits": rows["independent"]},
+        "batch_speed": speed,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calib_independent.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/calib_independent")
+    ap.add_argument("--quick", action="store_true", help="a tiny scene and one truth (what the test runs)")
+    ap.add_argument("--model-error", type=float, default=FitConfig().model_error, help="FitConfig.model_error")
+    args = ap.parse_args(argv)
+    tofjax.enable_x64()
+    r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error))
+    for name in ("own", "independent"):
+        print(name, json.dumps(r[name]["summary"]))
+    print("batch", json.dumps(r["batch_speed"]))
+    print(f"wrote {args.out}/calib_independent.json")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,370 @@
+"""The calibration problem: residuals of the forward model against a baseline, with the
+linear parameters (gain, light-entry and ambient counts) profiled out.
+
+:class:`CalibrationProblem` is an immutable ``eqx.Module``: it holds the forward model and
+the choice of free parameters, never the data. The data (mean histograms and their
+standard deviations) and the start are passed as arguments, so one problem serves every
+capture of its shape, ``eqx.filter_jit`` does the caching and many fits ``vmap`` into one
+compiled call.
+
+The model of one zone is ``g R + x P + a``: ``R`` everything proportional to the gain,
+``P`` the unit light-entry peak, ``a`` ambient (:meth:`ForwardModel.linear_parts`).
+With ``zone_gain`` the gain ``g`` is free per (sensor, zone): a real rig's zones differ
+by several per cent (lens, SPAD array, calibration of the part) in ways no optics explain.
+The linear parameters of each zone are then the non-negative least-squares solution
+(counts cannot be negative), found exactly by trying every active set of the (at most
+three) unknowns in closed form and keeping the best feasible one.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model import ForwardModel, Params
+from .transforms import Transform
+
+__all__ = ["CalibrationProblem", "LINEAR", "JOINT"]
+
+#: Parameters that scale the histogram linearly: profiled out, never seen by the solver.
+LINEAR = ("gain", "ambient_counts", "crosstalk_counts")
+#: mu_s and mu_a are fitted as extinction mu_t = mu_s + mu_a (log) and albedo (logit): a
+#: baseline pins mu_t far better than the split, and in (log mu_s, log mu_a) that makes a
+#: curved valley in which Gauss-Newton overshoots; in (mu_t, albedo) it is straight.
+JOINT = ("mu_s_per_m", "mu_a_per_m")
+
+
+def _inv3(g):
+    """Inverse of symmetric (..., 3, 3) matrices by the adjugate (elementwise: cheap to
+    differentiate, unlike a batched LU)."""
+    a, b, c = g[..., 0, 0], g[..., 0, 1], g[..., 0, 2]
+    d, e, f = g[..., 1, 1], g[..., 1, 2], g[..., 2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    D = a * f - c * c
+    E = b * c - a * e
+    F = a * d - b * b
+    det = a * A + b * B + c * C
+    adj = jnp.stack([jnp.stack([A, B, C], -1), jnp.stack([B, D, E], -1), jnp.stack([C, E, F], -1)], -2)
+    return adj / det[..., None, None], det
+
+
+class CalibrationProblem(eqx.Module):
+    """What is fitted and how; data and start come as arguments.
+
+    **Fields:**
+
+    - ``model``: the forward model of the scene without touches.
+    - ``transforms``: ``(name, Transform)`` pairs, the unconstrained coordinates of each parameter.
+    - ``free``: every free parameter; ``linear``/``nonlinear`` split it.
+    - ``zone_gain``: gain free per (sensor, zone) instead of per sensor.
+    - ``prior_width``: width of the weak Gaussian prior on the nonlinear coordinates (0: none).
+    """
+
+    model: ForwardModel
+    transforms: tuple[tuple[str, Transform], ...] = eqx.field(static=True)
+    free: tuple[str, ...] = eqx.field(static=True)
+    linear: tuple[str, ...] = eqx.field(static=True)
+    nonlinear: tuple[str, ...] = eqx.field(static=True)
+    zone_gain: bool = eqx.field(static=True)
+    prior_width: float = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, model: ForwardModel, transforms: dict, free, *, zone_gain: bool, prior_width: float):
+        comps = model.components
+        present = {"gain": True, "crosstalk_counts": "crosstalk" in comps, "ambient_counts": "ambient" in comps}
+        linear = tuple(p for p in LINEAR if p in free and present[p])
+        nonlinear = tuple(p for p in free if p not in LINEAR)
+        return cls(
+            model=model,
+            transforms=tuple(sorted(transforms.items())),
+            free=tuple(free),
+            linear=linear,
+            nonlinear=nonlinear,
+            zone_gain=bool(zone_gain and "gain" in linear),
+            prior_width=float(prior_width),
+        )
+
+    def transform(self, name: str) -> Transform:
+        return dict(self.transforms)[name]
+
+    # ---- coordinates ------------------------------------------------------------------
+
+    def pack(self, params: Params, names=None) -> dict[str, jax.Array]:
+        """Unconstrained coordinates of ``names`` (default: the nonlinear parameters), in NumPy."""
+        names = self.nonlinear if names is None else names
+        joint = all(j in names for j in JOINT)
+        u = {
+            k: jnp.asarray(self.transform(k).to_unconstrained(np.asarray(getattr(params, k))))
+            for k in names
+            if not (joint and k in JOINT)
+        }
+        if joint:
+            mu_s = max(float(params.mu_s_per_m), 1e-12)
+            mu_a = max(float(params.mu_a_per_m), 1e-12)
+            u["extinction"] = jnp.asarray(math.log(mu_s + mu_a))
+            u["albedo"] = jnp.asarray(math.log(mu_s) - math.log(mu_a))
+        return u
+
+    def pack_jax(self, params: Params, names, values=None) -> dict[str, jax.Array]:
+        """:meth:`pack` in JAX (jit-safe); ``values`` overrides ``getattr(params, k)``."""
+        ft = jnp.result_type(float)
+        values = values or {}
+
+        def get(k):
+            return jnp.asarray(values[k] if k in values else getattr(params, k), ft)
+
+        joint = all(j in names for j in JOINT)
+        u = {k: self.transform(k).unconstrain(get(k)) for k in names if not (joint and k in JOINT)}
+        if joint:
+            mu_s = jnp.maximum(get("mu_s_per_m"), 1e-12)
+            mu_a = jnp.maximum(get("mu_a_per_m"), 1e-12)
+            u["extinction"] = jnp.log(mu_s + mu_a)
+            u["albedo"] = jnp.log(mu_s) - jnp.log(mu_a)
+        return u
+
+    def physical(self, u) -> dict[str, jax.Array]:
+        """Physical values of the coordinates ``u`` (jit- and grad-safe)."""
+        out = {k: self.transform(k).to_physical(v) for k, v in u.items() if k not in ("extinction", "albedo")}
+        if "extinction" in u:
+            mu_t = jnp.exp(u["extinction"])
+            albedo = jax.nn.sigmoid(u["albedo"])
+            out["mu_s_per_m"] = mu_t * albedo
+            out["mu_a_per_m"] = mu_t * (1.0 - albedo)
+        return out
+
+    def unpack(self, u, base: Params) -> Params:
+        phys = self.physical(u)
+        if self.zone_gain and "gain" in phys and jnp.ndim(phys["gain"]) == 2:
+            phys["gain"] = jnp.mean(phys["gain"], axis=-1)
+        return base.replace(**phys)
+
+    # ---- the linear parameters, profiled out --------------------------------------------
+
+    def _bases(self, params: Params, R, P):
+        """The zone-local bases and the fixed part of the model (S, Z, B) each."""
+        comps = self.model.components
+        fixed = jnp.zeros_like(R)
+        if "gain" not in self.linear:
+            fixed = fixed + params.gain[:, None, None] * R
+        if "crosstalk" in comps and "crosstalk_counts" not in self.linear:
+            fixed = fixed + params.crosstalk_counts[..., None] * P
+        if "ambient" in comps and "ambient_counts" not in self.linear:
+            fixed = fixed + params.ambient_counts[..., None]
+        names, basis = [], []
+        if self.zone_gain:
+            names.append("gain")
+            basis.append(R)
+        if "crosstalk_counts" in self.linear:
+            names.append("crosstalk_counts")
+            basis.append(P)
+        if "ambient_counts" in self.linear:
+            names.append("ambient_counts")
+            basis.append(jnp.ones_like(R))
+        return fixed, names, basis
+
+    def profile(self, params: Params, data, sigma):
+        """The best linear parameters for the nonlinear ones in ``params``.
+
+        **Returns:** ``(params, model, logdet, linear)``: ``params`` with the profiled values
+        (with ``zone_gain`` its ``gain`` is the mean over zones), the model histograms at them,
+        ``sum log det`` of the normal equations (for the posterior), and the profiled values
+        themselves (``gain`` (S, Z) with ``zone_gain``).
+        """
+        R, P = self.model.linear_parts(params)
+        if self.zone_gain:
+            return self._profile_zone(params, R, P, data, sigma)
+        return self._profile_sensor(params, R, P, data, sigma)
+
+    def _profile_zone(self, params, R, P, data, sigma):
+        w = 1.0 / sigma**2
+        fixed, names, basis = self._bases(params, R, P)
+        m = len(basis)
+        y = data - fixed
+        # Gram matrix and projections, padded to 3 unknowns (identity rows for absent ones)
+        Bs = jnp.stack(basis + [jnp.zeros_like(R)] * (3 - m), axis=-2)  # (S, Z, 3, B)
+        G = jnp.einsum("szib,szjb->szij", Bs * w[..., None, :], Bs)
+        b = jnp.einsum("szib,szb->szi", Bs * w[..., None, :], y)
+        yy = jnp.sum(w * y * y, axis=-1)
+        present = jnp.asarray([1.0] * m + [0.0] * (3 - m), R.dtype)
+        scale = jnp.where(present > 0, jnp.maximum(jnp.diagonal(G, axis1=-2, axis2=-1), jnp.finfo(R.dtype).tiny), 1.0)
+        # every active set: the non-negative least-squares optimum is the best feasible one
+        masks = jnp.asarray(list(itertools.product([1.0, 0.0], repeat=3)), R.dtype) * present  # (8, 3)
+        Gm = G[..., None, :, :] * masks[:, :, None] * masks[:, None, :]
+        Gm = Gm + jnp.eye(3, dtype=R.dtype) * ((1.0 - masks)[:, :, None] + 1e-12 * masks[:, :, None]) * scale[..., None, :, None]
+        inv, det = _inv3(Gm)  # (S, Z, 8, 3, 3)
+        c = jnp.einsum("szkij,szkj->szki", inv, b[..., None, :] * masks)
+        ssr = yy[..., None] - 2.0 * jnp.sum(c * b[..., None, :], -1) + jnp.einsum("szki,szkij,szkj->szk", c, Gm, c)
+        feasible = jnp.all(c >= 0.0, axis=-1)
+        k = jnp.argmin(jnp.where(feasible, ssr, jnp.inf), axis=-1)  # (S, Z); the empty set is always feasible
+        coef = jnp.take_along_axis(c, k[..., None, None], axis=-2)[..., 0, :]  # (S, Z, 3)
+        fitted = fixed + sum(coef[..., i, None] * basis[i] for i in range(m))
+        # the first active set is the full one (absent unknowns have unit rows)
+        logdet = jnp.sum(jnp.log(jnp.maximum(det[..., 0], jnp.finfo(R.dtype).tiny)))
+        out = {n: coef[..., i] for i, n in enumerate(names)}
+        rep = dict(out)
+        if "gain" in rep:
+            rep["gain"] = jnp.mean(rep["gain"], axis=-1)
+        return params.replace(**rep), fitted, logdet, out
+
+    def _profile_sensor(self, params, R, P, data, sigma):
+        """Gain shared by a sensor's zones: the zone unknowns are eliminated with an explicit
+        2 x 2 solve per zone, then the gain from its Schur complement (unconstrained)."""
+        w = 1.0 / sigma**2
+        fixed, names, basis = self._bases(params, R, P)
+        y = data - fixed
+
+        def ip(a, b):
+            return jnp.sum(w * a * b, axis=-1)
+
+        logdet = jnp.zeros((), R.dtype)
+        m = len(basis)
+        if m == 1:
+            g = ip(basis[0], basis[0])
+            g = g + 1e-12 * g + jnp.finfo(R.dtype).tiny
+            ginv = [[1.0 / g]]
+            logdet = logdet + jnp.sum(jnp.log(g))
+        elif m == 2:
+            a, b, c = ip(basis[0], basis[0]), ip(basis[0], basis[1]), ip(basis[1], basis[1])
+            ridge = 1e-12 * (a + c) + jnp.finfo(R.dtype).tiny
+            a, c = a + ridge, c + ridge
+            det = a * c - b * b
+            ginv = [[c / det, -b / det], [-b / det, a / det]]
+            logdet = logdet + jnp.sum(jnp.log(det))
+
+        def zone_coefs(v):
+            proj = [ip(bi, v) for bi in basis]
+            return [sum(ginv[i][j] * proj[j] for j in range(m)) for i in range(m)]
+
+        def q_ip(u, v):  # <u, (I - projection onto the zone basis) v>
+            out = ip(u, v)
+            if m:
+                cv = zone_coefs(v)
+                out = out - sum(ip(u, basis[i]) * cv[i] for i in range(m))
+            return out
+
+        out, fitted = {}, fixed
+        if "gain" in self.linear:
+            rr = jnp.sum(q_ip(R, R), axis=1) + jnp.finfo(R.dtype).tiny  # (S,)
+            gain = jnp.sum(q_ip(R, y), axis=1) / rr
+            out["gain"] = gain
+            fitted = fitted + gain[:, None, None] * R
+            logdet = logdet + jnp.sum(jnp.log(rr))
+            y = y - gain[:, None, None] * R
+        if m:
+            for k, coef, bi in zip(names, zone_coefs(y), basis):
+                out[k] = coef
+                fitted = fitted + coef[..., None] * bi
+        return params.replace(**out), fitted, logdet, out
+
+    # ---- objectives -----------------------------------------------------------------------
+
+    def prior_residuals(self, u, prior):
+        """A weak Gaussian prior ``(u - prior) / width`` on the nonlinear coordinates: keeps a
+        parameter the data cannot pin (mu_a -> 0 in log space) finite, barely moves the rest."""
+        parts = []
+        if self.prior_width > 0:
+            parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in LINEAR]
+        if "n1" in u and "n1_anchor" in prior:
+            # the timing estimate of n1 (edge returns, known geometry) as a measurement:
+            # (centre, width); an infinite width (no edge seen) makes it zero
+            centre, width = prior["n1_anchor"][0], prior["n1_anchor"][1]
+            parts.append(jnp.ravel((self.transform("n1").to_physical(u["n1"]) - centre) / width))
+        return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.result_type(float))
+
+    def profiled_model(self, u, base: Params, data, sigma):
+        params = self.unpack(u, base)
+        if not self.linear:
+            return params, self.model(params), {}
+        p, m, _, lin = self.profile(params, data, sigma)
+        return p, m, lin
+
+    def residuals(self, u, args):
+        """Profiled, Poisson-weighted residuals and the prior; ``args = (base, data, sigma, prior)``."""
+        base, data, sigma, prior = args
+        _, m, _ = self.profiled_model(u, base, data, sigma)
+        data_part = ((m - data) / sigma).ravel()
+        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
+
+    def deviance(self, u, args):
+        """Poisson deviance per bin of the profiled model, plus the prior."""
+        base, d, sigma, prior = args
+        _, m, _ = self.profiled_model(u, base, d, sigma)
+        mu = jnp.maximum(m, 1e-9)
+        term = mu - d + jnp.where(d > 0, d * jnp.log(jnp.where(d > 0, d, 1.0) / mu), 0.0)
+        # the frame count from the arguments (sigma^2 = max(d, 1) / frames)
+        frames = jnp.mean(jnp.maximum(d, 1.0) / sigma**2)
+        return (2.0 * frames * jnp.sum(term) + jnp.sum(self.prior_residuals(u, prior) ** 2)) / d.size
+
+    def full_residuals(self, u, base: Params, prior, data, sigma):
+        """Residuals with every free parameter explicit (for the covariance), prior included."""
+        phys = self.physical(u)
+        params = self.unpack(u, base)
+        if self.zone_gain:
+            R, P = self.model.linear_parts(params)
+            m = phys["gain"][..., None] * R
+            if "crosstalk" in self.model.components:
+                m = m + params.crosstalk_counts[..., None] * P
+            if "ambient" in self.model.components:
+                m = m + params.ambient_counts[..., None]
+        else:
+            m = self.model(params)
+        data_part = ((m - data) / sigma).ravel()
+        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
+
+    def covariance_jacobian(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
+        """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
+        ``ravel_pytree`` order). Nonlinear columns by forward-mode AD; the linear ones (one per
+        sensor or zone, most of the columns) written down from ``linear_parts``."""
+        u = self.pack_jax(params, self.free, linear)
+        prior = self.pack_jax(prior_params, self.free)
+        if anchor is not None:
+            prior["n1_anchor"] = anchor
+        lin = {k: u[k] for k in u if k in LINEAR}
+        nl = {k: u[k] for k in u if k not in LINEAR}
+        f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
+        j_nl = jax.jacfwd(lambda g: self.full_residuals({**unravel_nl(g), **lin}, params, prior, data, sigma))(f_nl)
+        n_rows = j_nl.shape[0]
+        R, P = self.model.linear_parts(params)
+        S, Z, B = R.shape
+        ft = j_nl.dtype
+        R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
+        cols, pos = {}, 0
+        for k in sorted(nl):
+            n = int(np.size(nl[k]))
+            cols[k] = j_nl[:, pos : pos + n]
+            pos += n
+        eye_s, eye_z = jnp.eye(S, dtype=ft), jnp.eye(Z, dtype=ft)
+        comps = self.model.components
+        for k, uk in lin.items():
+            dxdu = self.transform(k).derivative(uk)
+            if k == "gain" and not self.zone_gain:
+                block = jnp.einsum("szb,st->szbt", R / sig, eye_s * dxdu[None, :]).reshape(S * Z * B, S)
+            elif k == "gain" or (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
+                part = {"gain": R, "crosstalk_counts": P}.get(k, jnp.ones_like(R))
+                block = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z) * dxdu[None, None, None]
+                block = block.reshape(S * Z * B, S * Z)
+            else:
+                block = jnp.zeros((S * Z * B, int(np.size(uk))), ft)
+            cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - S * Z * B, block.shape[1]), ft)])
+        return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
+
+    def laplace(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
+        """``J^T J`` over every free coordinate, and d(physical)/d(coordinates) (physical values
+        in ``sorted(free)`` order), at the optimum."""
+        jac = self.covariance_jacobian(params, linear, prior_params, data, sigma, anchor)
+        u = self.pack_jax(params, self.free, linear)
+        flat, unravel = jax.flatten_util.ravel_pytree(u)
+        names = sorted(self.free)
+
+        def phys_flat(f):
+            x = self.physical(unravel(f))
+            return jnp.concatenate([jnp.ravel(x[k]) for k in names])
+
+        return jac.T @ jac, jax.jacfwd(phys_flat)(flat), flat
