@@ -8,7 +8,8 @@ import pytest
 from test_studies import load
 
 
-def test_fit_speed_study_fast(tmp_path):
+@pytest.mark.slow  # 60 s cold (two fit compilations): over the suite's budget; the emcee part's test stays fast
+def test_fit_speed_study_settings_and_scipy(tmp_path):
     """Settings and scipy parts on a small scene (the emcee part has its own test)."""
     study = load("study_fit_speed")
     cfg = study.FitSpeedConfig(
