@@ -290,7 +290,7 @@ class IndepRig:
         return rng.poisson(np.maximum(lam, 0.0)).astype(float)
 
     def truth(self) -> dict:
-        wg, sm = self.scene.waveguide, self.scene.sensor
+        wg = self.scene.waveguide
         return {
             "simulator": "tests/indep_sim.py",
             "rig_seed": self.seed,

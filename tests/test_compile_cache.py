@@ -1,7 +1,6 @@
 """The persistent compilation cache: where it lives, the opt-out, and that it stores programs."""
 
 import jax
-import jax.numpy as jnp
 import pytest
 
 from tofjax.compile_cache import ENV_VAR, default_cache_dir, enable_compilation_cache

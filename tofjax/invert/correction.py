@@ -29,7 +29,6 @@ Frames with a NaN/inf or a saturated bin are flagged and give zeros; the rest ar
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from dataclasses import dataclass

@@ -5,7 +5,6 @@ The trade-off study (once ``tofjax bench tradeoff``) is ``experiments/study_trad
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from ..config import ConfigError
 

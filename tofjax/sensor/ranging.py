@@ -52,7 +52,6 @@ def _fit_one(h, x0, pulse, start, step, n_bins, pulses, iterations, drift=None, 
         return (x, lam), None
 
     (x, _), _ = jax.lax.scan(body, (x0, jnp.asarray(1e-3, x0.dtype)), None, length=iterations)
-    r = resid(x)
     J = jac(x)
     cov = jnp.linalg.pinv(J.T @ J)
     mu = counts(x)
