@@ -160,3 +160,20 @@ def test_rig_file_with_an_intel_hex_image(scene_file, tmp_path):
     res = acquire(str(tmp_path / "rig.toml"), tmp_path / "c.h5", AcquireOptions(frames=2, emulate=True, progress=False))
     assert res.frames == 2 and not res.synthetic_image and sum(res.errors.values()) == 0
     assert read_capture(tmp_path / "c.h5").histograms.shape[1:] == (2, 7, 128)
+
+
+def test_demo_acquisition_runs_twice_only_with_overwrite(small_scene, tmp_path):
+    """`make demo` passes --overwrite: its recording must honour it (a second run failed at the
+    acquisition step, after half a minute of work), and without it the first recording is kept."""
+    from tofjax.capture import CaptureError
+    from tofjax.hw.demo import run as hw_demo
+
+    scene = small_scene.without_touches()
+    hw_demo(tmp_path, scene, frames=1)
+    before = (tmp_path / "acquired.h5").read_bytes()
+    with pytest.raises(CaptureError, match="exists"):
+        hw_demo(tmp_path, scene, frames=1)
+    assert (tmp_path / "acquired.h5").read_bytes() == before
+    lines = hw_demo(tmp_path, scene, frames=2, seed=1, overwrite=True)
+    assert "2 whole frames" in "\n".join(lines)
+    assert read_capture(tmp_path / "acquired.h5").n_frames == 2

@@ -128,7 +128,7 @@ def run_demo(
     print("[7/8] recording from an emulated TMF8828 rig ...", flush=True)
     from .hw.demo import run as hw_demo
 
-    lines += hw_demo(out, base_scene, seed=seed)
+    lines += hw_demo(out, base_scene, seed=seed, overwrite=overwrite)
 
     print("[8/8] timing the forward model ...", flush=True)
     f = jax.jit(lambda p: build_model(base_scene, opts)(p))

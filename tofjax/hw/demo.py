@@ -15,16 +15,17 @@ from .rig import rig_for_scene
 __all__ = ["run"]
 
 
-def run(out_dir: str | Path, scene: Scene, *, frames: int = 3, seed: int = 0) -> list[str]:
+def run(out_dir: str | Path, scene: Scene, *, frames: int = 3, seed: int = 0, overwrite: bool = False) -> list[str]:
     """Record ``frames`` frames of ``scene`` from an emulated rig (sensors behind a mux, 1 MHz bus,
-    a few injected faults) into ``out_dir/acquired.h5``; returns summary lines."""
+    a few injected faults) into ``out_dir/acquired.h5`` (replacing an earlier run's only with
+    ``overwrite``); returns summary lines."""
     out = Path(out_dir) / "acquired.h5"
     if scene.sensor.n_bins != 128 or scene.sensor.zones > 64 or scene.n_sensors > 8:
         return [f"emulated acquisition skipped: a TMF8828 rig has 128 bins, <= 64 zones and here <= 8 sensors; "
                 f"this scene has {scene.shape} (sensors, zones, bins)", ""]
     rig = rig_for_scene(scene.name, scene)
     res = acquire((rig, scene), out, AcquireOptions(
-        frames=frames, emulate=True, bus_speed_hz=1_000_000, seed=seed, progress=False,
+        frames=frames, emulate=True, bus_speed_hz=1_000_000, seed=seed, progress=False, overwrite=overwrite,
         bus_faults=BusFaults(nack=0.005, corrupt=0.005, seed=seed),
         device_faults=DeviceFaults(repeat=0.005, skip=0.002, seed=seed)))
     cap = read_capture(out)
