@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         cap = Path(tmp) / "baseline.h5"
         _run(tofjax + ["simulate", a.scene, "--frames", str(a.frames), "--out", str(cap)], "0")
-        fit = tofjax + ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json")]
+        fit = tofjax + ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
         times: dict[str, list[float]] = {"off": [], "cold": [], "warm": []}
         for r in range(a.repeats):
             folder = Path(tmp) / f"cache{r}"
