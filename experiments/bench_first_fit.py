@@ -14,7 +14,10 @@ reported, with the warm/off ratio measured side by side in one run. The times ar
 processes (imports, reading the capture, the fit, writing the JSON), since that is what a user
 waits for.
 
-Writes ``first_fit.json`` to ``--out``.
+Writes ``first_fit.json`` to ``--out``. Its fast check in the test suite is
+``tests/test_compile_cache.py::test_second_process_reads_the_cache`` (two processes, one
+program): the benchmark itself compiles a calibration several times and belongs outside the
+suite's budget.
 
     python experiments/bench_first_fit.py --out out/bench [--scene optoskin] [--frames 20] [--repeats 3]
 """
