@@ -119,6 +119,39 @@ def test_free_space_scene_and_grids(tmp_path, synthetic):
     assert guide.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) and not guide.free_space
 
 
+
+def test_inversion_takes_the_sensor_model_a_calibration_was_made_with(tmp_path, synthetic):
+    """A calibration made with `calibrate --sensor` carries the measured bin width in its scene
+    fingerprint: `detect`/`process --sensor` accept it, and without the sensor model it is
+    refused as another scene's."""
+    from tofjax import load_scene
+    from tofjax.capture import Capture, write_capture
+    from tofjax.fit import scene_fingerprint
+    from tofjax.invert.correction import InversionError
+    from tofjax.invert.pipeline import load_inputs
+
+    sensor = synthetic[1].save(tmp_path / "s.json")
+    scene = load_scene("optoskin").without_touches()
+    rng = np.random.default_rng(0)
+    for name in ("base", "touch"):
+        write_capture(tmp_path / f"{name}.h5", Capture(histograms=rng.poisson(50.0, (2, *scene.shape)).astype(float),
+                                                       timestamps=np.arange(2.0), scene=scene))
+    fitted = scene.with_sensor_model(str(sensor))
+    cal = {
+        "parameters": {"n1": {"value": 1.4, "stderr": 0.01}, "gain": {"value": [100.0] * scene.n_sensors}},
+        "fixed": {"mu_s_per_m": 0.6, "mu_a_per_m": 0.14, "emission_time_s": 1.45e-9, "pulse_sigma_s": 6e-11,
+                  "pulse_tail_s": 1.5e-10},
+        "converged": True,
+        "scene_fingerprint": scene_fingerprint(fitted),
+    }
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    args = (tmp_path / "touch.h5", tmp_path / "base.h5", tmp_path / "cal.json")
+    touch, base, optical = load_inputs(*args, sensor_path=str(sensor))
+    assert base.scene.sensor.bin_width_s == pytest.approx(synthetic[1].bin_width_s) == touch.scene.sensor.bin_width_s
+    assert optical.n1 == 1.4
+    with pytest.raises(InversionError, match="another scene"):
+        load_inputs(*args)
+
 @pytest.fixture(scope="module")
 def real(tmp_path_factory):
     """The CLI on the real slice: import, sensor fit, range."""

@@ -58,6 +58,7 @@ def _run(a, *, want_detect: bool):
             a.calibration,
             allow_unconverged=a.allow_unconverged_calibration,
             allow_other_scene=a.allow_other_scene_calibration,
+            sensor_path=a.sensor,
         )
     for w in caught:
         print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
@@ -175,6 +176,11 @@ def _common(s):
         "--allow-other-scene-calibration",
         action="store_true",
         help="use a calibration whose scene fingerprint differs from the baseline's scene",
+    )
+    s.add_argument(
+        "--sensor",
+        help="sensor model from `tofjax sensor fit` (its bin width replaces the nominal one; pass the same "
+        "model as to `tofjax calibrate --sensor`)",
     )
     s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")

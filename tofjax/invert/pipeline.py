@@ -338,13 +338,26 @@ def build_inverter(
 
 
 def load_inputs(
-    touch_path, baseline_path, calibration_path=None, *, allow_unconverged: bool = False, allow_other_scene: bool = False
+    touch_path,
+    baseline_path,
+    calibration_path=None,
+    *,
+    allow_unconverged: bool = False,
+    allow_other_scene: bool = False,
+    sensor_path=None,
 ) -> tuple[Capture, Capture, OpticalParams]:
     """Read and check the captures and calibration the commands take (a calibration that did
-    not converge, was refused, or is of another scene is refused unless allowed)."""
+    not converge, was refused, or is of another scene is refused unless allowed).
+
+    ``sensor_path``: a fitted sensor model (``tofjax sensor fit``) whose bin width replaces the
+    captures' nominal one, as ``tofjax calibrate --sensor`` does; a calibration made with it has
+    that bin width in its scene fingerprint."""
     touch = read_capture(touch_path)
     base = read_capture(baseline_path)
     check_compatible(touch.scene, base.scene)
+    if sensor_path is not None:
+        touch = dataclasses.replace(touch, scene=touch.scene.with_sensor_model(sensor_path))
+        base = dataclasses.replace(base, scene=base.scene.with_sensor_model(sensor_path))
     if calibration_path is None:
         warn_no_calibration(base.scene)
         optical = OpticalParams.from_scene(base.scene)
