@@ -513,6 +513,16 @@ def _cases() -> list[Case]:
                                                                   f"{d(w)}/none.json", "--json", f"{o}/d.json"]))
     cases.append(Case("detect/calibration_not_json", lambda w, o: ["detect", T(w), "--baseline", G(w),
                                                                    "--calibration", notes(w), "--json", f"{o}/d.json"]))
+    # Sensor models (tofjax sensor fit) where a command takes one.
+    for cmd in ("detect", "process", "calibrate"):
+        def sensor_argv(w, o, cmd=cmd, which="missing"):
+            path = {"missing": f"{d(w)}/none.json", "not_json": notes(w), "not_a_model": str(w["scenes"]["non_utf8"])}
+            head = {"detect": ["detect", T(w), "--baseline", G(w), "--json", f"{o}/d.json"],
+                    "process": ["process", T(w), "--baseline", G(w), "--out", f"{o}/m.h5"],
+                    "calibrate": ["calibrate", G(w), "--out", f"{o}/c.json"]}[cmd]
+            return head + ["--sensor", path[which]]
+        for which in ("missing", "not_json", "not_a_model"):
+            cases.append(Case(f"{cmd}/sensor_{which}", lambda w, o, f=sensor_argv, which=which: f(w, o, which=which)))
     cases.append(Case("detect/dynamic_with_model", lambda w, o: ["detect", T(w), "--baseline", G(w), "--method", "model",
                                                                  "--dynamic-baseline", "--json", f"{o}/d.json"]))
 

@@ -195,9 +195,15 @@ def load_sensor_model(path: str | Path) -> SensorResponse:
     if not path.is_file():
         raise SensorModelError(f"{path}: no such sensor model file")
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise SensorModelError(f"{path}: not a text file (not UTF-8 at byte {e.start})") from None
     except json.JSONDecodeError as e:
         raise SensorModelError(f"{path}: not valid JSON: {e}") from None
+    except OSError as e:
+        raise SensorModelError(f"{path}: cannot read: {e.strerror or e}") from None
+    if not isinstance(d, dict):
+        raise SensorModelError(f"{path}: not a tofjax sensor model (a JSON {type(d).__name__}, not an object)")
     return SensorResponse.from_json(d, str(path))
 
 
