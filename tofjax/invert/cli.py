@@ -24,6 +24,8 @@ def _options(a):
 
     model = a.method == "model"
     # Reject what the chosen method would ignore instead of dropping it silently.
+    if a.dynamic_baseline and a.method not in ("baseline", "full"):
+        raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
     if model and a.no_cfar:
         raise InversionError("--no-cfar applies to back-projection, not --method model")
     if not model and a.min_strength is not None:
@@ -44,11 +46,8 @@ def _options(a):
 
 
 def _run(a, *, want_detect: bool):
-    from .correction import InversionError
     from .pipeline import build_inverter, load_inputs
 
-    if a.dynamic_baseline and a.method not in ("baseline", "full"):  # before the inversion is built
-        raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
     options = _options(a)  # option errors first, before any reading
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -74,11 +73,8 @@ def _run(a, *, want_detect: bool):
     )
     if a.dynamic_baseline:
         from .baseline import run_dynamic
-        from .correction import InversionError
         from .pipeline import ProcessResult
 
-        if a.method not in ("baseline", "full"):
-            raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
         dyn = run_dynamic(inv, touch.histograms)
         res = ProcessResult(dyn.maps, dyn.ok, inv.grid, a.method, dyn.detections(inv), dyn.noise[-1])
         print(
