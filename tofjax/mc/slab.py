@@ -173,11 +173,8 @@ class SlabResult:
         return out
 
     def write_json(self, path) -> None:
-        from pathlib import Path
+        from ..outputs import atomic_write_text  # makes the folder, writes whole or not at all
 
-        from ..outputs import atomic_write_text
-
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(self.to_json(), indent=1))
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import warnings
-from pathlib import Path
 
 
 def _cmd_import(a) -> int:
@@ -117,9 +116,8 @@ def _cmd_range(a) -> int:
             line += f" (on-chip: std {summary['onchip_std_error_m'] * 1e3:.2f} mm)"
         print(line)
     if a.json:
-        from ..outputs import atomic_write_text
+        from ..outputs import atomic_write_text  # makes the folder, writes whole or not at all
 
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(a.json, json.dumps(out, indent=1))
         print(f"wrote {a.json}: {hist.shape[0]} frames x {hist.shape[1]} zones")
     else:

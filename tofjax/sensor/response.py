@@ -141,12 +141,9 @@ class SensorResponse:
         }
 
     def save(self, path: str | Path) -> Path:
-        from ..outputs import atomic_write_text
+        from ..outputs import atomic_write_text  # makes the folder, writes whole or not at all
 
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path, json.dumps(self.to_json(), indent=1))
-        return path
+        return atomic_write_text(path, json.dumps(self.to_json(), indent=1))
 
     @classmethod
     def from_json(cls, d: dict[str, Any], source: str = "sensor model") -> "SensorResponse":
