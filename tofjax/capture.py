@@ -268,38 +268,23 @@ class CaptureWriter:
             )
 
     def append(self, histogram, timestamp: float, *, force=None, reference=None, touches=None) -> None:
-        """Write one whole frame: histogram (sensors, zones, bins); optional force, reference, touches."""
+        """Write one whole frame: histogram (sensors, zones, bins); optional force, reference, touches.
+
+        The same as ``extend`` with one frame (``touches``: up to ``max_touches`` rows of
+        (x, y, strength); ``None`` or empty for none).
+        """
         histogram = np.asarray(histogram, HIST_DTYPE)
         if histogram.shape != self._hist.shape[1:]:
             raise CaptureError(f"frame shape {histogram.shape} does not match the scene's {self._hist.shape[1:]}")
-        if (force is None) != (self._force is None):
-            raise CaptureError("force must be given for every frame of a capture with a force channel, and only then")
-        self._check_open(2 * histogram.nbytes)  # histogram, and room for the extras
-        i = self.n_frames
-        try:
-            if self._force is not None:
-                self._force.resize(i + 1, 0)
-                self._force[i] = float(force)
-            if self._ref is not None:
-                self._ref.resize(i + 1, 0)
-                self._ref[i] = np.asarray(reference, HIST_DTYPE) if reference is not None else np.nan
-            if self._touch is not None:
-                self._touch.resize(i + 1, 0)
-                if touches is not None and len(touches):
-                    t = np.asarray(touches, np.float64)[: self._touch.shape[1], :3]
-                    row = np.full(self._touch.shape[1:], np.nan)
-                    row[: len(t)] = t
-                    self._touch[i] = row
-            for ds in (self._target, self._onchip, self._onchip_conf):  # free-space extras: NaN unless extended
-                if ds is not None:
-                    ds.resize(i + 1, 0)
-            self._hist.resize(i + 1, 0)
-            self._hist[i] = histogram
-            self._time.resize(i + 1, 0)
-            self._time[i] = float(timestamp)
-            self._commit(i + 1)
-        except (OSError, RuntimeError) as e:  # h5py reports a failed flush as RuntimeError
-            self._fail(e)
+        rows = None
+        if touches is not None and len(touches):
+            rows = np.asarray(touches, np.float64).reshape(1, len(touches), -1)
+        self.extend(
+            histogram[None], [float(timestamp)],
+            force=None if force is None else [float(force)],
+            reference=None if reference is None else np.asarray(reference, HIST_DTYPE)[None],
+            touches=rows,
+        )
 
     def extend(self, histograms, timestamps, *, force=None, reference=None, touches=None,
                target_distance_m=None, onchip_distance_m=None, onchip_confidence=None) -> None:
@@ -310,7 +295,9 @@ class CaptureWriter:
             raise CaptureError(f"frame shape {histograms.shape[1:]} does not match the scene's {self._hist.shape[1:]}")
         if (force is None) != (self._force is None):
             raise CaptureError("force must be given for every frame of a capture with a force channel, and only then")
-        self._check_open(histograms.nbytes)
+        if np.shape(timestamps) != (n,) or (force is not None and np.shape(force) != (n,)):
+            raise CaptureError(f"{n} frames need {n} timestamps (and {n} forces with a force channel)")
+        self._check_open(2 * histograms.nbytes)  # histograms, and room for the extras
         i = self.n_frames
         try:
             if self._force is not None:
