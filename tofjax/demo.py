@@ -17,6 +17,7 @@ import numpy as np
 
 from .capture import write_capture
 from .model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
+from .outputs import atomic_write_text
 from .plot import plot_capture, plot_components, plot_scene
 from .scene import Scene, Touch, default_scene
 from .simulate import simulate
@@ -105,7 +106,7 @@ def run_demo(
     from .fit.calibrate import calibrate, fit_report
 
     fit = calibrate(baseline)
-    (out / "calibration.json").write_text(json.dumps(fit.to_json(), indent=2))
+    atomic_write_text(out / "calibration.json", json.dumps(fit.to_json(), indent=2))
     lines += [
         "calibration of baseline.h5 (Laplace intervals; true n1 = "
         f"{wg.n1}, mu_s + mu_a = {wg.mu_s_per_m + wg.mu_a_per_m:g} /m)",
@@ -144,7 +145,7 @@ def run_demo(
         " --out maps.h5 --png maps/`",
     ]
     summary = out / "summary.txt"
-    summary.write_text("\n".join(lines) + "\n")
+    atomic_write_text(summary, "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"\nwrote {out}/")
     return summary

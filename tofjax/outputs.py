@@ -15,7 +15,7 @@ from typing import Iterable, Iterator
 
 from .errors import UserError
 
-__all__ = ["OutputError", "atomic_path", "atomic_write_text", "check_output", "same_file"]
+__all__ = ["OutputError", "atomic_path", "atomic_write_text", "check_output", "same_file", "save_figure"]
 
 
 class OutputError(UserError):
@@ -152,4 +152,21 @@ def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = True) ->
         raise
     except OSError as e:
         raise OutputError(f"{path}: cannot write: {e.strerror or e}") from None
+    return path
+
+
+def save_figure(fig, path: str | Path, *, dpi: int = 110, overwrite: bool = True) -> Path:
+    """Save a matplotlib figure to ``path`` whole or not at all, then close it.
+
+    The format comes from ``path``'s suffix (the temporary name has none of its own).
+    """
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    try:
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=fmt)
+    finally:
+        plt.close(fig)
     return path

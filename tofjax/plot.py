@@ -18,6 +18,7 @@ from matplotlib.patches import Circle, Rectangle, Wedge  # noqa: E402
 
 from .capture import Capture  # noqa: E402
 from .model.geometry import zone_edges  # noqa: E402
+from .outputs import save_figure  # noqa: E402
 from .scene import Scene  # noqa: E402
 
 __all__ = ["plot_capture", "plot_components", "plot_fit", "plot_loss", "plot_posterior", "plot_scene", "plot_traces"]
@@ -125,12 +126,8 @@ def plot_components(breakdown: dict[str, np.ndarray], scene: Scene, sensor: int,
 
 
 def _save(fig, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_fit(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scene: Scene, out_dir: str | Path) -> list[Path]:
@@ -178,11 +175,7 @@ def plot_posterior(samples: np.ndarray, names: list[str], truths, path: str | Pa
 
     fig = corner.corner(samples, labels=names, truths=truths, quantiles=[0.025, 0.5, 0.975], show_titles=True,
                         title_fmt=".3g", label_kwargs={"fontsize": 8}, title_kwargs={"fontsize": 7})
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=90)
 
 
 def plot_traces(chain: np.ndarray, names: list[str], path: str | Path) -> Path:
