@@ -485,10 +485,12 @@ def _cases() -> list[Case]:
             return ["force-data", "--protocol", str(p), "--out", f"{o}/fd"]
         cases.append(Case(f"force-data/{name}", argv))
     for name, text in {
-        "rig_unknown_key": 'name = "r"\nscene = "optoskin"\ncolour = 1\n',
-        "rig_scene_missing": 'name = "r"\nscene = "no-such-scene"\n',
+        "rig_unknown_key": 'name = "r"\nscene = "optoskin"\ncolour = 1\n[[sensors]]\nname = "S0"\n',
+        "rig_scene_missing": 'name = "r"\nscene = "no-such-scene"\n[[sensors]]\nname = "S0"\n',
         "rig_not_toml": "name = [\n",
-        "rig_bad_select": 'name = "r"\nscene = "optoskin"\nselect = "magic"\n',
+        "rig_bad_select": 'name = "r"\nscene = "optoskin"\nselect = "magic"\n[[sensors]]\nname = "S0"\n',
+        "rig_no_sensors": 'name = "r"\nscene = "optoskin"\nbus = 1\n',
+        "rig_sensor_count": 'name = "r"\nscene = "optoskin"\n[[sensors]]\nname = "S0"\n',
     }.items():
         def argv(w, o, name=name, text=text):
             p = d(w) / f"{name}.toml"

@@ -164,6 +164,11 @@ def load_rig_or_scene(ref: str) -> tuple[Rig, Scene, bool]:
     p = Path(ref)
     if p.is_file():
         data = load_toml(p)
+        rig_only = {f.name for f in dataclasses.fields(Rig)} - {"name", "description", "sensors"}
+        if "sensors" not in data and "waveguide" not in data and "target" not in data and rig_only & set(data):
+            keys = ", ".join(sorted(rig_only & set(data)))
+            raise ConfigError(f"{p}: a rig file ({keys}) needs one [[sensors]] table per sensor "
+                              f"(see configs/rigs/optoskin-mux.toml)")
         if "sensors" in data and "waveguide" not in data:
             rig = load_rig(p)
             scene = rig.load_scene()
