@@ -16,7 +16,6 @@ from tofjax.force.features import (
     Scaling,
     backward_derivative,
     build_dataset,
-    decay_gain,
     find_window,
     split_indices,
 )
@@ -178,16 +177,6 @@ def test_nan_frames_are_dropped_and_counted(small_data):
     ds = build_dataset([cap], w, cfg)
     assert ds.n_nan_frames == 1 and ds.n_dropped == 3  # the frame and the two whose Eq. 6 uses it
     assert np.isfinite(ds.raw).all() and len(ds) == cap.n_frames - 3
-
-
-def test_decay_gain_grows_with_range(small_data):
-    from tofjax.model import Params
-
-    p, paths = small_data
-    cap = read_capture(paths["train"][0])
-    w = find_window([cap], FeatureConfig(variant="single"))
-    g = decay_gain(cap.scene, Params.from_scene(cap.scene), w)
-    assert g.shape == (w.size,) and g[0] == 1.0 and np.all(np.diff(g[: w.bins]) > 0)
 
 
 # ---- the forest in JAX ---------------------------------------------------------------------

@@ -36,13 +36,19 @@ __all__ = [
     "backward_derivative",
     "build_dataset",
     "capture_baseline_frames",
-    "decay_gain",
+    "ContactInverter",
+    "Contact",
+    "capture_rows",
     "find_window",
+    "inverter_for",
     "raw_features",
     "split_indices",
 ]
 
 VARIANTS = ("single", "dual", "derivative")
+SOURCES = ("counts", "inversion")
+#: Context inputs of the inversion features: range (m), log10 ambient counts.
+N_CONTEXT = 2
 
 
 class FeatureError(UserError):
@@ -72,8 +78,28 @@ class FeatureConfig:
     baseline_frames: int | None = None
     normalisation: str = "global"
     min_bin: int = 3
+    #: ``counts``: seed 001's fixed window of raw counts; ``inversion``: the located contact's window
+    #: of the touch inversion's fully corrected signal (see :class:`ContactInverter`).
+    source: str = "counts"
+    #: With ``inversion``: the contact's position (range, zone centroid) and the ambient level are inputs.
+    position: bool = True
+    #: With ``inversion``: a calibration JSON (``tofjax calibrate``) whose optics correct the signal;
+    #: default the scene's stated optics.
+    calibration: str | None = None
+    #: With ``inversion``: contacts to locate per capture (default: the capture's ``truth.n_contacts``, else 1).
+    contacts: int | None = None
+    #: With ``inversion``: ``sum`` the zones (the contact's whole return, whichever zones see it) or keep ``each``.
+    zones: str = "sum"
 
     def __post_init__(self):
+        if self.source not in SOURCES:
+            raise ConfigError(f"source: must be one of {', '.join(SOURCES)}, got {self.source!r}")
+        if self.contacts is not None and not 1 <= self.contacts <= 4:
+            raise ConfigError(f"contacts: must be 1-4, got {self.contacts!r}")
+        if self.zones not in ("sum", "each"):
+            raise ConfigError(f"zones: must be sum or each, got {self.zones!r}")
+        if self.source == "counts" and (self.calibration is not None or self.contacts is not None or self.zones != "sum"):
+            raise ConfigError("calibration, contacts, zones: options of source = \"inversion\"")
         if self.variant not in VARIANTS:
             raise ConfigError(f"variant: must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
         if self.bins < 1:
@@ -143,11 +169,16 @@ def _baseline(hist: np.ndarray, n: int) -> np.ndarray:
 def find_window(captures: list[Capture], config: FeatureConfig) -> Window:
     """The sensor and ``bins``-bin window whose counts follow the force most closely.
 
+    With ``source = "inversion"`` the window follows each located contact instead:
+    :func:`find_inversion_window`.
+
     Every bin of every zone is scored by the correlation of its baseline-subtracted
     counts with the force channel over all training frames; the window with the
     largest summed score (over its bins and the sensor's zones) wins. Bins before
     ``min_bin`` (the light-entry peak) are not considered.
     """
+    if config.source == "inversion":
+        return find_inversion_window(captures, config)
     if not captures:
         raise FeatureError("no training captures")
     shape = captures[0].scene.shape
@@ -240,88 +271,143 @@ def raw_features(cap: Capture, window: Window, config: FeatureConfig, source: st
 
 @dataclass
 class Scaling:
-    """Min-max normalisation of the window (and the derivative by the same scale) and of the force."""
+    """Min-max normalisation of the window (and the derivative by the same scale), of the
+    context inputs (per input) and of the force."""
 
     lo: np.ndarray  # (window.size,)
     hi: np.ndarray
     force_lo: float
     force_hi: float
+    extra_lo: np.ndarray = None  # (context inputs,): empty for the counts features
+    extra_hi: np.ndarray = None
+    #: The baseline's own scale (inversion features: the window is corrected signal, the baseline
+    #: counts); None: the window's (seed 001, both are counts).
+    base_lo: np.ndarray | None = None
+    base_hi: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.extra_lo is None:
+            self.extra_lo, self.extra_hi = np.zeros(0), np.ones(0)
 
     @classmethod
-    def fit(cls, x_window: np.ndarray, force: np.ndarray, normalisation: str) -> "Scaling":
+    def fit(
+        cls, x_window: np.ndarray, force: np.ndarray, normalisation: str, extra: np.ndarray | None = None,
+        base: np.ndarray | None = None,
+    ) -> "Scaling":
         if normalisation == "global":
             lo = np.full(x_window.shape[1], x_window.min())
             hi = np.full(x_window.shape[1], x_window.max())
         else:
             lo, hi = x_window.min(0), x_window.max(0)
         hi = np.where(hi > lo, hi, lo + 1.0)
-        return cls(lo, hi, float(force.min()), float(max(force.max(), force.min() + 1e-9)))
+        if extra is None or extra.shape[1] == 0:
+            elo, ehi = np.zeros(0), np.ones(0)
+        else:
+            elo, ehi = extra.min(0), extra.max(0)
+            ehi = np.where(ehi > elo, ehi, elo + 1.0)
+        blo = bhi = None
+        if base is not None:
+            blo, bhi = np.full(base.shape[1], base.min()), np.full(base.shape[1], base.max())
+            bhi = np.where(bhi > blo, bhi, blo + 1.0)
+        return cls(lo, hi, float(force.min()), float(max(force.max(), force.min() + 1e-9)), elo, ehi, blo, bhi)
+
+    @property
+    def base(self) -> tuple[np.ndarray, np.ndarray]:
+        return (self.lo, self.hi) if self.base_lo is None else (self.base_lo, self.base_hi)
 
     def to_json(self) -> dict:
-        return {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "force_lo": self.force_lo, "force_hi": self.force_hi}
+        d = {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "force_lo": self.force_lo, "force_hi": self.force_hi,
+             "extra_lo": self.extra_lo.tolist(), "extra_hi": self.extra_hi.tolist()}
+        if self.base_lo is not None:
+            d |= {"base_lo": self.base_lo.tolist(), "base_hi": self.base_hi.tolist()}
+        return d
 
     @classmethod
     def from_json(cls, d: dict) -> "Scaling":
-        return cls(np.asarray(d["lo"]), np.asarray(d["hi"]), d["force_lo"], d["force_hi"])
+        base = (np.asarray(d["base_lo"], float), np.asarray(d["base_hi"], float)) if "base_lo" in d else (None, None)
+        return cls(np.asarray(d["lo"]), np.asarray(d["hi"]), d["force_lo"], d["force_hi"],
+                   np.asarray(d.get("extra_lo", []), float), np.asarray(d.get("extra_hi", []), float), *base)
+
+    def normalise(self, raw, xp=np):
+        return normalise(raw, self.lo, self.hi, xp, self.extra_lo, self.extra_hi, *self.base)
 
 
 def select(raw, variant: str, n: int, xp=np):
-    """The model input of ``variant`` from raw features (already normalised or not): (..., n_inputs)."""
-    w, d, b = raw[..., :n], raw[..., n : 2 * n], raw[..., 2 * n : 3 * n]
+    """The model input of ``variant`` from raw features (already normalised or not): (..., n_inputs).
+
+    Context inputs (the contact's position and the ambient level, columns after ``3 n``)
+    follow the variant's inputs.
+    """
+    w, d, b, e = raw[..., :n], raw[..., n : 2 * n], raw[..., 2 * n : 3 * n], raw[..., 3 * n :]
     if variant == "single":
-        return w
+        return xp.concatenate([w, e], -1)
     if variant == "dual":
-        return xp.concatenate([w, b], -1)
-    return xp.concatenate([w, d, b], -1)
+        return xp.concatenate([w, b, e], -1)
+    return xp.concatenate([w, d, b, e], -1)
 
 
-def normalise(raw, scaling_lo, scaling_hi, xp=np):
-    """Min-max scale the window and baseline; scale the derivative by the same factor (Eq. 6 of the scaled data)."""
+def normalise(raw, scaling_lo, scaling_hi, xp=np, extra_lo=None, extra_hi=None, base_lo=None, base_hi=None):
+    """Min-max scale the window and baseline (by the window's scale unless ``base_lo``/``base_hi``
+    are given); scale the derivative by the window's factor (Eq. 6 of the scaled data); min-max
+    scale the context inputs each on its own."""
     n = scaling_lo.shape[-1]
     span = scaling_hi - scaling_lo
     w = (raw[..., :n] - scaling_lo) / span
     d = raw[..., n : 2 * n] / span
-    b = (raw[..., 2 * n : 3 * n] - scaling_lo) / span
-    return xp.concatenate([w, d, b], -1)
+    if base_lo is None:
+        base_lo, base_hi = scaling_lo, scaling_hi
+    b = (raw[..., 2 * n : 3 * n] - base_lo) / (base_hi - base_lo)
+    parts = [w, d, b]
+    if extra_lo is not None and extra_lo.shape[-1]:
+        parts.append((raw[..., 3 * n :] - extra_lo) / (extra_hi - extra_lo))
+    return xp.concatenate(parts, -1)
 
 
 @dataclass
 class Dataset:
-    """Frames of many captures, with where each comes from."""
+    """Rows (one per frame and contact) of many captures, with where each comes from."""
 
-    raw: np.ndarray  # (n, 3 * window.size)
+    raw: np.ndarray  # (n, 3 * window.size + context inputs)
     force: np.ndarray  # (n,)
     velocity: np.ndarray  # (n,) mm/s, NaN where unknown
     time: np.ndarray  # (n,) s within its capture
     capture: np.ndarray  # (n,) index of the capture
     n_nan_frames: int  # frames with a non-finite histogram window or force
     n_dropped: int  # frames dropped (NaN frames and, for the derivative, their next two)
+    #: The capture's ``truth.split`` (``train``, ``test`` (seen positions), ``unseen``, ``two_contacts``).
+    split: np.ndarray = None
+
+    def __post_init__(self):
+        if self.split is None:
+            self.split = np.full(len(self.force), "test", dtype=object)
 
     def subset(self, idx) -> "Dataset":
-        return Dataset(self.raw[idx], self.force[idx], self.velocity[idx], self.time[idx], self.capture[idx], 0, 0)
+        return Dataset(self.raw[idx], self.force[idx], self.velocity[idx], self.time[idx], self.capture[idx], 0, 0,
+                       self.split[idx])
 
     def __len__(self) -> int:
         return int(self.force.shape[0])
 
 
 def build_dataset(captures: list[Capture], window: Window, config: FeatureConfig, *, need_force: bool = True, names=None) -> Dataset:
-    """Features, force and labels of every valid frame of ``captures``."""
+    """Features, force and labels of every valid frame (and contact) of ``captures``."""
     parts = []
     n_nan = n_drop = 0
     for i, cap in enumerate(captures):
         src = names[i] if names else f"capture {i}"
         if need_force and cap.force is None:
             raise FeatureError(f"{src}: no force channel")
-        x, valid = raw_features(cap, window, config, src)
-        f = cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)
-        bad = ~np.isfinite(x[:, : window.size]).all(1) | (need_force & ~np.isfinite(f))
-        n_nan += int(bad.sum())
-        keep = valid & ~bad if need_force else valid
-        n_drop += int((~keep).sum())
-        v = float(cap.truth.get("velocity_mm_s", math.nan))
-        parts.append((x[keep], f[keep], np.full(keep.sum(), v), cap.timestamps[keep], np.full(keep.sum(), i)))
+        for x, valid, f in capture_rows(cap, window, config, src):
+            bad = ~np.isfinite(x[:, : window.size]).all(1) | (need_force & ~np.isfinite(f))
+            n_nan += int(bad.sum())
+            keep = valid & ~bad if need_force else valid
+            n_drop += int((~keep).sum())
+            v = float(cap.truth.get("velocity_mm_s", math.nan))
+            split = str(cap.truth.get("split", "test"))
+            parts.append((x[keep], f[keep], np.full(keep.sum(), v), cap.timestamps[keep], np.full(keep.sum(), i),
+                          np.full(keep.sum(), split, dtype=object)))
     cat = [np.concatenate(p) for p in zip(*parts)]
-    return Dataset(*cat, n_nan_frames=n_nan, n_dropped=n_drop)
+    return Dataset(*cat[:5], n_nan_frames=n_nan, n_dropped=n_drop, split=cat[5])
 
 
 def split_indices(n: int, fractions=(0.8, 0.1, 0.1), seed: int = 0):
@@ -333,22 +419,236 @@ def split_indices(n: int, fractions=(0.8, 0.1, 0.1), seed: int = 0):
     return np.sort(perm[:a]), np.sort(perm[a:b]), np.sort(perm[b:])
 
 
-def decay_gain(scene, params, window: Window) -> np.ndarray:
-    """Decay correction of the window: ``1 / (G(r) T(r))`` at each bin's range, (zones * bins,).
+# ---- features from the touch inversion -------------------------------------------------------
 
-    A contact farther away returns fewer photons (seed 000 Eq. 4-5); multiplying
-    the baseline-subtracted window by this gain makes the touch signal of one
-    force roughly the same at any distance (seed 001, section V). Normalised to 1
-    at the window's first bin. This is the one place the force package computes
-    it: swap in ``tofjax.invert``'s correction here when it lands.
+
+@dataclass(frozen=True)
+class Contact:
+    """One located contact: its range from the sensor, the zone centroid of its signal, the bin it peaks at."""
+
+    range_m: float
+    zone: float  # signal-weighted mean zone index (0 .. zones - 1)
+    peak_bin: float  # fractional bin of the range profile's peak
+    start_bin: int  # first bin of its feature window
+
+
+class ContactInverter:
+    """Force features from the touch inversion.
+
+    The signal is ``tofjax.invert``'s *full* correction (Algorithm 1 of seed 000) with the
+    given optics: baseline subtraction against the capture's no-touch frames, per-frame
+    ambient tracking from the bins before the light enters, and the decay correction
+    ``1 / (K G(r) T(r))`` at each bin's range. Build it from a calibration
+    (:meth:`from_calibration`: the calibrated :class:`tofjax.model.Params`) or from the
+    scene's stated optics.
+
+    :meth:`locate` finds the contacts of a capture and their range; :meth:`rows` gives each
+    contact's window of corrected signal (relative to the sensor's no-touch return, which
+    cancels gain and the ambient flattening of the detector), its derivative, the raw
+    baseline there, and its context inputs (range, log10 ambient counts).
     """
-    from ..model.components import SPEED_OF_LIGHT_M_PER_S, falloff, transmittance
 
-    bw = scene.sensor.bin_width_s
-    t = (window.start_bin + np.arange(window.bins) + 0.5) * bw
-    c1 = SPEED_OF_LIGHT_M_PER_S / float(params.n1)
-    r = np.maximum(0.5 * c1 * (t - float(params.emission_time_s)), 1e-3)
-    mu_t = float(params.mu_s_per_m) + float(params.mu_a_per_m)
-    g = np.asarray(falloff(r, float(params.near_field_m))) * np.asarray(transmittance(r, mu_t))
-    gain = g[0] / g
-    return np.tile(gain, window.zones)
+    def __init__(self, scene, params=None, *, source: str = "scene"):
+        import jax.numpy as jnp
+
+        from ..invert.correction import CorrectionOptions, OpticalParams, bin_ranges, build_corrector
+
+        self.scene = scene.without_touches()
+        self.optical = OpticalParams.from_scene(self.scene) if params is None else OpticalParams.from_params(params, source)
+        # The mask and gain do not depend on the baseline: build once, swap the baseline per capture.
+        self._corrector = build_corrector(self.scene, np.zeros(self.scene.shape), self.optical,
+                                          CorrectionOptions(method="full"), jnp.float32)
+        self.ranges = bin_ranges(self.scene, self.optical, True)
+        self.mask = np.asarray(self._corrector.mask)
+        self.early = np.asarray(self._corrector.early, float)
+        self.gain = np.asarray(self._corrector.gain, float)
+        self.saturation = self._corrector.saturation
+
+    @classmethod
+    def from_calibration(cls, scene, calibration) -> "ContactInverter":
+        """Optics from a calibration JSON (``CalibrationResult.to_json``); refused with one line if unusable."""
+        from ..fit._result import CalibrationRefused, load_calibration
+
+        try:
+            params = load_calibration(calibration, scene.without_touches())
+        except CalibrationRefused as e:
+            raise FeatureError(str(e)) from None
+        return cls(scene, params, source=str(calibration))
+
+    def correct(self, hist: np.ndarray, baseline: np.ndarray, sensor: int | None = None):
+        """Corrected signals (F, S, Z, B) and ok flags (F,) of histograms against a no-touch baseline.
+
+        :class:`tofjax.invert.correction.Corrector`'s full correction, evaluated in float64
+        NumPy (one sensor only with ``sensor``: then (F, 1, Z, B) and ok for that sensor).
+        """
+        sl = slice(None) if sensor is None else slice(sensor, sensor + 1)
+        h = np.asarray(hist, np.float64)[:, sl]
+        bad = ~np.isfinite(h) | (h >= self.saturation)
+        ok = ~bad.any((1, 2, 3))
+        signal = np.where(bad, 0.0, h) - np.asarray(baseline, float)[sl]
+        if self.early.any():
+            signal = signal - (signal @ self.early)[..., None]
+        out = signal * self.gain[sl]
+        return np.where(ok[:, None, None, None], out, 0.0), ok
+
+    def reference(self, baseline: np.ndarray, sensor: int) -> tuple[float, float]:
+        """The sensor's no-touch return (counts above ambient, summed where a contact can be) and its
+        ambient level (mean counts of the bins where no light of the sensor's own can be: before the
+        light enters, or beyond the far edge)."""
+        b = np.asarray(baseline[sensor], float)  # (Z, B)
+        m = self.mask[sensor]
+        dark = ~m
+        amb = (b * dark).sum(1) / np.maximum(dark.sum(1), 1) if dark.any() else np.zeros(b.shape[0])
+        ret = float(np.sum(np.maximum(b - amb[:, None], 0.0) * m))
+        return max(ret, 1.0), float(np.mean(amb))
+
+    def locate(self, corrected: np.ndarray, sensor: int, n: int = 1, bins: int = 5, mask_sensor: int | None = None) -> list[Contact]:
+        """The ``n`` strongest contacts of a capture, nearest first.
+
+        The contact frames are the quarter with the most positive corrected signal; their
+        mean signal, summed over the zones and smoothed over 3 bins, is the range profile.
+        Its highest peaks (at least ``bins`` bins apart) are the contacts; the range comes
+        from a parabola through the peak and its neighbours.
+        """
+        c = corrected[:, sensor]  # (F, Z, B)
+        m = self.mask[sensor if mask_sensor is None else mask_sensor]
+        energy = (np.clip(c, 0, None) * m).sum((1, 2))
+        strong = energy >= np.quantile(energy, 0.75)
+        P = c[strong].mean(0) * m  # (Z, B)
+        prof = P.sum(0)
+        prof = np.convolve(prof, [0.25, 0.5, 0.25], mode="same")
+        B = prof.size
+        left = prof.copy()
+        peaks = []
+        for _ in range(n):
+            b = int(np.argmax(left))
+            peaks.append(b)
+            left[max(0, b - bins) : b + bins + 1] = -np.inf
+        out = []
+        for b in sorted(peaks):
+            frac = float(b)
+            if 0 < b < B - 1:
+                y0, y1, y2 = prof[b - 1], prof[b], prof[b + 1]
+                den = y0 - 2 * y1 + y2
+                if den < 0:
+                    frac = b + float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5))
+            r = float(np.interp(frac, np.arange(B), self.ranges))
+            lo, hi = max(0, b - 1), min(B, b + 2)
+            wz = np.clip(P[:, lo:hi], 0, None).sum(1)
+            zone = float((wz * np.arange(wz.size)).sum() / wz.sum()) if wz.sum() > 0 else 0.5 * (wz.size - 1)
+            start = int(np.clip(b - 1, 0, B - bins))
+            out.append(Contact(r, zone, frac, start))
+        return out
+
+
+_INVERTERS: dict = {}
+
+
+def inverter_for(scene, config: FeatureConfig) -> ContactInverter:
+    """One :class:`ContactInverter` per scene and calibration (the corrector's mask costs a ray trace)."""
+    key = (scene.without_touches(), config.calibration)
+    if key not in _INVERTERS:
+        inv = (ContactInverter(scene) if config.calibration is None
+               else ContactInverter.from_calibration(scene, config.calibration))
+        _INVERTERS.clear() if len(_INVERTERS) > 8 else None
+        _INVERTERS[key] = inv
+    return _INVERTERS[key]
+
+
+def _contact_forces(cap: Capture, contacts: list[Contact]) -> list[np.ndarray]:
+    """The force channel of each located contact: from ``truth.contact_forces_n`` (several contacts,
+    matched to the truth's ``contacts`` by range), else the capture's ``force``."""
+    forces = cap.truth.get("contact_forces_n")
+    truth = cap.truth.get("contacts")
+    n_frames = cap.n_frames
+    if not forces or not truth:
+        f = cap.force if cap.force is not None else np.full(n_frames, np.nan)
+        return [f] * len(contacts)
+    if cap.frame_index is not None and len(cap.frame_index) == n_frames:
+        idx = np.asarray(cap.frame_index)
+    else:
+        idx = np.arange(n_frames)
+    ranges = np.array([t["range_m"] for t in truth])
+    out = []
+    for c in contacts:
+        j = int(np.argmin(np.abs(ranges - c.range_m)))
+        out.append(np.asarray(forces[j], float)[idx])
+    return out
+
+
+def capture_rows(cap: Capture, window: Window, config: FeatureConfig, source: str = "capture"):
+    """``[(raw (frames, 3 n + context), valid (frames,), force (frames,)), ...]``: one entry per contact.
+
+    ``counts``: one entry, seed 001's fixed window (:func:`raw_features`). ``inversion``: one
+    entry per located contact, its window of corrected signal (see :class:`ContactInverter`).
+    """
+    if config.source == "counts":
+        x, valid = raw_features(cap, window, config, source)
+        f = cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)
+        return [(x, valid, f)]
+    window.check(cap.scene.shape, source)
+    inv = inverter_for(cap.scene, config)
+    nb = capture_baseline_frames(cap, config, source)
+    hist = np.asarray(cap.histograms, np.float64)
+    base = _baseline(hist, nb)
+    corrected, ok = inv.correct(hist, base, window.sensor)
+    finite = np.isfinite(hist).all((1, 2, 3)) & ok
+    ret, ambient = inv.reference(base, window.sensor)
+    n_contacts = config.contacts or int(cap.truth.get("n_contacts", 1))
+    contacts = inv.locate(corrected[finite] if finite.any() else corrected, 0, n_contacts, window.bins, window.sensor)
+    dt = frame_period(cap)
+    rows = []
+    for c, f in zip(contacts, _contact_forces(cap, contacts)):
+        # The window starts one bin before the peak, at the peak's fractional position (shift-invariant).
+        pos = np.clip(c.peak_bin - 1.0 + np.arange(window.bins), 0, hist.shape[-1] - 1.0001)
+        i0 = np.floor(pos).astype(int)
+        a = pos - i0
+
+        def at(v):  # (..., Z, B) -> (..., Z, bins), linearly interpolated
+            return (1 - a) * v[..., i0] + a * v[..., i0 + 1]
+
+        cw, bw = at(corrected[:, 0]), at(base[window.sensor])
+        if config.zones == "sum":
+            cw, bw = cw.sum(-2, keepdims=True), bw.sum(-2, keepdims=True)
+        w = cw.reshape(len(hist), -1) / ret * 1e3
+        w = np.where(finite[:, None], w, np.nan)
+        wz = np.where(finite[:, None], w, 0.0)
+        d = backward_derivative(wz, dt)
+        valid = finite.copy()
+        if config.variant == "derivative":
+            valid[1:] &= finite[:-1]
+            valid[2:] &= finite[:-2]
+        b = np.broadcast_to(bw.reshape(-1), w.shape)
+        parts = [w, d, b]
+        if config.position:
+            ctx = np.array([c.range_m, math.log10(max(ambient, 1e-3))])
+            parts.append(np.broadcast_to(ctx, (len(hist), N_CONTEXT)))
+        rows.append((np.concatenate(parts, 1), valid, f))
+    return rows
+
+
+def find_inversion_window(captures: list[Capture], config: FeatureConfig) -> Window:
+    """The sensor whose corrected signal shows the training contacts most strongly (or ``config.sensor``);
+    the window's bins follow each contact (``start_bin`` -1)."""
+    if not captures:
+        raise FeatureError("no training captures")
+    shape = captures[0].scene.shape
+    S, Z, B = shape
+    if config.bins > B:
+        raise FeatureError(f"features.bins = {config.bins} is more than the {B} bins of the captures")
+    zw = 1 if config.zones == "sum" else Z
+    if config.sensor is not None:
+        if not 0 <= config.sensor < S:
+            raise FeatureError(f"features.sensor = {config.sensor} but the captures have {S} sensors")
+        return Window(config.sensor, -1, config.bins, zw, shape)
+    score = np.zeros(S)
+    for i, cap in enumerate(captures):
+        if cap.scene.shape != shape:
+            raise FeatureError(f"training capture {i}: shape {cap.scene.shape} differs from the first one's {shape}")
+        inv = inverter_for(cap.scene, config)
+        h = np.asarray(cap.histograms, np.float64)
+        base = _baseline(h, capture_baseline_frames(cap, config, f"training capture {i}"))
+        c, ok = inv.correct(h, base)
+        for s in range(S):
+            score[s] += np.clip(c[ok, s], 0, None).sum() / inv.reference(base, s)[0]
+    return Window(int(np.argmax(score)), -1, config.bins, zw, shape)

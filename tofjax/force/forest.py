@@ -1,14 +1,24 @@
-"""The residual random forest (seed 001 Eq. 7): scikit-learn fits it, JAX evaluates it.
+"""The residual random forest (seed 001 Eq. 7): scikit-learn fits it, JAX or NumPy evaluates it.
 
-A fitted ``RandomForestRegressor`` becomes padded arrays (trees x nodes); a
-prediction walks every tree at once for a fixed number of levels (the deepest
-tree's depth), leaves pointing to themselves, so the whole MLP + forest
-predictor is one jitted function with no Python in the loop.
+A fitted ``RandomForestRegressor`` (every tree at most ``depth`` levels) becomes
+*complete* binary trees in heap order, packed into flat arrays: ``feature`` and
+``threshold`` of the ``2^depth - 1`` split nodes of every tree, ``value`` of its
+``2^depth`` leaves. Node ``i``'s children are ``2i + 1`` and ``2i + 2``, so a
+prediction walks every tree at once for exactly ``depth`` levels::
+
+    node = 2 * node + 1 + (x[feature[node]] > threshold[node])
+
+with no child arrays, no recursion and no Python per tree. A scikit-learn leaf above
+the last level becomes a split that always goes left (threshold +inf) over a subtree
+whose leaves all hold its value.
 
 scikit-learn compares ``float32(x) <= threshold`` with float64 thresholds. The
 arrays store each threshold rounded *down* to float32, for which
-``x <= floor32(t)`` equals ``x <= t`` for every float32 ``x``: the JAX forest
+``x <= floor32(t)`` equals ``x <= t`` for every float32 ``x``: the packed forest
 takes the same branches as scikit-learn's, bit for bit.
+
+Format version 2 (this layout). Version 1 (padded per-tree node arrays with
+``left``/``right``) is refused on loading with one line: retrain the run.
 """
 
 from __future__ import annotations
@@ -21,22 +31,42 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..config import ConfigError
+from ..errors import UserError
 
-__all__ = ["ForestArrays", "ForestOptions", "fit_forest", "forest_operations", "forest_predict", "forest_to_arrays"]
+__all__ = [
+    "FOREST_FORMAT_VERSION",
+    "ForestArrays",
+    "ForestFormatError",
+    "ForestOptions",
+    "fit_forest",
+    "forest_operations",
+    "forest_predict",
+    "forest_predict_numpy",
+    "forest_to_arrays",
+]
+
+FOREST_FORMAT_VERSION = 2
+#: Deepest packed tree: 2^14 leaves per tree is already 6.5 MB for 100 trees.
+MAX_DEPTH = 14
+
+
+class ForestFormatError(UserError):
+    """A stored forest in another layout than this tofjax's."""
 
 
 @dataclass(frozen=True)
 class ForestOptions:
     """The residual forest (seed 001: 100 trees, bootstrap).
 
-    ``max_depth`` and ``min_samples_leaf`` bound its size (and the saved model's);
-    ``n_jobs`` is scikit-learn's parallelism.
+    ``max_depth`` is also the packed trees' depth, the number of levels every prediction
+    walks (at most 14); 8 keeps one MLP + forest prediction under 100 us.
+    ``min_samples_leaf`` bounds the leaves; ``n_jobs`` is scikit-learn's parallelism.
     """
 
     enabled: bool = True
     trees: int = 100
     bootstrap: bool = True
-    max_depth: int = 20
+    max_depth: int = 8
     min_samples_leaf: int = 5
     #: Fraction of features tried at each split (0.5: twice as fast as all, and less correlated trees).
     max_features: float = 0.5
@@ -45,6 +75,8 @@ class ForestOptions:
     def __post_init__(self):
         if self.trees < 1 or self.max_depth < 1 or self.min_samples_leaf < 1:
             raise ConfigError("trees, max_depth and min_samples_leaf: must be >= 1")
+        if self.max_depth > MAX_DEPTH:
+            raise ConfigError(f"max_depth: at most {MAX_DEPTH} (the packed trees are complete), got {self.max_depth!r}")
         if not 0 < self.max_features <= 1:
             raise ConfigError(f"max_features: must be in (0, 1], got {self.max_features!r}")
 
@@ -67,27 +99,54 @@ def fit_forest(x, residual, options: ForestOptions, seed: int = 0):
 
 
 class ForestArrays(eqx.Module):
-    """A forest as arrays, shape (trees, nodes); leaves have ``left == right == self``."""
+    """A forest as complete heap-ordered trees, flattened over the trees.
+
+    ``feature``, ``threshold``: (trees * (2^depth - 1),) split nodes; ``value``:
+    (trees * 2^depth,) leaves.
+    """
 
     feature: jax.Array  # int32
-    threshold: jax.Array  # float32, rounded down
-    left: jax.Array  # int32
-    right: jax.Array  # int32
+    threshold: jax.Array  # float32, rounded down; +inf: always left
     value: jax.Array  # float32 leaf values
+    trees: int = eqx.field(static=True)
     depth: int = eqx.field(static=True)
 
-    @property
-    def trees(self) -> int:
-        return int(self.feature.shape[0])
-
     def to_numpy(self) -> dict:
-        return {k: np.asarray(getattr(self, k)) for k in ("feature", "threshold", "left", "right", "value")} | {
-            "depth": np.asarray(self.depth)
+        return {
+            "feature": np.asarray(self.feature),
+            "threshold": np.asarray(self.threshold),
+            "value": np.asarray(self.value),
+            "trees": np.asarray(self.trees),
+            "depth": np.asarray(self.depth),
+            "format_version": np.asarray(FOREST_FORMAT_VERSION),
         }
 
     @classmethod
-    def from_numpy(cls, d) -> "ForestArrays":
-        return cls(*(jnp.asarray(d[k]) for k in ("feature", "threshold", "left", "right", "value")), int(d["depth"]))
+    def from_numpy(cls, d, source: str = "forest") -> "ForestArrays":
+        keys = set(getattr(d, "files", d))
+        version = int(d["format_version"]) if "format_version" in keys else 1
+        if version != FOREST_FORMAT_VERSION:
+            raise ForestFormatError(
+                f"{source}: forest format version {version} (this tofjax reads version {FOREST_FORMAT_VERSION}, "
+                "complete packed trees); retrain the run with `tofjax train`"
+            )
+        trees, depth = int(d["trees"]), int(d["depth"])
+        f, t, v = (np.asarray(d[k]) for k in ("feature", "threshold", "value"))
+        if not 1 <= depth <= MAX_DEPTH or f.shape != (trees * (2**depth - 1),) or t.shape != f.shape or v.shape != (trees * 2**depth,):
+            raise ForestFormatError(f"{source}: damaged forest (array sizes do not match {trees} trees of depth {depth})")
+        return cls(jnp.asarray(f, jnp.int32), jnp.asarray(t, jnp.float32), jnp.asarray(v, jnp.float32), trees, depth)
+
+    def numpy(self) -> "NumpyForest":
+        return NumpyForest(np.asarray(self.feature), np.asarray(self.threshold), np.asarray(self.value), self.trees, self.depth)
+
+
+@dataclass(frozen=True)
+class NumpyForest:
+    feature: np.ndarray
+    threshold: np.ndarray
+    value: np.ndarray
+    trees: int
+    depth: int
 
 
 def _floor32(t: np.ndarray) -> np.ndarray:
@@ -95,44 +154,68 @@ def _floor32(t: np.ndarray) -> np.ndarray:
     return np.where(t32.astype(np.float64) > t, np.nextafter(t32, np.float32(-np.inf)), t32).astype(np.float32)
 
 
-def forest_to_arrays(rf) -> ForestArrays:
-    """Convert a fitted ``RandomForestRegressor`` (single output) to :class:`ForestArrays`."""
+def forest_to_arrays(rf, depth: int | None = None) -> ForestArrays:
+    """Pack a fitted ``RandomForestRegressor`` (single output) into complete trees of ``depth`` levels
+    (default: the deepest tree's depth; at least 1)."""
     trees = [e.tree_ for e in rf.estimators_]
-    n = max(t.node_count for t in trees)
-    T = len(trees)
-    feature = np.zeros((T, n), np.int32)
-    threshold = np.full((T, n), np.inf, np.float32)
-    idx = np.arange(n, dtype=np.int32)
-    left = np.tile(idx, (T, 1))
-    right = np.tile(idx, (T, 1))
-    value = np.zeros((T, n), np.float32)
+    deepest = max(t.max_depth for t in trees)
+    depth = max(1, deepest if depth is None else depth)
+    if deepest > depth:
+        raise ValueError(f"a tree is {deepest} levels deep, more than the packed depth {depth}")
+    if depth > MAX_DEPTH:
+        raise ValueError(f"packed depth {depth} is more than {MAX_DEPTH}")
+    T, n_split, n_leaf = len(trees), 2**depth - 1, 2**depth
+    feature = np.zeros((T, n_split), np.int32)
+    threshold = np.full((T, n_split), np.inf, np.float32)
+    value = np.zeros((T, n_leaf), np.float32)
     for i, t in enumerate(trees):
-        m = t.node_count
-        leaf = t.children_left[:m] == -1
-        feature[i, :m] = np.where(leaf, 0, t.feature[:m])
-        threshold[i, :m] = np.where(leaf, np.float32(np.inf), _floor32(t.threshold[:m]))
-        left[i, :m] = np.where(leaf, idx[:m], t.children_left[:m])
-        right[i, :m] = np.where(leaf, idx[:m], t.children_right[:m])
-        value[i, :m] = t.value[:m, 0, 0]
-    depth = max(t.max_depth for t in trees)
-    return ForestArrays(*(jnp.asarray(a) for a in (feature, threshold, left, right, value)), depth)
+        stack = [(0, 0, 0)]  # (sklearn node, heap node, level)
+        while stack:
+            s, h, lev = stack.pop()
+            if t.children_left[s] == -1:  # a leaf: every heap leaf below h holds its value
+                span = 2 ** (depth - lev)
+                first = (h + 1) * span - 1 - n_split
+                value[i, first : first + span] = t.value[s, 0, 0]
+                continue
+            feature[i, h] = t.feature[s]
+            threshold[i, h] = _floor32(np.asarray([t.threshold[s]]))[0]
+            stack.append((t.children_left[s], 2 * h + 1, lev + 1))
+            stack.append((t.children_right[s], 2 * h + 2, lev + 1))
+    return ForestArrays(
+        jnp.asarray(feature.reshape(-1)), jnp.asarray(threshold.reshape(-1)), jnp.asarray(value.reshape(-1)), T, depth
+    )
 
 
 def forest_predict(forest: ForestArrays, x):
     """Mean leaf value over the trees for one input ``x`` (features,); vmap it for batches.
 
-    The trees are walked together, one level per step, on the flattened node arrays
-    (one 1-D gather per array and level; unrolled, as the depth is fixed).
+    All trees walk together, one level per step (unrolled: the depth is fixed): two
+    gathers and a comparison per level.
     """
     x = jnp.asarray(x).astype(jnp.float32)
-    T, N = forest.feature.shape
-    offset = jnp.arange(T, dtype=jnp.int32) * N
-    feature, threshold = forest.feature.reshape(-1), forest.threshold.reshape(-1)
-    left, right = (forest.left + offset[:, None]).reshape(-1), (forest.right + offset[:, None]).reshape(-1)
-    node = offset
-    for _ in range(forest.depth):
-        node = jnp.where(x[feature[node]] <= threshold[node], left[node], right[node])
-    return jnp.mean(forest.value.reshape(-1)[node])
+    T, D = forest.trees, forest.depth
+    n_split = 2**D - 1
+    base = jnp.arange(T, dtype=jnp.int32) * n_split
+    node = jnp.zeros(T, jnp.int32)
+    for _ in range(D):
+        i = base + node
+        node = 2 * node + 1 + (x[forest.feature[i]] > forest.threshold[i]).astype(jnp.int32)
+    leaf = jnp.arange(T, dtype=jnp.int32) * (2**D) + node - n_split
+    return jnp.mean(forest.value[leaf])
+
+
+def forest_predict_numpy(forest: NumpyForest, x: np.ndarray) -> float:
+    """:func:`forest_predict` in NumPy for one input (the fast path of one warm prediction)."""
+    T, D = forest.trees, forest.depth
+    n_split = 2**D - 1
+    base = np.arange(T) * n_split
+    node = np.zeros(T, np.intp)
+    f, t = forest.feature, forest.threshold
+    x = np.asarray(x, np.float32)
+    for _ in range(D):
+        i = base + node
+        node = 2 * node + 1 + (x[f[i]] > t[i])
+    return float(forest.value[np.arange(T) * (2**D) + node - n_split].mean())
 
 
 def forest_operations(rf) -> int:

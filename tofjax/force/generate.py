@@ -28,6 +28,13 @@ What the optics see, in order:
 
 The forward model is evaluated for every frame at once (``jax.vmap`` in chunks),
 so a whole protocol takes seconds.
+
+**Positions** (beyond seed 001, issue 17): ``positions_m`` repeats the protocol at a
+grid of contact positions ``[distance, lateral]`` from the sensor (training and test
+captures at each); ``unseen_positions_m`` gets test captures only (split ``unseen``);
+``two_contacts_m`` gets test captures with two simultaneous contacts, each pressed to
+its own random forces (split ``two_contacts``; the capture's ``force`` channel is the
+first contact's, ``truth.contact_forces_n`` holds both, frame by frame).
 """
 
 from __future__ import annotations
@@ -96,6 +103,13 @@ class Protocol:
     ambient_drift: float = 0.05
     ambient_drift_period_s: float = 120.0
     force_noise_n: float = 0.05
+    #: Contact positions [distance_m, lateral_m] of the training (and seen-test) captures;
+    #: empty: the one position (distance_m, lateral_m), seed 001.
+    positions_m: tuple[tuple[float, float], ...] = ()
+    #: Positions held out of training: test captures only (split "unseen").
+    unseen_positions_m: tuple[tuple[float, float], ...] = ()
+    #: Pairs of positions pressed at once, each to its own forces (split "two_contacts").
+    two_contacts_m: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = ()
     #: Forward-model precision for generation (float32 is ~2x faster; photon noise dwarfs its error).
     dtype: str = "float32"
     seed: int = 0
@@ -131,6 +145,10 @@ class Protocol:
             raise ConfigError("baseline_s: must hold at least one frame (the dual-input models need a baseline)")
 
     @property
+    def train_positions(self) -> tuple[tuple[float, float], ...]:
+        return self.positions_m or ((self.distance_m, self.lateral_m),)
+
+    @property
     def baseline_frames(self) -> int:
         return int(round(self.baseline_s * self.frame_rate_hz))
 
@@ -138,6 +156,15 @@ class Protocol:
         scene = load_scene(self.scene).without_touches()
         if not 0 <= self.sensor < scene.n_sensors:
             raise ConfigError(f"sensor: {self.sensor} is not a sensor of scene '{scene.name}' ({scene.n_sensors} sensors)")
+        named = [("positions_m", q) for q in self.positions_m] + [("unseen_positions_m", q) for q in self.unseen_positions_m]
+        named += [("two_contacts_m", q) for pair in self.two_contacts_m for q in pair]
+        for key, (d, lat) in named:
+            if d <= 0:
+                raise ConfigError(f"{key}: distance must be > 0, got {d!r}")
+            try:
+                contact_position(scene, self.sensor, d, lat)
+            except ConfigError:
+                raise ConfigError(f"{key}: a contact at [{d:g}, {lat:g}] m from sensor {self.sensor} lies outside the waveguide") from None
         return scene
 
 
@@ -148,7 +175,9 @@ def contact_position(scene: Scene, sensor: int, distance_m: float, lateral_m: fl
     x = s.position_m[0] + distance_m * np.cos(a) - lateral_m * np.sin(a)
     y = s.position_m[1] + distance_m * np.sin(a) + lateral_m * np.cos(a)
     if not scene.waveguide.contains(x, y):
-        raise ConfigError(f"distance_m: a contact {distance_m:g} m in front of sensor {sensor} lies outside the waveguide")
+        raise ConfigError(
+            f"distance_m: a contact {distance_m:g} m in front of sensor {sensor} (lateral {lateral_m:g} m) lies outside the waveguide"
+        )
     return float(x), float(y)
 
 
@@ -224,20 +253,23 @@ _CHUNK = 256
 
 
 @functools.lru_cache(maxsize=8)
-def _renderer(scene: Scene, radius_m: float, dtype: str):
-    """A jitted (contact position, chunk of frames) -> expected histograms function, compiled once per scene."""
+def _renderer(scene: Scene, radius_m: float, dtype: str, n_contacts: int = 1):
+    """A jitted (contact positions, chunk of frames) -> expected histograms function, compiled once per scene
+    and number of contacts. Strength and radius are (frames, contacts)."""
     opts = ModelOptions(dtype=dtype)
     lx, ly = scene.waveguide.size_m
-    touched = scene.replace(touches=(Touch(position_m=(lx / 2, ly / 2), radius_m=radius_m, strength=1.0),))
+    touched = scene.replace(
+        touches=tuple(Touch(position_m=(lx / 2, ly / 2 + 0.01 * k), radius_m=radius_m, strength=1.0) for k in range(n_contacts))
+    )
     model = build_model(touched, opts)
     p0 = Params.from_scene(touched, opts.jnp_dtype)
     S, Z, _ = scene.shape
 
     def one(xy, s, r, o, a, g):
         q = p0.replace(
-            touch_xy_m=xy[None],
-            touch_strength=s[None],
-            touch_radius_m=r[None],
+            touch_xy_m=xy,
+            touch_strength=s,
+            touch_radius_m=r,
             shadow_opacity=o,
             ambient_counts=jnp.full((S, Z), a),
             gain=p0.gain * g,
@@ -254,11 +286,14 @@ def _render(scene: Scene, p: Protocol, xy, strength, radius, opacity, ambient, f
     Frames go through the vmapped forward model in fixed-size chunks, so it compiles once.
     Photon noise is drawn with NumPy (its Poisson sampler is ~10x faster than JAX's on CPU).
     """
-    f, dt = _renderer(scene, p.indenter_radius_m, p.dtype)
+    xy = np.atleast_2d(np.asarray(xy, np.float64))
+    strength, radius = (np.asarray(v, np.float64).reshape(len(v), -1) for v in (strength, radius))
+    f, dt = _renderer(scene, p.indenter_radius_m, p.dtype, xy.shape[0])
     xy = jnp.asarray(xy, dt)
     n = len(strength)
     pad = (-n) % _CHUNK
-    args = [np.pad(np.asarray(v, np.float64), (0, pad), mode="edge") for v in (strength, radius, opacity, ambient, flatten)]
+    args = [np.pad(np.asarray(v, np.float64), [(0, pad)] + [(0, 0)] * (np.ndim(v) - 1), mode="edge")
+            for v in (strength, radius, opacity, ambient, flatten)]
     out = np.empty((n + pad, *scene.shape), np.float32)
     for i in range(0, n + pad, _CHUNK):
         sl = slice(i, i + _CHUNK)
@@ -269,15 +304,30 @@ def _render(scene: Scene, p: Protocol, xy, strength, radius, opacity, ambient, f
 
 
 def simulate_session(
-    scene: Scene, p: Protocol, targets_n, velocity_mm_s: float, seed: int, *, split: str = "train"
+    scene: Scene, p: Protocol, targets_n, velocity_mm_s: float, seed: int, *, split: str = "train", positions=None
 ) -> Capture:
-    """One capture: a baseline, then indentations to ``targets_n`` at ``velocity_mm_s``, one ambient condition."""
+    """One capture: a baseline, then indentations to ``targets_n`` at ``velocity_mm_s``, one ambient condition.
+
+    ``positions``: the contacts' ``[distance, lateral]`` (default: the protocol's one
+    position). With several contacts, ``targets_n`` holds one list of targets per contact;
+    they are pressed at the same time, each to its own forces.
+    """
     rng = np.random.default_rng(seed)
-    xy = contact_position(scene, p.sensor, p.distance_m, p.lateral_m)
-    t_ref, f_true, segment = indentation_force(targets_n, velocity_mm_s, p, rng)
+    positions = [(p.distance_m, p.lateral_m)] if positions is None else [tuple(q) for q in positions]
+    targets = [list(targets_n)] if len(positions) == 1 else [list(t) for t in targets_n]
+    if len(targets) != len(positions):
+        raise ConfigError(f"{len(positions)} contacts need {len(positions)} lists of target forces")
+    xys = [contact_position(scene, p.sensor, d, lat) for d, lat in positions]
     dt = 1.0 / p.force_rate_hz
-    f_lag = lag(f_true, dt, p.lag_s)
-    f_meas = f_true + p.force_noise_n * rng.standard_normal(f_true.size)
+    f_true = []
+    for t in targets:
+        _, f, _ = indentation_force(t, velocity_mm_s, p, rng)
+        f_true.append(f)
+    n_ref = max(f.size for f in f_true)
+    f_true = [np.pad(f, (0, n_ref - f.size)) for f in f_true]
+    t_ref = np.arange(n_ref) * dt
+    f_lag = [lag(f, dt, p.lag_s) for f in f_true]
+    f_meas = [f + p.force_noise_n * rng.standard_normal(f.size) for f in f_true]
     # Frames: the first one ends one exposure after the start.
     period = 1.0 / p.frame_rate_hz
     t_frames = np.arange(period, t_ref[-1] + 1e-9, period)
@@ -286,34 +336,48 @@ def simulate_session(
     phase = rng.uniform(0, 2 * np.pi)
     amb_ref = a0 * (1.0 + p.ambient_drift * np.sin(2 * np.pi * t_ref / p.ambient_drift_period_s + phase))
     # What one frame integrates: the optical state averaged over its exposure.
-    strength = _frame_mean(t_ref, touch_strength(f_lag, p), t_frames, period)
-    radius = _frame_mean(t_ref, contact_radius(f_lag, p), t_frames, period)
-    # A contact shadows what lies behind it only while it is there.
-    opacity = scene.waveguide.shadow_opacity * _frame_mean(t_ref, -np.expm1(-np.maximum(f_lag, 0) / 2.0), t_frames, period)
+    strength = np.stack([_frame_mean(t_ref, touch_strength(f, p), t_frames, period) for f in f_lag], 1)
+    radius = np.stack([_frame_mean(t_ref, contact_radius(f, p), t_frames, period) for f in f_lag], 1)
+    # A contact shadows what lies behind it only while it is there (several: the most pressed one's shadow).
+    f_max = np.max(np.stack(f_lag), 0)
+    opacity = scene.waveguide.shadow_opacity * _frame_mean(t_ref, -np.expm1(-np.maximum(f_max, 0) / 2.0), t_frames, period)
     ambient = _frame_mean(t_ref, amb_ref, t_frames, period)
     flatten = 1.0 / (1.0 + ambient / p.ambient_flattening_counts)
-    hist = _render(scene, p, xy, strength, radius, opacity, ambient, flatten, rng)
-    force = align_force(t_ref, f_meas, t_frames, period)
-    touches = np.stack([np.full_like(strength, xy[0]), np.full_like(strength, xy[1]), strength], 1)[:, None, :]
+    hist = _render(scene, p, xys, strength, radius, opacity, ambient, flatten, rng)
+    forces = [align_force(t_ref, f, t_frames, period) for f in f_meas]
+    touches = np.stack(
+        [np.stack([np.full(len(t_frames), xy[0]), np.full(len(t_frames), xy[1]), strength[:, k]], 1) for k, xy in enumerate(xys)],
+        1,
+    )
+    s0 = scene.sensors[p.sensor].position_m
     truth = {
         "protocol": "seed001-indentation",
         "split": split,
         "velocity_mm_s": float(velocity_mm_s),
-        "target_forces_n": [float(f) for f in targets_n],
-        "contact_xy_m": list(xy),
-        "distance_m": p.distance_m,
+        "target_forces_n": [float(f) for f in targets[0]],
+        "contact_xy_m": list(xys[0]),
+        "distance_m": positions[0][0],
+        "lateral_m": positions[0][1],
+        "n_contacts": len(positions),
+        "contacts": [
+            {"distance_m": d, "lateral_m": lat, "xy_m": list(xy), "range_m": float(np.hypot(xy[0] - s0[0], xy[1] - s0[1])),
+             "target_forces_n": [float(f) for f in t]}
+            for (d, lat), xy, t in zip(positions, xys, targets)
+        ],
         "sensor": p.sensor,
         "ambient_counts": a0,
         "baseline_frames": p.baseline_frames,
         "seed": seed,
         "parameters": to_dict(p),
     }
+    if len(positions) > 1:
+        truth["contact_forces_n"] = [np.round(f, 3).tolist() for f in forces]
     return Capture(
         histograms=hist,
         timestamps=t_frames,
         scene=scene,
         source="simulated",
-        force=force,
+        force=forces[0],
         truth_touches=touches,
         truth=truth,
     )
@@ -336,30 +400,47 @@ def generate(
 
     scene = p.load_scene()
     rng = np.random.default_rng(p.seed)
-    jobs = []
-    for v in p.velocities_mm_s:
-        for r in range(p.repetitions):
-            jobs.append(("train", v, r, list(rng.permutation(np.asarray(p.train_forces_n, float)))))
-    for v in p.velocities_mm_s:
-        forces = np.round(rng.uniform(*p.test_force_range_n, p.test_forces_per_velocity), 1)
-        for r, chunk in enumerate(np.array_split(forces, p.test_captures_per_velocity)):
-            if len(chunk):
-                jobs.append(("test", v, r, list(chunk)))
-    out: dict[str, list] = {"train": [], "test": []}
+    many = len(p.train_positions) > 1 or p.unseen_positions_m or p.two_contacts_m
+    jobs = []  # (split, velocity, repetition, targets, positions, file stem)
+
+    def stem(split, i, v, r):
+        return f"{split}_p{i}_v{v:g}_r{r}" if many else f"{split}_v{v:g}_r{r}"
+
+    def test_jobs(split, i, pos):
+        for v in p.velocities_mm_s:
+            forces = np.round(rng.uniform(*p.test_force_range_n, p.test_forces_per_velocity), 1)
+            for r, chunk in enumerate(np.array_split(forces, p.test_captures_per_velocity)):
+                if len(chunk):
+                    jobs.append((split, v, r, list(chunk), [pos], stem(split, i, v, r)))
+
+    for i, pos in enumerate(p.train_positions):
+        for v in p.velocities_mm_s:
+            for r in range(p.repetitions):
+                jobs.append(("train", v, r, list(rng.permutation(np.asarray(p.train_forces_n, float))), [pos], stem("train", i, v, r)))
+    for i, pos in enumerate(p.train_positions):
+        test_jobs("test", i, pos)
+    for i, pos in enumerate(p.unseen_positions_m):
+        test_jobs("unseen", i, pos)
+    for i, pair in enumerate(p.two_contacts_m):
+        for v in p.velocities_mm_s:
+            n = max(p.test_forces_per_velocity // p.test_captures_per_velocity, 1)
+            forces = [list(np.round(rng.uniform(*p.test_force_range_n, n), 1)) for _ in pair]
+            jobs.append(("two_contacts", v, 0, forces, list(pair), stem("two_contacts", i, v, 0)))
+    out: dict[str, list] = {"train": [], "test": [], "unseen": [], "two_contacts": []}
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "protocol.json").write_text(json.dumps(to_dict(p), indent=2))
     seeds = rng.integers(0, 2**31 - 1, len(jobs))
-    for (split, v, r, forces), s in zip(tqdm(jobs, desc="simulating captures", disable=not progress), seeds):
-        cap = simulate_session(scene, p, forces, v, int(s), split=split)
+    for (split, v, r, forces, pos, name), s in zip(tqdm(jobs, desc="simulating captures", disable=not progress), seeds):
+        cap = simulate_session(scene, p, forces if len(pos) > 1 else forces, v, int(s), split=split, positions=pos)
         if out_dir is None:
             out[split].append(cap)
         else:
-            path = out_dir / f"{split}_v{v:g}_r{r}.h5"
+            path = out_dir / f"{name}.h5"
             write_capture(path, cap, overwrite=overwrite)
             out[split].append(path)
-    return out
+    return {k: v for k, v in out.items() if v or k in ("train", "test")}
 
 
 def protocol_from_dict(data: dict, source: str = "protocol") -> Protocol:

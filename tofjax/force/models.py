@@ -45,19 +45,23 @@ class MLPSpec:
         return cls(**dict(d, hidden=tuple(d["hidden"])))
 
 
-def mlp_spec(kind: str, variant: str, n: int, *, dropout: float = 0.3, deep_hidden=(128, 128, 64, 32)) -> MLPSpec:
+def mlp_spec(
+    kind: str, variant: str, n: int, *, dropout: float = 0.3, deep_hidden=(128, 128, 64, 32), extra: int = 0
+) -> MLPSpec:
     """The architecture of seed 001 for ``kind`` (``mlp`` or ``deep_mlp``) and input ``variant``.
 
-    ``n`` is the number of values in the contact window (4 beams x 5 bins = 20).
+    ``n`` is the number of values in the contact window (4 beams x 5 bins = 20); ``extra``
+    context inputs (the contact's position, the ambient level) join the baseline branch
+    (the only branch of the single-input MLP).
     """
     if kind == "mlp":
         if variant == "single":
-            return MLPSpec(n, 0, 64, 0, (32,), "first", dropout)
+            return MLPSpec(n + extra, 0, 64, 0, (32,), "first", dropout)
         if variant == "dual":
-            return MLPSpec(n, n, 32, 32, (32,), "last", dropout)
-        return MLPSpec(2 * n, n, 64, 32, (32,), "last", dropout)
+            return MLPSpec(n, n + extra, 32, 32, (32,), "last", dropout)
+        return MLPSpec(2 * n, n + extra, 64, 32, (32,), "last", dropout)
     if kind == "deep_mlp":
-        n_in = {"single": n, "dual": 2 * n, "derivative": 3 * n}[variant]
+        n_in = {"single": n, "dual": 2 * n, "derivative": 3 * n}[variant] + extra
         return MLPSpec(n_in, 0, deep_hidden[0], 0, tuple(deep_hidden[1:]), "first", dropout)
     raise ConfigError(f"model.kind: {kind!r} is not an MLP")
 

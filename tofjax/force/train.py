@@ -204,7 +204,8 @@ def load_data(cfg: DataConfig, *, progress: bool = False) -> tuple[list[Capture]
             paths = generate(cfg.protocol, d, progress=progress, overwrite=True)
             stamp.write_text(json.dumps({k: [str(p) for p in v] for k, v in paths.items()}))
         paths = json.loads(stamp.read_text())
-        tr, te = [Path(p) for p in paths["train"]], [Path(p) for p in paths["test"]]
+        tr = [Path(p) for p in paths["train"]]
+        te = [Path(p) for k in ("test", "unseen", "two_contacts") for p in paths.get(k, [])]
         info = {"source": "simulated", "protocol": to_dict(cfg.protocol), "cache": str(d)}
     return [read_capture(p) for p in tr], [read_capture(p) for p in te], [str(p) for p in tr], [str(p) for p in te], info
 
@@ -225,9 +226,14 @@ class ForcePredictor(eqx.Module):
     force_lo: float
     force_span: float
     variant: str = eqx.field(static=True)
+    extra_lo: jax.Array | None = None
+    extra_hi: jax.Array | None = None
+    base_lo: jax.Array | None = None
+    base_hi: jax.Array | None = None
 
     def inputs(self, raw):
-        return select(normalise(raw, self.lo, self.hi, jnp), self.variant, self.lo.shape[0], jnp).astype(jnp.float32)
+        x = normalise(raw, self.lo, self.hi, jnp, self.extra_lo, self.extra_hi, self.base_lo, self.base_hi)
+        return select(x, self.variant, self.lo.shape[0], jnp).astype(jnp.float32)
 
     def __call__(self, raw):
         x = self.inputs(raw)
@@ -282,6 +288,14 @@ def load_predictor(run_dir: str | Path):
         raise UserError(f"{run_dir}: damaged run folder ({what})".splitlines()[0]) from None
 
 
+def _extra_scaling(scaling: Scaling):
+    """The predictor's ``extra_lo, extra_hi, base_lo, base_hi`` (None where the scaling has none)."""
+    f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    extra = (f(scaling.extra_lo), f(scaling.extra_hi)) if scaling.extra_lo.shape[0] else (None, None)
+    base = (f(scaling.base_lo), f(scaling.base_hi)) if scaling.base_lo is not None else (None, None)
+    return (*extra, *base)
+
+
 def _load_predictor(run_dir: Path, header: dict):
     if header["kind"] not in ("mlp", "deep_mlp"):
         return _load_sklearn(run_dir), header
@@ -294,10 +308,12 @@ def _load_predictor(run_dir: Path, header: dict):
             mlp = eqx.tree_deserialise_leaves(f, like)
         forest = None
         if header.get("forest") and (run_dir / "forest.npz").exists():
-            forest = ForestArrays.from_numpy(np.load(run_dir / "forest.npz"))
+            with np.load(run_dir / "forest.npz") as npz:
+                forest = ForestArrays.from_numpy(npz, str(run_dir / "forest.npz"))
         pred = ForcePredictor(
             mlp, forest, jnp.asarray(scaling.lo, jnp.float32), jnp.asarray(scaling.hi, jnp.float32),
             scaling.force_lo, scaling.force_hi - scaling.force_lo, header["features"]["variant"],
+            *_extra_scaling(scaling),
         )
         return pred, header
     raise UserError(f"{run_dir}: model.json names kind {header['kind']!r}")
@@ -350,7 +366,7 @@ def _predict(model, header: dict, raw: np.ndarray) -> dict[str, np.ndarray]:
             out["mlp_rf"] = np.asarray(b, np.float64)
         return out
     sc = Scaling.from_json(header["scaling"])
-    x = select(normalise(raw, sc.lo, sc.hi), header["features"]["variant"], sc.lo.shape[0])
+    x = select(sc.normalise(raw), header["features"]["variant"], sc.lo.shape[0])
     y = model.predict(x) * (sc.force_hi - sc.force_lo) + sc.force_lo
     return {header["kind"]: np.asarray(y, np.float64)}
 
@@ -366,7 +382,7 @@ def predict_capture(
     whose features are not finite get NaN. Raises :class:`FeatureError` when the
     capture's beams or bins do not match the trained model.
     """
-    from .features import raw_features
+    from .features import capture_rows
 
     model, header = load_predictor(run_dir)
     src = str(capture) if not isinstance(capture, Capture) else "capture"
@@ -375,23 +391,33 @@ def predict_capture(
     fcfg = from_dict(FeatureConfig, header["features"])
     if baseline_frames is not None or "baseline_frames" in cap.truth:
         fcfg = dataclasses.replace(fcfg, baseline_frames=baseline_frames or int(cap.truth["baseline_frames"]))
-    raw, valid = raw_features(cap, window, fcfg, src)
-    preds = _predict(model, header, np.where(np.isfinite(raw), raw, 0.0))
     out = {"time": cap.timestamps, "force": cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)}
-    for k, v in preds.items():
-        out[k] = np.where(valid, v, np.nan)
+    for j, (raw, valid, _) in enumerate(capture_rows(cap, window, fcfg, src)):
+        preds = _predict(model, header, np.where(np.isfinite(raw), raw, 0.0))
+        for k, v in preds.items():
+            out[k if j == 0 else f"{k}_contact{j + 1}"] = np.where(valid, v, np.nan)
     return out
 
 
 # ---- metrics -----------------------------------------------------------------------------
 
 
+#: Test splits (``truth.split`` of the test captures) and their names in ``metrics.json``.
+SPLITS = {"test": "seen", "unseen": "unseen", "two_contacts": "two_contacts"}
+
+
 def mae_by_velocity(pred: np.ndarray, ds: Dataset) -> dict:
+    """MAE overall (single-contact test frames: seen and unseen positions), per velocity (the same
+    frames) and per split (``seen``, ``unseen``, ``two_contacts``: each contact of each frame)."""
     err = np.abs(pred - ds.force)
+    single = ds.split != "two_contacts"
+    if not single.any():
+        single = np.ones(len(err), bool)
     by = {}
-    for v in sorted(set(ds.velocity[np.isfinite(ds.velocity)].tolist())):
-        by[f"{v:.1f}" if v >= 0.1 else f"{v:g}"] = float(err[ds.velocity == v].mean())
-    return {"overall": float(err.mean()), "by_velocity_mm_s": by}
+    for v in sorted(set(ds.velocity[single & np.isfinite(ds.velocity)].tolist())):
+        by[f"{v:.1f}" if v >= 0.1 else f"{v:g}"] = float(err[single & (ds.velocity == v)].mean())
+    splits = {name: float(err[ds.split == key].mean()) for key, name in SPLITS.items() if (ds.split == key).any()}
+    return {"overall": float(err[single].mean()), "by_velocity_mm_s": by, "by_split": splits}
 
 
 def _versions() -> dict:
@@ -482,11 +508,13 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
             f"({ds.n_nan_frames} + {dt.n_nan_frames} with NaN values)")
     i_tr, i_va, i_ho = split_indices(len(ds), config.data.split, config.seed)
     n = window.size
-    scaling = Scaling.fit(ds.raw[i_tr][:, :n], ds.force[i_tr], fc.normalisation)
+    scaling = Scaling.fit(ds.raw[i_tr][:, :n], ds.force[i_tr], fc.normalisation, ds.raw[i_tr][:, 3 * n :],
+                          ds.raw[i_tr][:, 2 * n : 3 * n] if fc.source == "inversion" else None)
     span = scaling.force_hi - scaling.force_lo
+    n_extra = ds.raw.shape[1] - 3 * n
 
     def X(raw):
-        return select(normalise(raw, scaling.lo, scaling.hi), fc.variant, n)
+        return select(scaling.normalise(raw), fc.variant, n)
 
     def Y(f):
         return (f - scaling.force_lo) / span
@@ -512,7 +540,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
 
     header = {
         "format": MODEL_FORMAT,
-        "version": 1,
+        "version": 2,
         "kind": config.model.kind,
         "features": to_dict(fc),
         "window": window.to_json(),
@@ -524,7 +552,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
     key = jax.random.key(config.seed)
     if config.model.is_mlp:
         kind = config.model.kind
-        spec = mlp_spec(kind, fc.variant, n, dropout=config.model.dropout,
+        spec = mlp_spec(kind, fc.variant, n, dropout=config.model.dropout, extra=n_extra,
                         **({"deep_hidden": config.model.options().hidden} if kind == "deep_mlp" else {}))
         k_init, k_train = jax.random.split(key)
         model = build_mlp(spec, k_init)
@@ -543,7 +571,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
         mlp = res.model
         say(f"  MLP: {res.epochs_run} epochs in {res.seconds:.1f} s, best epoch {res.best_epoch}")
         pred0 = ForcePredictor(mlp, None, jnp.asarray(scaling.lo, jnp.float32), jnp.asarray(scaling.hi, jnp.float32),
-                               scaling.force_lo, span, fc.variant)
+                               scaling.force_lo, span, fc.variant, *_extra_scaling(scaling))
         f_mlp_train = np.asarray(predict_batch(pred0, ds.raw[i_tr])[0], np.float64)
         ops["mlp" if kind == "mlp" else kind] = operations(spec) + 2 * x_all.shape[1] + 2
         forest = None
@@ -554,7 +582,8 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
             timings["forest_s"] = time.perf_counter() - t0
             ops["mlp_rf"] = ops["mlp"] + forest_operations(rf) + 1
             say(f"  forest: {config.forest.trees} trees, depth {forest.depth}, {timings['forest_s']:.1f} s")
-        predictor = ForcePredictor(mlp, forest, pred0.lo, pred0.hi, pred0.force_lo, pred0.force_span, fc.variant)
+        predictor = ForcePredictor(mlp, forest, pred0.lo, pred0.hi, pred0.force_lo, pred0.force_span, fc.variant,
+                                   *_extra_scaling(scaling))
         header |= {"spec": spec.to_json(), "forest": forest is not None,
                    "best_epoch": res.best_epoch, "epochs_run": res.epochs_run}
         save_predictor(out, predictor, header)
@@ -585,6 +614,7 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
         "data": "simulated" if data_info["source"] == "simulated" else "captures",
         "mae_n": {k: mae_by_velocity(v, dt) for k, v in test_pred.items()},
         "holdout_mae_n": {k: float(np.mean(np.abs(v - ho.force))) for k, v in ho_pred.items()},
+        "test_frames_by_split": {name: int((dt.split == key).sum()) for key, name in SPLITS.items() if (dt.split == key).any()},
         "operations_per_prediction": ops,
         "train_seconds": timings,
         "frames": meta["frames"],
