@@ -263,7 +263,8 @@ def test_run_folder_and_metrics_schema(small_data, mlp_run, tmp_path):
     m = json.loads((run / "metrics.json").read_text())
     assert set(m["mae_n"]) == {"mlp", "mlp_rf"}
     for k in ("mlp", "mlp_rf"):
-        assert set(m["mae_n"][k]) == {"overall", "by_velocity_mm_s"}
+        assert set(m["mae_n"][k]) == {"overall", "by_velocity_mm_s", "by_split"}
+        assert set(m["mae_n"][k]["by_split"]) == {"seen"}
         assert set(m["mae_n"][k]["by_velocity_mm_s"]) == {"1.0", "5.0"}
         assert np.isfinite(m["mae_n"][k]["overall"])
     assert m["operations_per_prediction"]["mlp_rf"] > m["operations_per_prediction"]["mlp"]

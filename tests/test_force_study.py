@@ -46,23 +46,3 @@ def test_force_study_full(tmp_path):
     study = load("study_force")
     study.main(["--config", str(ROOT / "configs" / "studies" / "force.toml"), "--out", str(tmp_path)])
     assert (tmp_path / "force.json").exists()
-
-
-def test_force_spatial_study_fast(tmp_path):
-    study = load("study_force_spatial")
-    cfg = study.SpatialConfig(train_distances_m=(0.10, 0.18), unseen_distances_m=(0.14,), velocities_mm_s=(5.0,),
-                              repetitions=1, test_forces_per_velocity=2, epochs=3)
-    r = study.run(cfg, tmp_path)
-    assert set(r["mae_n"]) == {"raw", "corrected"}
-    assert set(r["mae_n"]["raw"]["by_distance_m"]) == {"0.100", "0.140", "0.180"}
-    assert (tmp_path / "spatial.md").read_text().count("|") > 10
-
-
-def test_window_follows_the_contact():
-    study = load("study_force_spatial")
-    from tofjax.force.generate import Protocol
-
-    scene = Protocol().load_scene()
-    near, far = study.window_at(scene, 0, 0.08), study.window_at(scene, 0, 0.20)
-    # 120 mm farther: 2 x 0.12 m x n1 / c = 1.12 ns = 11 bins of 100 ps later.
-    assert far.start_bin - near.start_bin in (10, 11, 12)

@@ -506,17 +506,17 @@ class ContactInverter:
         """The ``n`` strongest contacts of a capture, nearest first.
 
         The contact frames are the quarter with the most positive corrected signal; their
-        mean signal, summed over the zones and smoothed over 3 bins, is the range profile.
-        Its highest peaks (at least ``bins`` bins apart) are the contacts; the range comes
-        from a parabola through the peak and its neighbours.
+        mean signal, summed over the zones, is the range profile. The highest peaks of its
+        3-bin smoothing (at least ``bins`` bins apart) are the contacts; the range comes from
+        a parabola through the unsmoothed peak and its neighbours.
         """
         c = corrected[:, sensor]  # (F, Z, B)
         m = self.mask[sensor if mask_sensor is None else mask_sensor]
         energy = (np.clip(c, 0, None) * m).sum((1, 2))
         strong = energy >= np.quantile(energy, 0.75)
         P = c[strong].mean(0) * m  # (Z, B)
-        prof = P.sum(0)
-        prof = np.convolve(prof, [0.25, 0.5, 0.25], mode="same")
+        raw = P.sum(0)
+        prof = np.convolve(raw, [0.25, 0.5, 0.25], mode="same")
         B = prof.size
         left = prof.copy()
         peaks = []
@@ -528,7 +528,10 @@ class ContactInverter:
         for b in sorted(peaks):
             frac = float(b)
             if 0 < b < B - 1:
-                y0, y1, y2 = prof[b - 1], prof[b], prof[b + 1]
+                b = int(b - 1 + np.argmax(raw[b - 1 : b + 2]))  # the unsmoothed profile's own peak
+                b = min(max(b, 1), B - 2)
+                frac = float(b)
+                y0, y1, y2 = raw[b - 1], raw[b], raw[b + 1]
                 den = y0 - 2 * y1 + y2
                 if den < 0:
                     frac = b + float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5))
