@@ -46,3 +46,22 @@ def test_force_study_full(tmp_path):
     study = load("study_force")
     study.main(["--config", str(ROOT / "configs" / "studies" / "force.toml"), "--out", str(tmp_path)])
     assert (tmp_path / "force.json").exists()
+
+
+def test_force_position_study_fast(tmp_path):
+    study = load("study_force_position")
+    protocol = {"velocities_mm_s": [5.0], "train_forces_n": [20.0, 50.0], "hold_s": 1.0, "rest_s": 0.5,
+                "baseline_s": 1.0, "test_forces_per_velocity": 2, "repetitions": 1,
+                "positions_m": [[0.09, -0.01], [0.19, 0.01]], "unseen_positions_m": [[0.14, 0.0]],
+                "two_contacts_m": [[[0.09, 0.0], [0.21, 0.0]]]}
+    runs = [r for r in study.RUNS if r[0] in ("mlp_derivative", "nonlinear")]
+    res = study.run(tmp_path, epochs=2, runs=runs, protocol=protocol, indep_frames=(6, 3))
+    models = {(r["run"], r["model"]) for r in res["rows"]}
+    assert models == {("mlp_derivative", "mlp"), ("mlp_derivative", "mlp_rf"), ("nonlinear", "nonlinear")}
+    assert all(r["unseen_over_seen"] > 0 for r in res["rows"])
+    assert set(res["independent"]["mlp_rf"]["by_split"]) == {"seen", "unseen"}
+    assert "seen, v = 5 mm/s" in res["forest_where"]["mlp_derivative"]
+    md = (tmp_path / "force_position.md").read_text()
+    assert "unseen / seen" in md and "simulated" in md and "Independent" in md
+    with pytest.raises(Exception, match="exists"):
+        study.run(tmp_path, epochs=2, runs=runs, protocol=protocol, independent=False)
