@@ -23,7 +23,7 @@ model did not make.
 
 Writes ``force_position.json`` and ``force_position.md`` to ``--out``.
 
-    python experiments/study_force_position.py --out docs/results --overwrite
+    python experiments/study_force_position.py --out docs/results --work out/force_position_work --overwrite
 """
 
 from __future__ import annotations
@@ -138,18 +138,21 @@ def _independent(base_cfg: dict, out: Path, runs_dir: Path, *, n_train: int, n_t
 
 
 def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=RUNS, independent: bool = True,
-        indep_frames: tuple[int, int] = (100, 30), protocol: dict | None = None, progress: bool = False) -> dict:
+        indep_frames: tuple[int, int] = (100, 30), protocol: dict | None = None, progress: bool = False,
+        work: Path | None = None) -> dict:
+    """``out``: where the JSON and markdown go; ``work``: data, captures and run folders (default ``out``)."""
     out = Path(out)
+    work = out if work is None else Path(work)
     target = check_output(out / "force_position.json", overwrite=overwrite)
     check_output(out / "force_position.md", overwrite=overwrite)
     t0 = time.perf_counter()
     base = load_toml(CONFIG)
-    base = _merge(base, {"plots": False, "data": {"cache_dir": str(out / "force-data")}})
+    base = _merge(base, {"plots": False, "data": {"cache_dir": str(work / "force-data")}})
     if protocol:
         base = _merge(base, {"data": {"protocol": protocol}})
     if epochs is not None:
         base = _merge(base, {"training": {"epochs": epochs}})
-    runs_dir = out / "runs"
+    runs_dir = work / "runs"
     rows, where = [], {}
     for name, variant, over in runs:
         cfg = run_config_from_dict(_merge(base, _merge({"name": f"position_{name}"}, over)))
@@ -182,7 +185,7 @@ def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=R
         "targets": {"unseen_over_seen_max": 1.2},
     }
     if independent:
-        res["independent"] = _independent(base, out, runs_dir, n_train=indep_frames[0], n_test=indep_frames[1],
+        res["independent"] = _independent(base, work, runs_dir, n_train=indep_frames[0], n_test=indep_frames[1],
                                           epochs=base["training"]["epochs"], seed=0)
     res["seconds"] = time.perf_counter() - t0
     atomic_write_text(target, json.dumps(res, indent=2) + "\n", overwrite=overwrite)
@@ -233,13 +236,14 @@ def markdown(res: dict) -> str:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="out/force_position")
+    ap.add_argument("--out", default="out/force_position", help="folder for force_position.json and .md")
+    ap.add_argument("--work", default="out/force_position_work", help="folder for the data and run folders")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--epochs", type=int, default=None)
     ap.add_argument("--no-independent", action="store_true")
     a = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", False)
-    res = run(Path(a.out), overwrite=a.overwrite, epochs=a.epochs, independent=not a.no_independent)
+    res = run(Path(a.out), overwrite=a.overwrite, epochs=a.epochs, independent=not a.no_independent, work=Path(a.work))
     print(markdown(res))
     return res
 

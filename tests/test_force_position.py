@@ -170,7 +170,7 @@ def test_position_run_reports_every_split(position_run):
     assert header["version"] == 2 and header["features"]["source"] == "inversion"
 
 
-def test_a_run_with_an_old_forest_is_refused(position_run, tmp_path):
+def test_a_run_with_an_old_forest_is_refused(position_run, tmp_path, capsys):
     from tofjax.cli import main
 
     run = tmp_path / "old"
@@ -184,4 +184,8 @@ def test_a_run_with_an_old_forest_is_refused(position_run, tmp_path):
     from tofjax.capture import write_capture
 
     write_capture(tmp_path / "c.h5", cap)
+    capsys.readouterr()
     assert main(["predict", str(run), str(tmp_path / "c.h5"), "--out", str(tmp_path / "p.csv")]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "forest format version 1" in err and "retrain" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "p.csv").exists()

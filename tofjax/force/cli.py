@@ -58,7 +58,8 @@ def _cmd_data(a) -> int:
 
     p = protocol_from_dict(load_toml(a.protocol) if a.protocol else {}, a.protocol or "protocol")
     paths = generate(p, a.out, progress=True, overwrite=a.overwrite)
-    print(f"wrote {len(paths['train'])} training and {len(paths['test'])} test captures to {a.out}/")
+    extra = "".join(f", {len(paths[k])} {k.replace('_', ' ')}" for k in ("unseen", "two_contacts") if k in paths)
+    print(f"wrote {len(paths['train'])} training and {len(paths['test'])} test captures{extra} to {a.out}/")
     return 0
 
 
