@@ -21,9 +21,14 @@ second simulator with other conventions (per-zone gains, two-tail response, geom
 shadows, another strength scale): whether the unseen/seen ratio holds on data tofjax's forward
 model did not make.
 
-Writes ``force_position.json`` and ``force_position.md`` to ``--out``.
+Writes ``force_position.json`` to ``--out`` and the table to ``--md``.
 
-    python experiments/study_force_position.py --out docs/results --work out/force_position_work --overwrite
+    python experiments/study_force_position.py --out docs/results --md docs/force_position.md \
+        --work out/force_position_work --overwrite
+    python experiments/study_force_position.py --seed001 --out docs/results --work out/force_position_work
+
+``--seed001`` trains seed 001's derivative-enhanced MLP (with and without dropout) + forest on
+seed 001's own one-position protocol instead (``force_seed001.json``: the issue's 1.0 N target).
 """
 
 from __future__ import annotations
@@ -92,6 +97,27 @@ def _forest_where(pred_csv: Path) -> dict:
     return out
 
 
+def _by_position(pred_csv: Path, protocol: dict) -> list[dict]:
+    """MAE of each model per test position (seen and unseen), from a run's ``predictions.csv``."""
+    from tofjax.force.generate import protocol_from_dict
+
+    p = protocol_from_dict(protocol)
+    rows = list(csv.DictReader(open(pred_csv)))
+    models = [k[:-2] for k in rows[0] if k.endswith("_n") and k != "force_n"]
+    groups: dict[tuple[str, int], list] = {}
+    for r in rows:
+        parts = r["capture"].split("_")
+        if parts[0] in ("test", "unseen") and parts[1].startswith("p"):
+            groups.setdefault((parts[0], int(parts[1][1:])), []).append(r)
+    out = []
+    for (split, i), rs in sorted(groups.items()):
+        d, lat = (p.train_positions if split == "test" else p.unseen_positions_m)[i]
+        f = np.array([float(r["force_n"]) for r in rs])
+        out.append({"split": SPLIT_OF_FILE[split], "distance_m": d, "lateral_m": lat, "frames": len(rs)}
+                   | {m: float(np.mean(np.abs(np.array([float(r[f"{m}_n"]) for r in rs]) - f))) for m in models})
+    return out
+
+
 def _independent(base_cfg: dict, out: Path, runs_dir: Path, *, n_train: int, n_test: int, epochs: int, seed: int) -> dict:
     """Static presses from tests/indep_sim.py at the protocol's positions: train on the seen ones, test on both."""
     sys.path.insert(0, str(ROOT / "tests"))
@@ -139,12 +165,14 @@ def _independent(base_cfg: dict, out: Path, runs_dir: Path, *, n_train: int, n_t
 
 def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=RUNS, independent: bool = True,
         indep_frames: tuple[int, int] = (100, 30), protocol: dict | None = None, progress: bool = False,
-        work: Path | None = None) -> dict:
-    """``out``: where the JSON and markdown go; ``work``: data, captures and run folders (default ``out``)."""
+        work: Path | None = None, md: Path | None = None) -> dict:
+    """``out``: where the JSON goes; ``md``: the markdown table (default ``out/force_position.md``);
+    ``work``: data, captures and run folders (default ``out``)."""
     out = Path(out)
     work = out if work is None else Path(work)
+    md = out / "force_position.md" if md is None else Path(md)
     target = check_output(out / "force_position.json", overwrite=overwrite)
-    check_output(out / "force_position.md", overwrite=overwrite)
+    check_output(md, overwrite=overwrite)
     t0 = time.perf_counter()
     base = load_toml(CONFIG)
     base = _merge(base, {"plots": False, "data": {"cache_dir": str(work / "force-data")}})
@@ -153,7 +181,7 @@ def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=R
     if epochs is not None:
         base = _merge(base, {"training": {"epochs": epochs}})
     runs_dir = work / "runs"
-    rows, where = [], {}
+    rows, where, by_position = [], {}, []
     for name, variant, over in runs:
         cfg = run_config_from_dict(_merge(base, _merge({"name": f"position_{name}"}, over)))
         t = time.perf_counter()
@@ -170,6 +198,8 @@ def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=R
             })
         if "mlp_rf" in m["mae_n"]:
             where[name] = _forest_where(d / "predictions.csv")
+        if name == "mlp_derivative":
+            by_position = _by_position(d / "predictions.csv", base["data"]["protocol"])
         print(f"{name}: " + ", ".join(f"{k} {v['overall']:.2f} N" for k, v in m["mae_n"].items())
               + f" ({time.perf_counter() - t:.0f} s)", flush=True)
     res = {
@@ -182,6 +212,7 @@ def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=R
         "tofjax": tofjax.__version__,
         "rows": rows,
         "forest_where": where,
+        "by_position_mlp_derivative": by_position,
         "targets": {"unseen_over_seen_max": 1.2},
     }
     if independent:
@@ -189,7 +220,7 @@ def run(out: Path, *, overwrite: bool = False, epochs: int | None = None, runs=R
                                           epochs=base["training"]["epochs"], seed=0)
     res["seconds"] = time.perf_counter() - t0
     atomic_write_text(target, json.dumps(res, indent=2) + "\n", overwrite=overwrite)
-    atomic_write_text(out / "force_position.md", markdown(res), overwrite=overwrite)
+    atomic_write_text(md, markdown(res), overwrite=overwrite)
     return res
 
 
@@ -223,6 +254,12 @@ def markdown(res: dict) -> str:
             if k in ind:
                 s = ind[k]["by_split"]
                 lines.append(f"| {NAMES[k]} | {s['seen']:.2f} | {s['unseen']:.2f} | {s['unseen'] / s['seen']:.2f}x |")
+    if res["by_position_mlp_derivative"]:
+        bp = res["by_position_mlp_derivative"]
+        lines += ["", "Derivative MLP + RF per test position (distance, lateral in mm), MAE in N:", "",
+                  "| " + " | ".join(f"{r['split']} {r['distance_m'] * 1e3:.0f}, {r['lateral_m'] * 1e3:+.0f}" for r in bp) + " |",
+                  "|" + "---|" * len(bp),
+                  "| " + " | ".join(f"{r.get('mlp_rf', r.get('mlp')):.2f}" for r in bp) + " |"]
     if res["forest_where"]:
         lines += ["", "Forest MAE change against the MLP alone (negative: the forest helps), N:", ""]
         keys = list(next(iter(res["forest_where"].values())))
@@ -234,16 +271,62 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: (config, overrides): seed 001's configs, and the no-dropout one on the inversion features.
+SEED001 = (("configs/force/mlp_derivative.toml", {}), ("configs/force/mlp_derivative_nodrop.toml", {}),
+           ("configs/force/mlp_derivative_nodrop.toml", {"name": "mlp_derivative_nodrop_inversion",
+                                                         "features": {"source": "inversion", "sensor": 0}}))
+
+
+def run_seed001(out: Path, *, overwrite: bool = False, work: Path | None = None, configs=SEED001,
+                override: dict | None = None) -> dict:
+    """Seed 001's one-position protocol with the derivative-enhanced MLP + the packed forest
+    (the issue's second target): ``force_seed001.json``."""
+    out = Path(out)
+    work = out if work is None else Path(work)
+    target = check_output(out / "force_seed001.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    runs = []
+    for c, over in configs:
+        d = _merge(load_toml(ROOT / c), _merge({"plots": False, "data": {"cache_dir": str(work / "force-data")}},
+                                               _merge(over, override or {})))
+        r = train(run_config_from_dict(d, c), work / "runs", log=None)
+        m = json.loads((r / "metrics.json").read_text())
+        runs.append({"config": c, "name": d["name"], "features": d.get("features", {}), "mae_n": {k: {"overall": v["overall"], "by_velocity_mm_s": v["by_velocity_mm_s"]}
+                                            for k, v in m["mae_n"].items()},
+                     "forest_mae_reduction": m.get("forest_mae_reduction"), "forest_depth": d.get("forest", {}).get("max_depth", 8),
+                     "train_seconds": m["train_seconds"]})
+        print(f"{d['name']}: " + ", ".join(f"{k} {v['overall']:.3f} N" for k, v in m["mae_n"].items()), flush=True)
+    res = {
+        "what": "seed 001's protocol (one position, 0.1/1/5 mm/s), test MAE (N) on unseen forces",
+        "data": "simulated (tofjax's forward model)",
+        "features": "seed 001's counts window (the configs' own), and the inversion features (one run)",
+        "machine": f"{platform.machine()} {platform.system()}, {os.cpu_count()} CPU cores (shared, loaded), "
+                   f"JAX {jax.__version__} {jax.default_backend()} backend",
+        "tofjax": tofjax.__version__,
+        "runs": runs,
+        "targets": {"mlp_rf_overall_max_n": 1.0, "forest_never_worse": True},
+        "seconds": time.perf_counter() - t0,
+    }
+    atomic_write_text(target, json.dumps(res, indent=2) + "\n", overwrite=overwrite)
+    return res
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/force_position", help="folder for force_position.json and .md")
     ap.add_argument("--work", default="out/force_position_work", help="folder for the data and run folders")
+    ap.add_argument("--md", default=None, help="the markdown table (default OUT/force_position.md)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--epochs", type=int, default=None)
     ap.add_argument("--no-independent", action="store_true")
+    ap.add_argument("--seed001", action="store_true",
+                    help="instead: seed 001's one-position protocol, derivative MLP + forest -> OUT/force_seed001.json")
     a = ap.parse_args(argv)
-    jax.config.update("jax_enable_x64", False)
-    res = run(Path(a.out), overwrite=a.overwrite, epochs=a.epochs, independent=not a.no_independent, work=Path(a.work))
+    tofjax.enable_x64()  # as `tofjax train`: the generator's lag filter; the models run in float32
+    if a.seed001:
+        return run_seed001(Path(a.out), overwrite=a.overwrite, work=Path(a.work))
+    res = run(Path(a.out), overwrite=a.overwrite, epochs=a.epochs, independent=not a.no_independent, work=Path(a.work),
+              md=Path(a.md) if a.md else None)
     print(markdown(res))
     return res
 

@@ -61,7 +61,19 @@ def test_force_position_study_fast(tmp_path):
     assert all(r["unseen_over_seen"] > 0 for r in res["rows"])
     assert set(res["independent"]["mlp_rf"]["by_split"]) == {"seen", "unseen"}
     assert "seen, v = 5 mm/s" in res["forest_where"]["mlp_derivative"]
+    assert {r["split"] for r in res["by_position_mlp_derivative"]} == {"seen", "unseen"}
     md = (tmp_path / "force_position.md").read_text()
     assert "unseen / seen" in md and "simulated" in md and "Independent" in md
     with pytest.raises(Exception, match="exists"):
         study.run(tmp_path, epochs=2, runs=runs, protocol=protocol, independent=False)
+
+
+def test_force_seed001_study_fast(tmp_path):
+    study = load("study_force_position")
+    override = {"data": {"protocol": {"velocities_mm_s": [5.0], "train_forces_n": [20.0, 50.0], "repetitions": 1,
+                                      "test_forces_per_velocity": 2, "test_captures_per_velocity": 1, "hold_s": 1.0,
+                                      "rest_s": 0.5, "baseline_s": 1.0}},
+                "training": {"epochs": 2}, "forest": {"trees": 3, "max_depth": 4, "n_jobs": 1}}
+    res = study.run_seed001(tmp_path, configs=(("configs/force/mlp_derivative.toml", {}),), override=override)
+    assert set(res["runs"][0]["mae_n"]) == {"mlp", "mlp_rf"} and res["data"].startswith("simulated")
+    assert json.loads((tmp_path / "force_seed001.json").read_text())["targets"]["mlp_rf_overall_max_n"] == 1.0
