@@ -13,6 +13,13 @@ The input variants use parts of it: ``single`` the window, ``dual`` window +
 baseline, ``derivative`` window + derivative + baseline. :class:`Scaling` holds
 the min-max normalisation (fitted on the training split only and stored with the
 model).
+
+With ``source = "inversion"`` (issue 17: force anywhere on the skin) the window is
+not fixed: :class:`ContactInverter` applies the touch inversion's full correction
+(``tofjax.invert``, with a calibration's optics), locates each contact and its
+range, and takes the window of corrected signal at the contact; the contact's range
+and the ambient level follow as context inputs (columns after ``3 x window``), and a
+capture with several contacts gives one row per contact and frame.
 """
 
 from __future__ import annotations
