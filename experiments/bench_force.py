@@ -13,7 +13,9 @@ run, on the same input (a NumPy vector, as a frame arrives):
 The MLP has random weights and the forest is fitted to random residuals until every tree is 8
 levels deep: the packed trees are complete, so every prediction walks exactly 8 levels whatever
 the data, and the time does not depend on what was learned. With ``--run RUN`` a trained run's
-predictor is timed as well. Medians (and 10th/90th percentiles) of ``--repeats`` warm calls.
+predictor is timed as well. Medians (and 10th/90th percentiles) of ``--repeats`` warm calls,
+the four functions called in turn so that the shared machine's load hits them alike; the
+1/5/15-minute load average is recorded.
 
     python experiments/bench_force.py --out docs/results --overwrite
 """
@@ -40,26 +42,30 @@ from tofjax.outputs import atomic_write_text, check_output
 TARGET_US = 100.0
 
 
-def _stats(f, x, repeats: int) -> dict:
-    jax.block_until_ready(f(x))
-    for _ in range(min(50, repeats)):
-        jax.block_until_ready(f(x))
-    ts = np.empty(repeats)
+def _stats(fns: dict, args: dict, repeats: int) -> dict:
+    """Warm times of several functions, called in turn (round robin), so the machine's load
+    changes hit them alike: median, 10th and 90th percentile in us."""
+    for k, f in fns.items():
+        for _ in range(min(50, repeats) + 1):
+            jax.block_until_ready(f(args[k]))
+    ts = {k: np.empty(repeats) for k in fns}
     for i in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(f(x))
-        ts[i] = time.perf_counter() - t
-    ts *= 1e6
-    return {"median": float(np.median(ts)), "p10": float(np.percentile(ts, 10)), "p90": float(np.percentile(ts, 90))}
+        for k, f in fns.items():
+            x = args[k]
+            t = time.perf_counter()
+            jax.block_until_ready(f(x))
+            ts[k][i] = time.perf_counter() - t
+    return {k: {"median": float(np.median(v) * 1e6), "p10": float(np.percentile(v, 10) * 1e6),
+                "p90": float(np.percentile(v, 90) * 1e6)} for k, v in ts.items()}
 
 
-def _layout(name: str, n: int, extra: int, trees: int, depth: int, repeats: int, seed: int) -> dict:
+def _layout(name: str, n: int, extra: int, trees: int, depth: int, repeats: int, seed: int, samples: int = 20_000) -> dict:
     rng = np.random.default_rng(seed)
     spec = mlp_spec("mlp", "derivative", n, dropout=0.0, extra=extra)
     mlp = build_mlp(spec, jax.random.key(seed))
     n_in = 3 * n + extra
-    x_fit = rng.uniform(size=(20_000, n_in)).astype(np.float32)
-    rf = fit_forest(x_fit, rng.standard_normal(20_000), ForestOptions(trees=trees, max_depth=depth, min_samples_leaf=5, n_jobs=1), seed)
+    x_fit = rng.uniform(size=(samples, n_in)).astype(np.float32)
+    rf = fit_forest(x_fit, rng.standard_normal(samples), ForestOptions(trees=trees, max_depth=depth, min_samples_leaf=5, n_jobs=1), seed)
     forest = forest_to_arrays(rf, depth)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     ex = (f32(np.zeros(extra)), f32(np.ones(extra))) if extra else (None, None)
@@ -73,17 +79,11 @@ def _layout(name: str, n: int, extra: int, trees: int, depth: int, repeats: int,
     npf = forest.numpy()
     # The packed forest equals scikit-learn's on this input.
     assert abs(float(fj(x_in)) - float(rf.predict(x_in[None])[0])) < 1e-4
-    return {
-        "layout": name,
-        "raw_features": n_in,
-        "model_inputs": int(x_in.shape[0]),
-        "trees": trees,
-        "depth": forest.depth,
-        "mlp_us": _stats(mlp_only, raw, repeats),
-        "mlp_rf_us": _stats(full, raw, repeats),
-        "forest_jax_us": _stats(fj, x_in, repeats),
-        "forest_numpy_us": _stats(lambda v: forest_predict_numpy(npf, v), x_in, repeats),
-    }
+    fns = {"mlp_us": mlp_only, "mlp_rf_us": full, "forest_jax_us": fj,
+           "forest_numpy_us": lambda v: forest_predict_numpy(npf, v)}
+    args = {"mlp_us": raw, "mlp_rf_us": raw, "forest_jax_us": x_in, "forest_numpy_us": x_in}
+    return {"layout": name, "raw_features": n_in, "model_inputs": int(x_in.shape[0]), "trees": trees,
+            "depth": forest.depth} | _stats(fns, args, repeats)
 
 
 def run(out: Path | None, *, repeats: int = 3000, trees: int = 100, depth: int = 8, run_dir: str | None = None,
@@ -98,6 +98,7 @@ def run(out: Path | None, *, repeats: int = 3000, trees: int = 100, depth: int =
         "machine": f"{platform.machine()} {platform.system()}, {os.cpu_count()} CPU cores (shared, loaded), "
                    f"JAX {jax.__version__} {jax.default_backend()} backend",
         "tofjax": tofjax.__version__,
+        "load_average_1_5_15": list(os.getloadavg()),
         "repeats": repeats,
         "layouts": [
             _layout("seed 001 counts window (4 beams x 5 bins)", 20, 0, trees, depth, repeats, seed),
@@ -109,7 +110,7 @@ def run(out: Path | None, *, repeats: int = 3000, trees: int = 100, depth: int =
         pred, header = load_predictor(run_dir)
         n = len(header["scaling"]["lo"]) * 3 + len(header["scaling"].get("extra_lo", []))
         raw = np.random.default_rng(seed).uniform(0, 1000, n).astype(np.float32)
-        res["run"] = {"run": str(run_dir), "mlp_rf_us": _stats(jax.jit(lambda r: pred(r)), raw, repeats)}
+        res["run"] = {"run": str(run_dir)} | _stats({"mlp_rf_us": jax.jit(lambda r: pred(r))}, {"mlp_rf_us": raw}, repeats)
     res["met"] = all(lay["mlp_rf_us"]["median"] <= TARGET_US for lay in res["layouts"])
     res["seconds"] = time.perf_counter() - t0
     if path is not None:
@@ -129,6 +130,7 @@ def main(argv=None) -> dict:
     res = run(Path(a.out), repeats=a.repeats, trees=a.trees, depth=a.depth, run_dir=a.run, overwrite=a.overwrite)
     for lay in res["layouts"]:
         print(f"{lay['layout']}: MLP {lay['mlp_us']['median']:.0f} us, MLP + forest {lay['mlp_rf_us']['median']:.0f} us "
+              f"(p10 {lay['mlp_rf_us']['p10']:.0f}, p90 {lay['mlp_rf_us']['p90']:.0f}) "
               f"(forest alone: JAX {lay['forest_jax_us']['median']:.0f} us, NumPy {lay['forest_numpy_us']['median']:.0f} us)")
     print(f"target {TARGET_US:.0f} us: {'met' if res['met'] else 'NOT met'}; {res['machine']}")
     return res

@@ -77,3 +77,13 @@ def test_force_seed001_study_fast(tmp_path):
     res = study.run_seed001(tmp_path, configs=(("configs/force/mlp_derivative.toml", {}),), override=override)
     assert set(res["runs"][0]["mae_n"]) == {"mlp", "mlp_rf"} and res["data"].startswith("simulated")
     assert json.loads((tmp_path / "force_seed001.json").read_text())["targets"]["mlp_rf_overall_max_n"] == 1.0
+
+
+def test_force_bench_fast(tmp_path):
+    bench = load("bench_force")
+    res = bench.run(tmp_path, repeats=5, trees=4, depth=3)
+    assert [lay["depth"] for lay in res["layouts"]] == [3, 3]
+    assert all(lay["mlp_rf_us"]["median"] > 0 for lay in res["layouts"])
+    assert json.loads((tmp_path / "bench_force.json").read_text())["target_us"] == 100.0
+    with pytest.raises(Exception, match="exists"):
+        bench.run(tmp_path, repeats=5, trees=4, depth=3)
