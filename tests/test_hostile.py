@@ -473,6 +473,12 @@ def _cases() -> list[Case]:
         "train_dropout_1": 'name = "x"\n[model]\ndropout = 1.0\n',
         "train_unknown_table": 'name = "x"\n[modle]\nkind = "mlp"\n',
         "train_not_toml": "name = \n",
+        "train_feature_source_typo": 'name = "x"\n[features]\nsource = "maps"\n',
+        "train_inversion_option_for_counts": 'name = "x"\n[features]\ncontacts = 2\n',
+        "train_forest_too_deep": 'name = "x"\n[forest]\nmax_depth = 20\n',
+        "train_position_not_a_pair": 'name = "x"\n[data.protocol]\npositions_m = [0.1, 0.0]\n',
+        "train_position_off_the_skin": 'name = "x"\n[data.protocol]\nunseen_positions_m = [[0.5, 0.0]]\n',
+        "train_two_contacts_one_position": 'name = "x"\n[data.protocol]\ntwo_contacts_m = [[[0.1, 0.0]]]\n',
     }.items():
         cases.append(Case(f"train/{name}", cfg(name, text)))
     cases.append(Case("train/missing_config", lambda w, o: ["train", f"{d(w)}/none.toml", "--runs", f"{o}/r"]))

@@ -488,6 +488,11 @@ def train(config: RunConfig, runs_dir: str | Path = "runs", *, progress: bool = 
     - ``log``: where one-line progress messages go (``None``: silent).
     """
     say = log or (lambda *_: None)
+    if not config.data.train:  # the protocol's positions lie on the skin: refused before a run folder exists
+        try:
+            config.data.protocol.load_scene()
+        except ConfigError as e:
+            raise ConfigError(f"{config.name}: data.protocol.{e}") from None
     final = _run_dir(Path(runs_dir), config.name)
     out = _partial(final)
     cfg_dict = config.to_dict()
