@@ -189,3 +189,14 @@ def test_a_run_with_an_old_forest_is_refused(position_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "forest format version 1" in err and "retrain" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_predict_gives_each_contact_its_force(position_run, scene):
+    from tofjax.force.train import predict_capture
+
+    p = Protocol(**FAST)
+    cap = simulate_session(scene, p, [[20.0], [50.0]], 5.0, 4, split="two_contacts", positions=[(0.09, 0.0), (0.21, 0.0)])
+    pred = predict_capture(position_run, cap)
+    assert {"mlp", "mlp_rf", "force_contact2", "mlp_contact2", "mlp_rf_contact2"} <= set(pred)
+    assert pred["force"].max() == pytest.approx(20.0, abs=0.3) and pred["force_contact2"].max() == pytest.approx(50.0, abs=0.3)
+    assert pred["mlp_rf_contact2"].shape == pred["time"].shape

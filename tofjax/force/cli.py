@@ -23,13 +23,20 @@ def _cmd_predict(a) -> int:
     pred = predict_capture(a.run, a.capture, baseline_frames=a.baseline_frames)
     with atomic_path(a.out) as tmp:
         write_prediction_csv(tmp, pred)
-    keys = [k for k in pred if k not in ("time", "force")]
+    keys = [k for k in pred if k not in ("time",) and not k.startswith("force")]
     msg = f"wrote {a.out}: {len(pred['time'])} frames, columns {', '.join(k + '_n' for k in keys)}"
-    if np.isfinite(pred["force"]).any():
-        ok = np.isfinite(pred["force"])
-        msg += "; MAE against the capture's force: " + ", ".join(
-            f"{k} {np.nanmean(np.abs(pred[k][ok] - pred['force'][ok])):.3f} N" for k in keys
-        )
+
+    def reference(k):  # the reference force of k's contact: "force", or "force_contact<n>"
+        return pred.get("force" + (k[k.index("_contact"):] if "_contact" in k else ""))
+
+    parts = []
+    for k in keys:
+        ref = reference(k)
+        if ref is not None and np.isfinite(ref).any():
+            ok = np.isfinite(ref)
+            parts.append(f"{k} {np.nanmean(np.abs(pred[k][ok] - ref[ok])):.3f} N")
+    if parts:
+        msg += "; MAE against the capture's force: " + ", ".join(parts)
     print(msg)
     return 0
 

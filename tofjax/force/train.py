@@ -379,7 +379,9 @@ def predict_capture(
     The capture's first ``baseline_frames`` frames (default: its ``truth.baseline_frames``,
     else the training config's) must show nothing touching: they are its baseline.
     Returns ``{"time": ..., "force": (reference, NaN if none), "<model>": ...}``; frames
-    whose features are not finite get NaN. Raises :class:`FeatureError` when the
+    whose features are not finite get NaN. With several contacts (inversion features) the
+    nearest is the first; contact ``k`` >= 2 adds ``force_contact<k>`` (its reference, from the
+    capture's ``truth.contact_forces_n``, else the force channel) and ``<model>_contact<k>``. Raises :class:`FeatureError` when the
     capture's beams or bins do not match the trained model.
     """
     from .features import capture_rows
@@ -392,8 +394,10 @@ def predict_capture(
     if baseline_frames is not None or "baseline_frames" in cap.truth:
         fcfg = dataclasses.replace(fcfg, baseline_frames=baseline_frames or int(cap.truth["baseline_frames"]))
     out = {"time": cap.timestamps, "force": cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)}
-    for j, (raw, valid, _) in enumerate(capture_rows(cap, window, fcfg, src)):
+    for j, (raw, valid, f) in enumerate(capture_rows(cap, window, fcfg, src)):
         preds = _predict(model, header, np.where(np.isfinite(raw), raw, 0.0))
+        if j:  # a further contact: its own reference force (the capture's truth), then its predictions
+            out[f"force_contact{j + 1}"] = np.asarray(f, float)
         for k, v in preds.items():
             out[k if j == 0 else f"{k}_contact{j + 1}"] = np.where(valid, v, np.nan)
     return out
@@ -657,7 +661,7 @@ def write_prediction_csv(path: str | Path, pred: dict) -> Path:
     """Write :func:`predict_capture`'s output as CSV (one row per frame)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    keys = [k for k in pred if k not in ("time", "force")]
+    keys = [k for k in pred if k not in ("time", "force")]  # further contacts' references, then the models
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["time_s", "force_n", *[f"{k}_n" for k in keys]])
