@@ -200,3 +200,18 @@ def test_predict_gives_each_contact_its_force(position_run, scene):
     assert {"mlp", "mlp_rf", "force_contact2", "mlp_contact2", "mlp_rf_contact2"} <= set(pred)
     assert pred["force"].max() == pytest.approx(20.0, abs=0.3) and pred["force_contact2"].max() == pytest.approx(50.0, abs=0.3)
     assert pred["mlp_rf_contact2"].shape == pred["time"].shape
+
+
+def test_longer_derivative_is_exact_for_quadratics_and_quieter():
+    from tofjax.force.features import backward_derivative
+
+    t = np.arange(40) * 0.1
+    x = (2.0 * t**2 - 3.0 * t + 1.0)[:, None]
+    for k in (3, 5, 9):
+        d = backward_derivative(x, 0.1, k)
+        np.testing.assert_allclose(d[k - 1 :, 0], 4.0 * t[k - 1 :] - 3.0, atol=1e-9)
+        assert np.all(d[: k - 1] == 0)
+    noise = np.random.default_rng(0).standard_normal((4000, 1))
+    assert backward_derivative(noise, 0.1, 7)[6:].std() < 0.3 * backward_derivative(noise, 0.1, 3)[2:].std()
+    with pytest.raises(ConfigError, match="derivative_frames"):
+        FeatureConfig(derivative_frames=2)
