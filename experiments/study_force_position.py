@@ -6,7 +6,8 @@ training positions (*seen*), at 4 held-out positions and distances (*unseen*), a
 simultaneous contacts each pressed to its own forces (*two contacts*). One table:
 
 - seed 001's three MLPs (single, dual, derivative-enhanced dual input), each alone and with
-  the residual forest, on the inversion features (:class:`tofjax.force.features.ContactInverter`);
+  the residual forest, on the inversion features (:class:`tofjax.force.features.ContactInverter`),
+  and the derivative MLP with the 7-frame derivative (``features.derivative_frames``);
 - the alternatives of seed 001's Table I (deep MLP, nonlinear regression, SVR, gradient
   boosting) on the derivative inputs;
 - two ablations of the derivative MLP + forest: without the position inputs, and on seed
@@ -27,8 +28,9 @@ Writes ``force_position.json`` to ``--out`` and the table to ``--md``.
         --work out/force_position_work --overwrite
     python experiments/study_force_position.py --seed001 --out docs/results --work out/force_position_work
 
-``--seed001`` trains seed 001's derivative-enhanced MLP (with and without dropout) + forest on
-seed 001's own one-position protocol instead (``force_seed001.json``: the issue's 1.0 N target).
+``--seed001`` trains seed 001's derivative-enhanced MLP (with and without dropout, and with the
+7-frame derivative) + forest on seed 001's own one-position protocol instead
+(``force_seed001.json``: the issue's 1.0 N target).
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ RUNS = (
     ("mlp_single", "single", {"features": {"variant": "single"}}),
     ("mlp_dual", "dual", {"features": {"variant": "dual"}}),
     ("mlp_derivative", "derivative", {}),
+    ("mlp_derivative_smooth", "derivative, 7 frames", {"features": {"derivative_frames": 7}}),
     ("deep_mlp", "derivative", {"model": {"kind": "deep_mlp", "dropout": 0.0}, "forest": {"enabled": False}}),
     ("nonlinear", "derivative", {"model": {"kind": "nonlinear"}}),
     ("svr", "derivative", {"model": {"kind": "svr", "svr": {"max_train_samples": 4000}}}),
@@ -273,6 +276,7 @@ def markdown(res: dict) -> str:
 
 #: (config, overrides): seed 001's configs, and the no-dropout one on the inversion features.
 SEED001 = (("configs/force/mlp_derivative.toml", {}), ("configs/force/mlp_derivative_nodrop.toml", {}),
+           ("configs/force/mlp_derivative_smooth.toml", {}),
            ("configs/force/mlp_derivative_nodrop.toml", {"name": "mlp_derivative_nodrop_inversion",
                                                          "features": {"source": "inversion", "sensor": 0}}))
 
