@@ -167,3 +167,12 @@ def test_zone_edges_tile_the_fov():
 def test_scene_from_dict_rejects_wrong_table_type():
     with pytest.raises(ConfigError, match="waveguide: expected a table"):
         scene_from_dict({"waveguide": 3, "sensor": {}, "sensors": []})
+
+
+def test_nested_list_type_is_named_in_plain_words():
+    """A malformed nested list names its type in words ("lists of 2 numbers", not "a numberss")."""
+    from tofjax.config import _type_name
+
+    assert _type_name(tuple[tuple[float, float], ...]) == "a list of lists of 2 numbers"
+    assert _type_name(tuple[float, float]) == "a list of 2 numbers"
+    assert _type_name(tuple[bool, ...]) == "a list of booleans"

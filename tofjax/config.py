@@ -52,8 +52,8 @@ def _type_name(tp: Any) -> str:
     if origin is tuple:
         args = typing.get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
-            return f"a list of {_type_name(args[0])}"
-        return f"a list of {len(args)} {_type_name(args[0])}s"
+            return f"a list of {_plural(args[0])}"
+        return f"a list of {len(args)} {_plural(args[0])}"
     if origin in (typing.Union, types.UnionType):
         return " or ".join(_type_name(a) for a in typing.get_args(tp) if a is not type(None))
     if dataclasses.is_dataclass(tp):
@@ -61,6 +61,18 @@ def _type_name(tp: Any) -> str:
     return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(
         tp, getattr(tp, "__name__", str(tp))
     )
+
+
+def _plural(tp: Any) -> str:
+    """The plural of :func:`_type_name` for a list's elements ("numbers", "lists of 2 numbers")."""
+    name = _type_name(tp)
+    if name.startswith("a list of "):
+        return "lists of " + name[len("a list of "):]
+    if name == "true or false":
+        return "booleans"
+    if name.startswith(("a ", "an ")) and " or " not in name:
+        return name.split(" ", 1)[1] + "s"
+    return name
 
 
 def _convert(value: Any, tp: Any, where: str) -> Any:
