@@ -50,7 +50,7 @@ __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
 
 #: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
 #: they are smooth in time already, and their cost grows with the node count.
-DIST_DIVISOR = 4
+DIST_DIVISOR = 8
 
 
 def hg_backward_fraction(g: float) -> float:
@@ -77,6 +77,7 @@ class GuidedGeometry(eqx.Module):
 
     cos_sensor: jax.Array  # (S, Z, A) ray direction against the sensor edge's inward normal
     cos_wall: jax.Array  # (S, Z, A) return direction against the far wall's inward normal
+    sensor_normal: jax.Array  # (S, 2) inward normal of each sensor's edge
     dphi: jax.Array  # (Z,) in-plane angle each ray stands for
     x: jax.Array  # (J,) Gauss-Legendre nodes on [0, 1] (mu / mu_guided)
     wx: jax.Array  # (J,) their weights
@@ -110,6 +111,7 @@ class GuidedGeometry(eqx.Module):
         return cls(
             cos_sensor=jnp.asarray(cos_sensor, dtype),
             cos_wall=jnp.asarray(cos_wall, dtype),
+            sensor_normal=jnp.asarray(normals, dtype),
             dphi=jnp.asarray(width / A, dtype),
             x=jnp.asarray(x, dtype),
             wx=jnp.asarray(w, dtype),
@@ -205,22 +207,42 @@ def _edge(ctx, gg, el, frus):
     return p.gain[:, None, None] * deposit(jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
 
 
-def _touch(ctx, gg, el, frus):
-    """Light the skin returns: per ray and contact, the share frustrated on the way out times the albedo,
-    Lambertian from the face (``|mu| / pi`` per steradian), back over the in-plane angle ``a cos / D``."""
-    p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
-    P_out, P_ret, along = frus  # (S, Z, A, N), (S, Z, A, N, J), (S, Z, A, N)
+def _touch(ctx, gg, el):
+    """Light the skin returns: the share of each contact's light frustrated into the skin (its area over
+    ``D``, the hits per metre of chord) times the albedo, Lambertian from the face (``|mu| / pi`` per
+    steradian), back over the in-plane angle ``a cos / D``; spread over the disk's range like the default
+    touch, and shared among the zones by the contact's angular fraction in each (times depend on the
+    sensor, contact, range sample and elevation only, so they are deposited once per sensor)."""
+    from .components import _chord_samples
+
+    p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
+    skin = gg.skin
+    u, w = _chord_samples(ctx.touch_samples)
+    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
+    rad = p.touch_radius_m
+    D = jnp.maximum(cg.distance[..., None] + rad[:, None] * u, 0.5 * rad[:, None])  # (S, N, M)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
-    D = jnp.maximum(along, 0.5 * p.touch_radius_m)
-    albedo = gg.skin.diffuse_albedo_jax(p.n1)
-    # light reaching the contact, frustrated, returned; the return crosses the rest of its own contact
-    # (half the chord on average: 1 - P_ret / 2) and any contact before it (not modelled: small)
-    base = (gg.cos_sensor[..., None] * gg.dphi[None, :, None, None] / (math.pi * gg.fov * gg.thickness_m * D)
-            * jnp.exp(-mu_t * D / el.c_out[..., None]) * P_out * albedo)  # (S, Z, A, N)
-    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (1.0 - 0.5 * P_ret)
-    t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
-    S, Z = amp.shape[:2]
-    return p.gain[:, None, None] * deposit(jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
+    chord = 0.5 * math.pi * rad  # mean chord of a disk seen from afar
+    hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
+    P_out = -jnp.expm1(hits * jnp.log1p(-fc * (1.0 - Rs_out)))  # (N,)
+    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    P_ret = -jnp.expm1((chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)) * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))  # (N, J)
+    albedo = skin.diffuse_albedo_jax(p.n1)
+    width = 2.0 * jnp.arctan(rad / cg.distance)  # (S, N) the contact's angular width
+    ncos = gg.sensor_normal  # (S, 2)
+    d = p.touch_xy_m[None] - ctx.geom.sensor_xy[:, None]  # (S, N, 2)
+    cos_s = jnp.clip(jnp.sum(d * ncos[:, None], -1) / cg.distance, 0.0, 1.0)  # (S, N)
+    # frustrated share of the light sent towards the contact: (its angular width / fov) P_out
+    base = (width * cos_s / gg.fov)[..., None] * P_out[None, :, None] * albedo * w / (math.pi * gg.thickness_m * D)
+    base = base * jnp.exp(-mu_t * D / el.c_out)  # (S, N, M)
+    # the return crosses, on average, half its own contact's chord
+    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (1.0 - 0.5 * P_ret[None, :, None, :])
+    t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
+    S, N = amp.shape[:2]
+    per_contact = deposit(t.reshape(S, N, -1), amp.reshape(S, N, -1), nodes)  # (S, N, K)
+    return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
 
 
 def _touch_free(ctx, gg, el):
@@ -271,31 +293,22 @@ def _distributed(ctx, gg, el, frus, names):
     dens = dens * fall * el.dmu[:, None]  # (J, K)
     # coverage: each ray's weight (its angle and the aperture's projection) until its far edge
     wray = gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m)  # (S, Z, A)
-    if frus is not None:
-        # light beyond a skin contact is frustrated out and back (the same factors as the far edge)
-        P_out, P_ret, along = frus
-        pass_out = 1.0 - P_out  # (S, Z, A, N)
-        pass_ret = 1.0 - P_ret  # (S, Z, A, N, J)
-        trans = pass_out[..., None] * pass_ret  # (S, Z, A, N, J)
-        # the share of the coverage behind each contact: split the ray at the contact
-        beyond = p.emission_time_s + along[..., None] * s_j  # (S, Z, A, N, J)
-        wj = wray[..., None, None] * (1.0 - trans)  # weight lost beyond each contact
-        lost = _weighted_step(jnp.moveaxis(beyond, -1, 2).reshape(S, Z * J, -1),
-                              jnp.moveaxis(wj, -1, 2).reshape(S, Z * J, -1), nodes)
-        lost_end = _weighted_step(jnp.moveaxis(jnp.broadcast_to(geom.ray_length[..., None, None] * s_j + p.emission_time_s,
-                                                                wj.shape), -1, 2).reshape(S, Z * J, -1),
-                                  jnp.moveaxis(wj, -1, 2).reshape(S, Z * J, -1), nodes)
-        lost = (lost - lost_end).reshape(S, Z, J, -1)
-    else:
-        lost = 0.0
     end_t = p.emission_time_s + geom.ray_length[:, :, None, :] * s_j[None, None, :, None]  # (S, Z, J, A)
     wrep = jnp.broadcast_to(wray[:, :, None, :], end_t.shape)
     ended = _weighted_step(end_t.reshape(S, Z * J, A), wrep.reshape(S, Z * J, A), nodes).reshape(S, Z, J, -1)
     start = jnp.reshape(p.emission_time_s, (1, 1, 1))
     emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
     total = jnp.sum(wray, axis=-1)[:, :, None, None]
-    coverage = jnp.maximum(emitted * total - ended - lost, 0.0)  # (S, Z, J, K)
-    if frus is None and ctx.contacts is not None and ctx.shadowing:
+    coverage = jnp.maximum(emitted * total - ended, 0.0)  # (S, Z, J, K)
+    if frus is not None:
+        # beyond a skin contact, the zone loses what its rays lose out and back (the far edge's
+        # factors, averaged over the zone's rays and the return elevations), from its distance on
+        P_out, P_ret, along = frus
+        loss = 1.0 - jnp.mean((1.0 - P_out) * (1.0 - jnp.mean(P_ret, axis=-1)), axis=2)  # (S, Z, N)
+        dist = ctx.contacts.distance  # (S, N)
+        step = jax.nn.sigmoid((rp[None, :, :, None] - dist[:, None, None, :]) / p.touch_radius_m)  # (S, J, K, N)
+        coverage = coverage * jnp.prod(1.0 - loss[:, :, None, None, :] * step[:, None], axis=-1)
+    elif ctx.contacts is not None and ctx.shadowing:
         from .components import shadow
 
         rr = jnp.broadcast_to(rp.reshape(-1), (S, Z, rp.size))
@@ -323,7 +336,7 @@ def guided_node_masses(ctx, gg: GuidedGeometry, components, separate: bool) -> d
     g_dist = [n for n in dist if n != "interface"]
     if g_dist:
         eld = _elevations(gg, p.n1, distributed=True)
-        frus_d = _frustration(ctx, gg, eld) if (skin_contacts and ctx.shadowing) else None
+        frus_d = frus_shadow
         if separate:
             for n in g_dist:
                 out[n] = _distributed(ctx, gg, eld, frus_d, (n,))
@@ -336,7 +349,7 @@ def guided_node_masses(ctx, gg: GuidedGeometry, components, separate: bool) -> d
             else:
                 out[name] = _edge(ctx, gg, el, frus_shadow)
         elif name == "touch" and p.n_touches:
-            out[name] = _touch(ctx, gg, el, frus) if skin_contacts else _touch_free(ctx, gg, el)
+            out[name] = _touch(ctx, gg, el) if skin_contacts else _touch_free(ctx, gg, el)
         elif name == "crosstalk":
             from .components import crosstalk
 
