@@ -51,6 +51,10 @@ __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
 #: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
 #: they are smooth in time already, and their cost grows with the node count.
 DIST_DIVISOR = 8
+#: Near field of the distributed terms: ``1/r`` becomes ``1/sqrt(r^2 + r0^2)`` with ``r0`` this share of
+#: the thickness (within about a thickness of the aperture the slab's images no longer add up to
+#: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.095 at 0.3, 0.12 at 0.2 and 0.6).
+NEAR_FIELD_PER_THICKNESS = 0.3
 
 
 def hg_backward_fraction(g: float) -> float:
@@ -278,7 +282,7 @@ def _distributed(ctx, gg, el, frus, names):
     tau = nodes.t - p.emission_time_s  # (K,)
     r = tau[None, :] / s_j[:, None]  # (J, K)
     dr = nodes.h / s_j[:, None]
-    r0 = 0.5 * gg.aperture_m + 0.5 * gg.thickness_m
+    r0 = NEAR_FIELD_PER_THICKNESS * gg.thickness_m
     fall = (jnp.arcsinh((r + 0.5 * dr) / r0) - jnp.arcsinh((r - 0.5 * dr) / r0))  # integral of 1/sqrt(r^2+r0^2)
     rp = jnp.maximum(r, 0.0)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
