@@ -105,7 +105,8 @@ def test_guided_model_is_linear_and_differentiable():
     R, P = model.linear_parts(p)
     lin = p.gain[:, None, None] * R + p.crosstalk_counts[..., None] * P + p.ambient_counts[..., None]
     np.testing.assert_allclose(np.asarray(lin), y, rtol=1e-9, atol=1e-9 * y.max())
-    np.testing.assert_allclose(sum(np.asarray(v) for v in model.breakdown(p).values()), y, rtol=1e-9, atol=1e-9 * y.max())
+    parts = sum(np.asarray(v) for v in model.breakdown(p).values())
+    np.testing.assert_allclose(parts, y, rtol=1e-9, atol=1e-9 * y.max())
     assert set(model.breakdown(p)) == set(model.components) - {"shadowing"}  # shadowing multiplies the others
     grad = jax.jit(jax.grad(lambda q: jnp.sum(model(q) ** 0.5)))(p)
     for name in ("n1", "mu_s_per_m", "touch_xy_m", "touch_radius_m", "end_reflectance"):
@@ -115,8 +116,10 @@ def test_guided_model_is_linear_and_differentiable():
 
 def test_options_refused_in_one_line():
     for kw, what in [(dict(optics="bulk"), "optics"), (dict(skin=SkinContact()), "skin"),
-                     (dict(optics="guided", skin="skin"), "skin"), (dict(optics="guided", elevations=0), "elevations"),
-                     (dict(optics="guided", aperture_m=0.0), "aperture_m"), (dict(aperture_m=float("nan")), "aperture_m")]:
+                     (dict(optics="guided", skin="skin"), "skin"),
+                     (dict(optics="guided", elevations=0), "elevations"),
+                     (dict(optics="guided", aperture_m=0.0), "aperture_m"),
+                     (dict(aperture_m=float("nan")), "aperture_m")]:
         with pytest.raises(ConfigError, match=what):
             ModelOptions(**kw)
     for kw in [dict(photons=1), dict(repeats=0), dict(g=1.0), dict(nee_points=0), dict(elevations=2.5)]:
@@ -163,7 +166,8 @@ def test_bench_tradeoff_runs(tmp_path):
     from tofjax.cli import main
 
     out = tmp_path / "b.json"
-    assert main(["bench", "tradeoff", "--photons", "2000", "--repeats", "3", "--nee-points", "6", "--json", str(out)]) == 0
+    argv = ["bench", "tradeoff", "--photons", "2000", "--repeats", "3", "--nee-points", "6", "--json", str(out)]
+    assert main(argv) == 0
     r = json.loads(out.read_text())
     for optics in ("default", "guided"):
         assert set(r["analytic_vs_mc_relative_l2"][optics]) == {"baseline", "touch"}

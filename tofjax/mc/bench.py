@@ -105,7 +105,8 @@ def _models(scene, opts: BenchOptions, comps):
     out = []
     d_opts = ModelOptions()
     g_opts = ModelOptions(optics="guided", elevations=opts.elevations, skin=SkinContact() if scene.touches else None)
-    g_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, volume_backscatter_fraction=hg_backward_fraction(opts.g)))
+    wg = dataclasses.replace(scene.waveguide, volume_backscatter_fraction=hg_backward_fraction(opts.g))
+    g_scene = scene.replace(waveguide=wg)
     for sc, mo in ((scene, d_opts), (g_scene, g_opts)):
         model = build_model(sc, mo, comps)
         out.append((jax.jit(lambda p, m=model: m(p)), Params.from_scene(sc, mo.jnp_dtype)))
@@ -188,7 +189,8 @@ def summary(result: dict) -> str:
         lines.append(f"analytic_vs_mc_relative_l2 {optics:8s} " + "  ".join(f"{k} {e:.3f}" for k, e in v.items()))
     noise = "  ".join(f"{k} {v['relative_noise']:.3f}" for k, v in result["reference"].items())
     lines.append(f"Monte Carlo reference noise           {noise}")
-    cost = "  ".join(f"{k} {v['ratio_guided_over_default']:.2f}x ({v['default_s'] * 1e6:.0f} -> {v['guided_s'] * 1e6:.0f} us)"
+    cost = "  ".join(f"{k} {v['ratio_guided_over_default']:.2f}x "
+                     f"({v['default_s'] * 1e6:.0f} -> {v['guided_s'] * 1e6:.0f} us)"
                      for k, v in result["forward_cost"].items())
     lines.append(f"forward cost guided / default        {cost}")
     return "\n".join(lines)

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..scene import Scene
-from .components import SPEED_OF_LIGHT_M_PER_S, Nodes, deposit, smooth_like_deposit
+from .components import Nodes, deposit, smooth_like_deposit
 
 __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
 
@@ -208,7 +208,8 @@ def _edge(ctx, gg, el, frus):
         amp = amp * shadow(geom.ray_length, ctx.contacts, p)[..., None]
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
-    return p.gain[:, None, None] * deposit(jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+    t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
+    return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
 
 
 def _touch(ctx, gg, el):
@@ -232,7 +233,8 @@ def _touch(ctx, gg, el):
     hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
     P_out = -jnp.expm1(hits * jnp.log1p(-fc * (1.0 - Rs_out)))  # (N,)
     Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    P_ret = -jnp.expm1((chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)) * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))  # (N, J)
+    hits_ret = chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)
+    P_ret = -jnp.expm1(hits_ret * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))  # (N, J)
     albedo = skin.diffuse_albedo_jax(p.n1)
     width = 2.0 * jnp.arctan(rad / cg.distance)  # (S, N) the contact's angular width
     ncos = gg.sensor_normal  # (S, 2)
@@ -242,7 +244,8 @@ def _touch(ctx, gg, el):
     base = (width * cos_s / gg.fov)[..., None] * P_out[None, :, None] * albedo * w / (math.pi * gg.thickness_m * D)
     base = base * jnp.exp(-mu_t * D / el.c_out)  # (S, N, M)
     # the return crosses, on average, half its own contact's chord
-    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (1.0 - 0.5 * P_ret[None, :, None, :])
+    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
+    amp = amp * (1.0 - 0.5 * P_ret[None, :, None, :])
     t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
     S, N = amp.shape[:2]
     per_contact = deposit(t.reshape(S, N, -1), amp.reshape(S, N, -1), nodes)  # (S, N, K)
@@ -369,5 +372,3 @@ def _default_coverage(ctx):
     ended = C.step_on(ctx.end_times, nodes)
     return p.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
 
-
-__all__ += ["SPEED_OF_LIGHT_M_PER_S"]
