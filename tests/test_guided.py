@@ -95,6 +95,18 @@ def test_skin_contact_amplitudes():
     assert out[0.0]["end"] > out[0.3]["end"] > out[0.9]["end"]
 
 
+def test_second_order_touch_adds_light(monkeypatch):
+    """The (off by default) second-order touch term: far-edge light frustrated at the contact adds light."""
+    import tofjax.model.guided as guided
+
+    sc = strip(touches=[TOUCH])
+    opts = ModelOptions(optics="guided", skin=SkinContact())
+    first = run(sc, opts, ("touch",))
+    monkeypatch.setattr(guided, "SECOND_ORDER", True)
+    both = run(sc, opts, ("touch",))
+    assert np.isfinite(both).all() and (both >= first - 1e-12 * first.max()).all() and both.sum() > first.sum()
+
+
 def test_guided_model_is_linear_and_differentiable():
     """linear_parts and breakdown hold with guided optics; gradients are finite (n1, contact position)."""
     sc = strip(mu_s=2.0, touches=[TOUCH])

@@ -55,6 +55,11 @@ DIST_DIVISOR = 8
 #: the thickness (within about a thickness of the aperture the slab's images no longer add up to
 #: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.095 at 0.3, 0.12 at 0.2 and 0.6).
 NEAR_FIELD_PER_THICKNESS = 0.3
+#: Add the second-order touch term (:func:`_touch_diffuse`: far-edge light frustrated at the contacts).
+#: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
+#: 2.4x the default optics on the touch scene instead of 1.5x; the Monte Carlo's contacts return
+#: several times more light than either order explains (docs/tradeoff.md).
+SECOND_ORDER = False
 
 
 def hg_backward_fraction(g: float) -> float:
@@ -82,6 +87,7 @@ class GuidedGeometry(eqx.Module):
     cos_sensor: jax.Array  # (S, Z, A) ray direction against the sensor edge's inward normal
     cos_wall: jax.Array  # (S, Z, A) return direction against the far wall's inward normal
     sensor_normal: jax.Array  # (S, 2) inward normal of each sensor's edge
+    wall_normal: jax.Array  # (S, Z, A, 2) inward normal of the wall each ray ends on
     dphi: jax.Array  # (Z,) in-plane angle each ray stands for
     x: jax.Array  # (J,) Gauss-Legendre nodes on [0, 1] (mu / mu_guided)
     wx: jax.Array  # (J,) their weights
@@ -107,6 +113,7 @@ class GuidedGeometry(eqx.Module):
             tx = np.where(c > 1e-12, (lx - xy[..., 0]) / c, np.where(c < -1e-12, -xy[..., 0] / c, np.inf))
             ty = np.where(s > 1e-12, (ly - xy[..., 1]) / s, np.where(s < -1e-12, -xy[..., 1] / s, np.inf))
         cos_wall = np.where(tx <= ty, np.abs(c), np.abs(s))
+        wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
         width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
         x, w = np.polynomial.legendre.leggauss(int(elevations))
         x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
@@ -116,6 +123,7 @@ class GuidedGeometry(eqx.Module):
             cos_sensor=jnp.asarray(cos_sensor, dtype),
             cos_wall=jnp.asarray(cos_wall, dtype),
             sensor_normal=jnp.asarray(normals, dtype),
+            wall_normal=jnp.asarray(wall_normal, dtype),
             dphi=jnp.asarray(width / A, dtype),
             x=jnp.asarray(x, dtype),
             wx=jnp.asarray(w, dtype),
@@ -252,6 +260,42 @@ def _touch(ctx, gg, el):
     return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
 
 
+def _touch_diffuse(ctx, gg, el):
+    """Second order: light the diffuse far edges send across a contact, frustrated into the skin and
+    returned. Each ray's wall point is a Lambertian source (``R cos / pi``); the contact's area over
+    its distance ``rho`` from it times ``|mu| / (2 h cos)`` hits per metre gives the frustrated share;
+    the skin returns it to the sensor like the first-order touch (times at the band's mean delay
+    on the middle leg)."""
+    p, geom, nodes, cg = ctx.params, ctx.geom, ctx.nodes, ctx.contacts
+    skin = gg.skin
+    L = geom.ray_length  # (S, Z, A)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    wall = geom.sensor_xy[:, None, None, :] + L[..., None] * jnp.stack([jnp.cos(geom.ray_angle), jnp.sin(geom.ray_angle)], -1)
+    to_c = p.touch_xy_m[None, None, None, :, :] - wall[..., None, :]  # (S, Z, A, N, 2)
+    rho = jnp.sqrt(jnp.sum(to_c**2, -1) + p.touch_radius_m**2)  # (S, Z, A, N), never 0
+    cos_w = jnp.clip(jnp.sum(to_c * gg.wall_normal[..., None, :], -1) / rho, 0.0, 1.0)
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    # frustrated share per unit power leaving the wall point, summed over the band
+    band = jnp.sum(el.dmu * el.mu * (1.0 - Rs) * jnp.exp(-mu_t * rho[..., None] / el.c), -1)  # (S, Z, A, N)
+    frus = p.end_reflectance * cos_w * p.touch_radius_m**2 / (2.0 * gg.thickness_m * rho) * fc * band
+    reach = jnp.where(L > 0, gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 0.0)  # (S, Z, A)
+    src = reach[..., None] * frus * skin.diffuse_albedo_jax(p.n1)  # (S, Z, A, N)
+    # back to the sensor from the contact (distance D, Lambertian from the face)
+    D = jnp.maximum(cg.distance, p.touch_radius_m)  # (S, N)
+    d = p.touch_xy_m[None] - geom.sensor_xy[:, None]
+    cos_s = jnp.clip(jnp.sum(d * gg.sensor_normal[:, None], -1) / cg.distance, 0.0, 1.0)  # (S, N)
+    back = el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (cos_s / (math.pi * gg.thickness_m * D))[..., None]
+    amp = src[..., None] * back[:, None, None]  # (S, Z, A, N, J)
+    inv_c = jnp.sum(el.dmu * el.mu / el.c) / jnp.sum(el.dmu * el.mu)  # mean 1/cos of a Lambertian source
+    t = p.emission_time_s + (L[..., None, None] / el.c_out + rho[..., None] * inv_c + D[:, None, None, :, None] / el.c) / nodes.c1
+    S, N = amp.shape[0], amp.shape[3]
+    amp = jnp.moveaxis(amp, 3, 1).reshape(S, N, -1)
+    t = jnp.moveaxis(jnp.broadcast_to(t, src.shape + el.c.shape), 3, 1).reshape(S, N, -1)
+    per_contact = deposit(t, amp, nodes)  # (S, N, K)
+    return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
+
+
 def _touch_free(ctx, gg, el):
     """Without a skin model: the free touch strength (counts as the default optics' at 1 m), guided timing."""
     from .components import _chord_samples, shadow
@@ -356,7 +400,10 @@ def guided_node_masses(ctx, gg: GuidedGeometry, components, separate: bool) -> d
             else:
                 out[name] = _edge(ctx, gg, el, frus_shadow)
         elif name == "touch" and p.n_touches:
-            out[name] = _touch(ctx, gg, el) if skin_contacts else _touch_free(ctx, gg, el)
+            if skin_contacts:
+                out[name] = _touch(ctx, gg, el) + (_touch_diffuse(ctx, gg, el) if SECOND_ORDER else 0.0)
+            else:
+                out[name] = _touch_free(ctx, gg, el)
         elif name == "crosstalk":
             from .components import crosstalk
 
