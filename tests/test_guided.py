@@ -184,3 +184,25 @@ def test_bench_tradeoff_runs(tmp_path):
     for optics in ("default", "guided"):
         assert set(r["analytic_vs_mc_relative_l2"][optics]) == {"baseline", "touch"}
     assert r["forward_cost_ratio"] > 0 and r["data"].startswith("simulated")
+
+
+def test_study_mc_guided_refuses_an_existing_output(tmp_path):
+    """experiments/study_mc_guided.py checks its output before any Monte Carlo (its run is slow-marked)."""
+    from test_studies import load
+
+    from tofjax.outputs import OutputError
+
+    out = tmp_path / "s.json"
+    out.write_text("keep")
+    with pytest.raises(OutputError):
+        load("study_mc_guided").main(["--photons", "10", "--json", str(out)])
+    assert out.read_text() == "keep"
+
+
+@pytest.mark.slow
+def test_study_mc_guided_runs(tmp_path):
+    from test_studies import load
+
+    r = load("study_mc_guided").run(500)
+    assert set(r["nee_points"]) == {"6", "24"} and len(r["contacts_per_sensor"]) == 6
+    assert all(np.isfinite(v) for v in r["near_field_per_thickness"].values())
