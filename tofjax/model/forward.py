@@ -33,7 +33,7 @@ class ModelOptions:
     - ``dtype``: ``"float64"`` (needs ``jax_enable_x64``, see :func:`tofjax.enable_x64`) or ``"float32"``.
     - ``optics``: ``"default"`` (seed 000's Eq. 4-5: in-plane light at ``c / n1``, ``1/r^2``) or
       ``"guided"`` (:mod:`tofjax.model.guided`: elevations inside the slab, ``1/r`` slab
-      backscatter, the aperture, Lambertian edge, absolute amplitudes; about twice the cost).
+      backscatter, the aperture, Lambertian edge, absolute amplitudes; about 1.5x the cost).
     - ``elevations``: guided optics only: quadrature nodes over the guided elevation band.
     - ``aperture_m``: guided optics only: the receiver window's width on the edge.
     - ``skin``: guided optics only: a :class:`~tofjax.model.contact.SkinContact`; touch and

@@ -101,6 +101,10 @@ class GuidedGeometry(eqx.Module):
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
                    skin, dtype) -> "GuidedGeometry":
+        if getattr(scene, "waveguide", None) is None:
+            from ..config import ConfigError
+
+            raise ConfigError("optics: 'guided' needs a waveguide (a free-space scene has no slab to guide light)")
         lx, ly = scene.waveguide.size_m
         ang = np.asarray(ray_angle, float)  # (S, Z, A)
         S, Z, A = ang.shape
