@@ -53,12 +53,12 @@ __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
 DIST_DIVISOR = 8
 #: Near field of the distributed terms: ``1/r`` becomes ``1/sqrt(r^2 + r0^2)`` with ``r0`` this share of
 #: the thickness (within about a thickness of the aperture the slab's images no longer add up to
-#: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.095 at 0.3, 0.12 at 0.2 and 0.6).
+#: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.110 at 0.3, 0.127 at 0.2,
+#: 0.140 at 0.6: experiments/study_mc_guided.py).
 NEAR_FIELD_PER_THICKNESS = 0.3
 #: Add the second-order touch term (:func:`_touch_diffuse`: far-edge light frustrated at the contacts).
 #: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
-#: 2.4x the default optics on the touch scene instead of 1.5x; the Monte Carlo's contacts return
-#: several times more light than either order explains (docs/tradeoff.md).
+#: 2.4x the default optics on the touch scene instead of 1.5x (docs/tradeoff.md).
 SECOND_ORDER = False
 
 
