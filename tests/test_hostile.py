@@ -576,6 +576,25 @@ def _cases() -> list[Case]:
                       expect="BadFramesWarning", check=_check_mixed_json))
     cases.append(Case("replay/some_bad_frames", lambda w, o: ["replay", str(w["mixed"]), "--quiet"],
                       expect="BadFramesWarning"))
+    # tofjax bench tradeoff (issue 14): every refusal comes before the Monte Carlo runs.
+    bench = lambda w, o: ["bench", "tradeoff", "--photons", "10", "--repeats", "1", "--json", f"{o}/b.json"]  # noqa: E731
+    for flag, values in {"--photons": ["0", "1", "-5", "1e20", "x"], "--repeats": ["0", "-1"], "--nee-points": ["0", "5000"],
+                         "--elevations": ["0", "nan"], "--g": ["1", "-1", "nan"], "--seed": ["-1"], "--batch": ["0"]}.items():
+        for v in values:
+            cases.append(Case(f"bench_tradeoff/{flag}={v}", lambda w, o, flag=flag, v=v: bench(w, o) + [f"{flag}={v}"]))
+    for name, extra in {"touch_scene_without_contacts": ["--touch-scene", "optoskin"],
+                        "touch_scene_missing": ["--touch-scene", "no-such-scene"],
+                        "scene_missing": ["--scene", "no-such-scene"],
+                        "scene_broken": ["--scene", "BROKEN"]}.items():
+        cases.append(Case(f"bench_tradeoff/{name}", lambda w, o, extra=extra: [
+            x if x != "BROKEN" else str(w["scenes"]["invalid_toml"]) for x in bench(w, o) + extra]))
+    cases.append(Case("bench_tradeoff/no_json", lambda w, o: ["bench", "tradeoff", "--photons", "10"]))
+    cases.append(Case("bench_tradeoff/json_existing", lambda w, o: ["bench", "tradeoff", "--photons", "10", "--json", notes(w)],
+                      keep=keep_notes))
+    cases.append(Case("bench_tradeoff/json_is_scene", lambda w, o: ["bench", "tradeoff", "--scene", S(w), "--json", S(w),
+                                                                    "--overwrite"], keep=lambda w: [w["scene"]]))
+    cases.append(Case("argparse/bench_without_what", lambda w, o: ["bench"]))
+    cases.append(Case("argparse/bench_unknown", lambda w, o: ["bench", "speed"]))
     return cases
 
 

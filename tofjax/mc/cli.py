@@ -1,6 +1,8 @@
-"""``tofjax mc`` (scenes and ``mc slab``) and ``tofjax prune``: thin wrappers of the library.
+"""``tofjax mc`` (scenes and ``mc slab``), ``tofjax prune`` and ``tofjax bench tradeoff``: thin wrappers of the library.
 
-The trade-off study (once ``tofjax bench tradeoff``) is ``experiments/study_tradeoff.py``."""
+The full trade-off study (ladders, fits, contacts) is ``experiments/study_tradeoff.py``;
+``tofjax bench tradeoff`` (:mod:`tofjax.mc.bench`) is its small fixed benchmark: analytic
+against Monte Carlo for the default and guided optics, and the forward cost."""
 
 from __future__ import annotations
 
@@ -84,8 +86,23 @@ def _cmd_prune(a) -> int:
     return 0
 
 
+def _cmd_bench_tradeoff(a) -> int:
+    from ..outputs import atomic_write_text
+    from .bench import BenchOptions, run_bench_tradeoff, summary
+
+    if a.json is None:
+        raise ConfigError("--json: required (the output file)")
+    opts = BenchOptions(scene=a.scene, touch_scene=a.touch_scene, photons=a.photons, seed=a.seed, g=a.g,
+                        nee_points=a.nee_points, repeats=a.repeats, elevations=a.elevations, batch=a.batch)
+    result = run_bench_tradeoff(opts, progress=True)
+    atomic_write_text(a.json, json.dumps(result, indent=1), overwrite=a.overwrite)
+    print(summary(result))
+    print(f"wrote {a.json}")
+    return 0
+
+
 def register(sub) -> None:
-    """Add ``mc`` and ``prune`` to the ``tofjax`` command."""
+    """Add ``mc``, ``prune`` and ``bench tradeoff`` to the ``tofjax`` command."""
     s = sub.add_parser("mc", help="Monte Carlo photon transport: a reference capture from a scene file, or 'slab'")
     s.add_argument("scene", help="scene TOML file, a built-in name, or 'slab' (a slab in air, pencil beam; --json)")
     s.add_argument("--photons", type=int, default=100_000, help="photon packets per sensor (accuracy; default 1e5)")
@@ -112,3 +129,18 @@ def register(sub) -> None:
     s.add_argument("--timing", action="store_true", help="time the full and the pruned model")
     s.add_argument("--out", help="also write the report as JSON")
     s.set_defaults(func=_cmd_prune)
+
+    s = sub.add_parser("bench", help="benchmarks: 'tradeoff' (the analytic model against the Monte Carlo; cost)")
+    bsub = s.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    t = bsub.add_parser("tradeoff", help="analytic (default and guided optics) against Monte Carlo; forward cost")
+    t.add_argument("--json", help="output JSON (analytic_vs_mc_relative_l2, forward_cost, reference, ...)")
+    t.add_argument("--scene", default="optoskin", help="baseline scene (contacts removed; default optoskin)")
+    t.add_argument("--touch-scene", default="touch-three-line", help="scene with contacts (default touch-three-line)")
+    t.add_argument("--photons", type=int, default=100_000, help="Monte Carlo packets per sensor and scene")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--g", type=float, default=0.0, help="Henyey-Greenstein anisotropy of the Monte Carlo (default 0)")
+    t.add_argument("--nee-points", type=int, default=24, help="Monte Carlo elevation nodes (default 24)")
+    t.add_argument("--elevations", type=int, default=8, help="guided optics' elevation nodes (default 8)")
+    t.add_argument("--repeats", type=int, default=31, help="timed pairs of forward evaluations (default 31)")
+    t.add_argument("--batch", type=int, default=32_768, help="Monte Carlo packets followed at once (memory)")
+    t.set_defaults(func=_cmd_bench_tradeoff)

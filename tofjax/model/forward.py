@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..config import ConfigError
 from ..scene import COMPONENTS, Scene
@@ -30,19 +31,42 @@ class ModelOptions:
     - ``angles_per_zone``: rays per zone for the far-edge distance and range truncation.
     - ``touch_samples``: range samples across each contact disk.
     - ``dtype``: ``"float64"`` (needs ``jax_enable_x64``, see :func:`tofjax.enable_x64`) or ``"float32"``.
+    - ``optics``: ``"default"`` (seed 000's Eq. 4-5: in-plane light at ``c / n1``, ``1/r^2``) or
+      ``"guided"`` (:mod:`tofjax.model.guided`: elevations inside the slab, ``1/r`` slab
+      backscatter, the aperture, Lambertian edge, absolute amplitudes; about 1.5x the cost).
+    - ``elevations``: guided optics only: quadrature nodes over the guided elevation band.
+    - ``aperture_m``: guided optics only: the receiver window's width on the edge.
+    - ``skin``: guided optics only: a :class:`~tofjax.model.contact.SkinContact`; touch and
+      shadow amplitudes then follow from it (``touch_strength`` scales its coupling, as in the
+      Monte Carlo) instead of the free strength and opacity.
     """
 
     quadrature: int = 2
     angles_per_zone: int = 8
     touch_samples: int = 5
     dtype: str = "float64"
+    optics: str = "default"
+    elevations: int = 8
+    aperture_m: float = 1e-3
+    skin: Any = None
 
     def __post_init__(self):
-        for k in ("quadrature", "angles_per_zone", "touch_samples"):
+        for k in ("quadrature", "angles_per_zone", "touch_samples", "elevations"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k}: must be >= 1, got {getattr(self, k)!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
+        if self.optics not in ("default", "guided"):
+            raise ConfigError(f"optics: must be 'default' or 'guided', got {self.optics!r}")
+        if not isinstance(self.aperture_m, (int, float)) or not (0.0 < float(self.aperture_m) < float("inf")):
+            raise ConfigError(f"aperture_m: must be a positive length in metres, got {self.aperture_m!r}")
+        if self.skin is not None:
+            from .contact import SkinContact
+
+            if not isinstance(self.skin, SkinContact):
+                raise ConfigError(f"skin: expected a SkinContact or None, got {type(self.skin).__name__}")
+            if self.optics != "guided":
+                raise ConfigError("skin: only with optics='guided' (the default optics keep the free touch strength)")
 
     @property
     def jnp_dtype(self):
@@ -93,6 +117,7 @@ class ForwardModel(eqx.Module):
     n_bins: int = eqx.field(static=True)
     iterations: int = eqx.field(static=True)
     pile_up: bool = eqx.field(static=True)
+    guided: Any = None  # GuidedGeometry with optics="guided" (tofjax.model.guided)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -119,6 +144,10 @@ class ForwardModel(eqx.Module):
     def _node_masses(self, params: Params, separate: bool = False) -> dict[str, jax.Array]:
         """Counts at the time nodes, before the pulse: summed, or per component with ``separate``."""
         ctx = self._context(params)
+        if self.guided is not None:
+            from .guided import guided_node_masses
+
+            return guided_node_masses(ctx, self.guided, self.components, separate)
         # Shadowing acts on what lies behind a contact; without it contacts only add light.
         shadow_ctx = ctx if ctx.shadowing else ctx._replace(contacts=None)
         out = {}
@@ -205,8 +234,17 @@ def build_model(
         if c not in COMPONENTS:
             raise ConfigError(f"components: unknown component {c!r}; known: {', '.join(COMPONENTS)}")
     dtype = options.jnp_dtype
+    geometry = Geometry.from_scene(scene, options.angles_per_zone, dtype)
+    guided = None
+    if options.optics == "guided":
+        from .guided import GuidedGeometry
+
+        guided = GuidedGeometry.from_scene(scene, np.asarray(geometry.ray_angle), np.asarray(geometry.zone_lo),
+                                           np.asarray(geometry.zone_hi), options.elevations, options.aperture_m,
+                                           options.skin, dtype)
     return ForwardModel(
-        geometry=Geometry.from_scene(scene, options.angles_per_zone, dtype),
+        geometry=geometry,
+        guided=guided,
         components=tuple(c for c in COMPONENTS if c in comps),
         options=options,
         bin_width_s=float(scene.sensor.bin_width_s),

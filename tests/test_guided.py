@@ -1,0 +1,208 @@
+"""Guided optics of the analytic model (ModelOptions(optics="guided"), issue 14): physics as properties.
+
+Small scenes (one sensor on a strip, 96 bins) and few compiles: the default run stays well under
+the per-file budget; the comparison with the Monte Carlo and the benchmark run are slow-marked.
+"""
+
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tofjax.config import ConfigError
+from tofjax.mc.bench import BenchOptions, profiled_relative_l2
+from tofjax.model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
+from tofjax.model.contact import SkinContact
+from tofjax.model.guided import hg_backward_fraction
+from tofjax.scene import scene_from_dict
+
+ROOT = Path(__file__).parents[1]
+T_E = 5e-10
+BIN = 5e-11
+
+
+def strip(length=0.2, n1=1.4, mu_s=0.0, touches=(), zones=2):
+    return scene_from_dict({
+        "waveguide": {"size_m": [length, 0.1], "thickness_m": 0.004, "n1": n1, "mu_s_per_m": mu_s, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": BIN, "n_bins": 96, "zones": zones, "fov_deg": 6.0, "emission_time_s": T_E},
+        "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}],
+        "touches": list(touches),
+    })
+
+
+TOUCH = {"position_m": [0.1, 0.05], "radius_m": 0.006, "strength": 1.0}
+GUIDED = ModelOptions(optics="guided")
+
+
+def run(scene, opts=GUIDED, comps=None, **replace):
+    model = build_model(scene, opts, comps)
+    p = Params.from_scene(scene)
+    if replace:
+        p = p.replace(**{k: jnp.asarray(v, p.n1.dtype) for k, v in replace.items()})
+    return np.asarray(model(p))
+
+
+def _mean_time(h):
+    t = (np.arange(h.shape[-1]) + 0.5) * BIN
+    return float((h * t).sum() / h.sum())
+
+
+def test_far_edge_arrives_later_and_spreads():
+    """The guided far edge starts with the in-plane round trip and ends by L (1/c_out + 1/cos theta_c) n1 / c."""
+    L, n1 = 0.2, 1.4
+    sc = strip(L, n1)
+    d = run(sc, ModelOptions(), ("end",)).sum(axis=(0, 1))
+    g = run(sc, GUIDED, ("end",)).sum(axis=(0, 1))
+    t_in_plane = T_E + 2 * L * n1 / SPEED_OF_LIGHT_M_PER_S
+    cg = math.sqrt(1 - 1 / n1**2)
+    t_last = T_E + L * (1 + 1 / cg) * n1 / SPEED_OF_LIGHT_M_PER_S
+    assert _mean_time(d) == pytest.approx(t_in_plane + 150e-12, abs=0.5 * BIN)  # pulse tail moves the mean
+    assert _mean_time(g) > _mean_time(d) + 0.5 * BIN
+    assert _mean_time(g) < t_last + 150e-12
+    k0 = int((t_in_plane - 5 * 60e-12) / BIN)
+    assert g[:k0].sum() < 1e-3 * g.sum()  # nothing before the in-plane round trip
+    # n1 -> 1 guides nothing out of the plane: the two optics' timing agree
+    sc1 = strip(L, 1.0001)
+    assert _mean_time(run(sc1, GUIDED, ("end",)).sum((0, 1))) == pytest.approx(
+        _mean_time(run(sc1, ModelOptions(), ("end",)).sum((0, 1))), abs=0.05 * BIN)
+
+
+def test_slab_falloff_is_one_over_r():
+    """Guided light spreads in two dimensions: the far edge at twice the distance returns half (not a quarter)."""
+    a = run(strip(0.1), GUIDED, ("end",), mu_a_per_m=0.0).sum()
+    b = run(strip(0.2), GUIDED, ("end",), mu_a_per_m=0.0).sum()
+    assert a / b == pytest.approx(2.0, rel=0.02)
+
+
+def test_skin_contact_amplitudes():
+    """Coupling 0 is no contact; more coupling returns more light and shadows the far edge more."""
+    sc = strip(touches=[TOUCH])
+    bare = strip()
+    comps = ("end", "touch", "shadowing")
+    ref = run(bare, GUIDED, ("end",))
+    out = {}
+    for c in (0.0, 0.3, 0.9):
+        model = build_model(sc, ModelOptions(optics="guided", skin=SkinContact(coupling=c)), comps)
+        parts = model.breakdown(Params.from_scene(sc))
+        out[c] = {k: float(np.asarray(v).sum()) for k, v in parts.items()}
+        if c == 0.0:
+            np.testing.assert_allclose(np.asarray(parts["end"]), ref, rtol=1e-9, atol=1e-9 * ref.max())
+            assert out[c]["touch"] == 0.0
+    assert 0 < out[0.3]["touch"] < out[0.9]["touch"]
+    assert out[0.0]["end"] > out[0.3]["end"] > out[0.9]["end"]
+
+
+def test_second_order_touch_adds_light(monkeypatch):
+    """The (off by default) second-order touch term: far-edge light frustrated at the contact adds light."""
+    import tofjax.model.guided as guided
+
+    sc = strip(touches=[TOUCH])
+    opts = ModelOptions(optics="guided", skin=SkinContact())
+    first = run(sc, opts, ("touch",))
+    monkeypatch.setattr(guided, "SECOND_ORDER", True)
+    both = run(sc, opts, ("touch",))
+    assert np.isfinite(both).all() and (both >= first - 1e-12 * first.max()).all() and both.sum() > first.sum()
+
+
+def test_guided_model_is_linear_and_differentiable():
+    """linear_parts and breakdown hold with guided optics; gradients are finite (n1, contact position)."""
+    sc = strip(mu_s=2.0, touches=[TOUCH])
+    opts = ModelOptions(optics="guided", skin=SkinContact())
+    model = build_model(sc, opts)
+    p = Params.from_scene(sc)
+    y = np.asarray(model(p))
+    R, P = model.linear_parts(p)
+    lin = p.gain[:, None, None] * R + p.crosstalk_counts[..., None] * P + p.ambient_counts[..., None]
+    np.testing.assert_allclose(np.asarray(lin), y, rtol=1e-9, atol=1e-9 * y.max())
+    parts = sum(np.asarray(v) for v in model.breakdown(p).values())
+    np.testing.assert_allclose(parts, y, rtol=1e-9, atol=1e-9 * y.max())
+    assert set(model.breakdown(p)) == set(model.components) - {"shadowing"}  # shadowing multiplies the others
+    grad = jax.jit(jax.grad(lambda q: jnp.sum(model(q) ** 0.5)))(p)
+    for name in ("n1", "mu_s_per_m", "touch_xy_m", "touch_radius_m", "end_reflectance"):
+        gv = np.asarray(getattr(grad, name))
+        assert np.isfinite(gv).all() and np.abs(gv).sum() > 0, name
+
+
+def test_options_refused_in_one_line():
+    for kw, what in [(dict(optics="bulk"), "optics"), (dict(skin=SkinContact()), "skin"),
+                     (dict(optics="guided", skin="skin"), "skin"),
+                     (dict(optics="guided", elevations=0), "elevations"),
+                     (dict(optics="guided", aperture_m=0.0), "aperture_m"),
+                     (dict(aperture_m=float("nan")), "aperture_m")]:
+        with pytest.raises(ConfigError, match=what):
+            ModelOptions(**kw)
+    for kw in [dict(photons=1), dict(repeats=0), dict(g=1.0), dict(nee_points=0), dict(elevations=2.5)]:
+        with pytest.raises(ConfigError):
+            BenchOptions(**kw)
+
+
+def test_helpers():
+    assert hg_backward_fraction(0.0) == 0.5
+    mu = np.linspace(-1, 0, 200001)
+    g = 0.75
+    hg = 0.5 * (1 - g**2) / (1 + g**2 - 2 * g * mu) ** 1.5
+    assert hg_backward_fraction(g) == pytest.approx(np.trapezoid(hg, mu), rel=1e-6)
+    ref = np.random.default_rng(0).random((2, 3, 5))
+    err, scale = profiled_relative_l2(ref, ref * np.array([2.0, 0.5])[:, None, None])
+    assert err == pytest.approx(0.0, abs=1e-12) and scale == pytest.approx([0.5, 2.0])
+
+
+def test_the_model_never_imports_the_monte_carlo():
+    for f in (ROOT / "tofjax" / "model").glob("*.py"):
+        text = f.read_text()
+        assert "from ..mc" not in text and "tofjax.mc" not in text, f.name
+
+
+@pytest.mark.slow
+def test_guided_agrees_with_the_monte_carlo_on_a_strip():
+    """Clear strip, diffuse far edge: guided within 0.1 (relative L2, gain profiled), default optics far off."""
+    from tofjax.mc import MCOptions, run_mc
+
+    sc = strip(0.2, zones=2)
+    ref = run_mc(sc, MCOptions(photons=20_000, nee_points=24, seed=0)).counts
+    g = run(sc, GUIDED, ("end",))
+    d = run(sc, ModelOptions(), ("end",))
+    eg, scale = profiled_relative_l2(ref, g)
+    ed, _ = profiled_relative_l2(ref, d)
+    assert eg < 0.1 < ed
+    assert scale[0] == pytest.approx(1.0, rel=0.15)  # absolute amplitude in the Monte Carlo's convention
+
+
+@pytest.mark.slow
+def test_bench_tradeoff_runs(tmp_path):
+    import json
+
+    from tofjax.cli import main
+
+    out = tmp_path / "b.json"
+    argv = ["bench", "tradeoff", "--photons", "2000", "--repeats", "3", "--nee-points", "6", "--json", str(out)]
+    assert main(argv) == 0
+    r = json.loads(out.read_text())
+    for optics in ("default", "guided"):
+        assert set(r["analytic_vs_mc_relative_l2"][optics]) == {"baseline", "touch"}
+    assert r["forward_cost_ratio"] > 0 and r["data"].startswith("simulated")
+
+
+def test_study_mc_guided_refuses_an_existing_output(tmp_path):
+    """experiments/study_mc_guided.py checks its output before any Monte Carlo (its run is slow-marked)."""
+    from test_studies import load
+
+    from tofjax.outputs import OutputError
+
+    out = tmp_path / "s.json"
+    out.write_text("keep")
+    with pytest.raises(OutputError):
+        load("study_mc_guided").main(["--photons", "10", "--json", str(out)])
+    assert out.read_text() == "keep"
+
+
+@pytest.mark.slow
+def test_study_mc_guided_runs(tmp_path):
+    from test_studies import load
+
+    r = load("study_mc_guided").run(500)
+    assert set(r["nee_points"]) == {"6", "24"} and len(r["contacts_per_sensor"]) == 6
+    assert all(np.isfinite(v) for v in r["near_field_per_thickness"].values())

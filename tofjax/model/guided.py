@@ -1,0 +1,425 @@
+"""Guided optics: the analytic model with the light's elevation inside the slab (issue 14).
+
+The default optics (:mod:`tofjax.model.components`, seed 000's Eq. 4-5) let all light travel
+in the plane at ``c1 = c / n1`` and fall off as ``1/r^2`` round trip. In a slab that guides by
+total internal reflection, a ray at elevation ``theta`` (``mu = sin theta``) zig-zags between
+the faces and advances in the plane at ``c1 cos theta``; after a diffuse event (a scattering, a
+cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sqrt(1 - 1/n1^2)``.
+``ModelOptions(optics="guided")`` models that:
+
+* **time**: a return from in-plane range ``r`` arrives at ``t_e + r (1/c_out + 1/c_j) / c1``,
+  ``c_j = cos theta_j`` over a fixed Gauss-Legendre quadrature of the guided band
+  (``ModelOptions.elevations`` nodes), ``c_out`` the RMS cosine of the launched beam
+  (``|mu| <= sin(fov/2) / n1``, a round beam refracted at the edge);
+* **geometry**: the guided return spreads in two dimensions, so it reaches an aperture of
+  width ``a`` across the slab's thickness ``h`` with the in-plane angle ``a cos(psi_s) / r``:
+  ``1/r`` for backscatter, not ``1/r^2``; the light's share of the emitted fan is
+  ``dphi / fov``;
+* **amplitudes**, in the Monte Carlo's convention (counts = gain x detected fraction /
+  (a h)): the far edge is Lambertian (``R cos(psi_w) c_j / pi`` per steradian), volume
+  backscatter has the phase function ``f_back / (2 pi)`` per steradian (``f_back`` =
+  ``volume_backscatter_fraction``, the share scattered into the backward hemisphere: 0.5
+  for isotropic scattering), attenuation is ``exp(-mu_t r / c)`` along each leg;
+* **contacts** with ``ModelOptions(skin=SkinContact())``: a share ``coupling x strength`` of a
+  contact disk is in optical contact with skin; each top-face hit under it (``|mu| / (2 h c)``
+  per metre of chord) sends ``1 - R_Fresnel(n1 -> n_skin)`` into the skin, which returns its
+  diffuse albedo (diffusion theory) as a Lambertian source on the face. The touch amplitude
+  and the shadow it casts on the far edge (outbound and, per elevation, on the way back)
+  follow; ``touch_strength`` scales the coupling (the Monte Carlo's convention). Without a
+  skin model the guided optics keep the free touch strength and shadow opacity, with the
+  guided timing and ``1/D^2`` falloff.
+
+Multiple scattering keeps its phenomenological coupling (``multiple_scattering``) with the
+guided falloff and timing. See docs/tradeoff.md for the comparison with the Monte Carlo.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import Scene
+from .components import Nodes, deposit, smooth_like_deposit
+
+__all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
+
+#: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
+#: they are smooth in time already, and their cost grows with the node count.
+DIST_DIVISOR = 8
+#: Near field of the distributed terms: ``1/r`` becomes ``1/sqrt(r^2 + r0^2)`` with ``r0`` this share of
+#: the thickness (within about a thickness of the aperture the slab's images no longer add up to
+#: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.110 at 0.3, 0.127 at 0.2,
+#: 0.140 at 0.6: experiments/study_mc_guided.py).
+NEAR_FIELD_PER_THICKNESS = 0.3
+#: Add the second-order touch term (:func:`_touch_diffuse`: far-edge light frustrated at the contacts).
+#: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
+#: 2.4x the default optics on the touch scene instead of 1.5x (docs/tradeoff.md).
+SECOND_ORDER = False
+
+
+def hg_backward_fraction(g: float) -> float:
+    """Share of Henyey-Greenstein scattering into the backward hemisphere (0.5 for g = 0): the
+    ``volume_backscatter_fraction`` that matches a Monte Carlo with anisotropy ``g``."""
+    if abs(g) < 1e-9:
+        return 0.5
+    return (1.0 - g) / (2.0 * g) * ((1.0 + g) / math.sqrt(1.0 + g * g) - 1.0)
+
+
+def _fresnel(n_in, n_out, cos_i):
+    """Unpolarised Fresnel reflectance from ``n_in`` into ``n_out`` (1 beyond the critical angle)."""
+    cos_i = jnp.clip(cos_i, 1e-9, 1.0)
+    sin_t2 = (n_in / n_out) ** 2 * (1.0 - cos_i**2)
+    tir = sin_t2 >= 1.0
+    cos_t = jnp.sqrt(jnp.clip(1.0 - sin_t2, 1e-18, 1.0))
+    rs = ((n_in * cos_i - n_out * cos_t) / (n_in * cos_i + n_out * cos_t)) ** 2
+    rp = ((n_in * cos_t - n_out * cos_i) / (n_in * cos_t + n_out * cos_i)) ** 2
+    return jnp.where(tir, 1.0, 0.5 * (rs + rp))
+
+
+class GuidedGeometry(eqx.Module):
+    """Per-ray factors of the guided optics, fixed by the scene (hardware), built with the model."""
+
+    cos_sensor: jax.Array  # (S, Z, A) ray direction against the sensor edge's inward normal
+    cos_wall: jax.Array  # (S, Z, A) return direction against the far wall's inward normal
+    sensor_normal: jax.Array  # (S, 2) inward normal of each sensor's edge
+    wall_normal: jax.Array  # (S, Z, A, 2) inward normal of the wall each ray ends on
+    dphi: jax.Array  # (Z,) in-plane angle each ray stands for
+    x: jax.Array  # (J,) Gauss-Legendre nodes on [0, 1] (mu / mu_guided)
+    wx: jax.Array  # (J,) their weights
+    xd: jax.Array  # (Jd,) fewer nodes for the distributed terms (smooth in time already)
+    wxd: jax.Array
+    fov: float = eqx.field(static=True)
+    thickness_m: float = eqx.field(static=True)
+    aperture_m: float = eqx.field(static=True)
+    skin: object = eqx.field(static=True)  # SkinContact or None
+
+    @classmethod
+    def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
+                   skin, dtype) -> "GuidedGeometry":
+        if getattr(scene, "waveguide", None) is None:
+            from ..config import ConfigError
+
+            raise ConfigError("optics: 'guided' needs a waveguide (a free-space scene has no slab to guide light)")
+        lx, ly = scene.waveguide.size_m
+        ang = np.asarray(ray_angle, float)  # (S, Z, A)
+        S, Z, A = ang.shape
+        c, s = np.cos(ang), np.sin(ang)
+        normals = _inward_normals(scene)  # (S, 2)
+        cos_sensor = np.clip(c * normals[:, None, None, 0] + s * normals[:, None, None, 1], 0.0, 1.0)
+        # which wall each ray ends on: the nearer of the x and y walls along it
+        xy = np.array([sp.position_m for sp in scene.sensors], float)[:, None, None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tx = np.where(c > 1e-12, (lx - xy[..., 0]) / c, np.where(c < -1e-12, -xy[..., 0] / c, np.inf))
+            ty = np.where(s > 1e-12, (ly - xy[..., 1]) / s, np.where(s < -1e-12, -xy[..., 1] / s, np.inf))
+        cos_wall = np.where(tx <= ty, np.abs(c), np.abs(s))
+        wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
+        width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
+        x, w = np.polynomial.legendre.leggauss(int(elevations))
+        x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
+        xd, wd = np.polynomial.legendre.leggauss(max(1, int(elevations) // DIST_DIVISOR))
+        xd, wd = 0.5 * (xd + 1.0), 0.5 * wd
+        return cls(
+            cos_sensor=jnp.asarray(cos_sensor, dtype),
+            cos_wall=jnp.asarray(cos_wall, dtype),
+            sensor_normal=jnp.asarray(normals, dtype),
+            wall_normal=jnp.asarray(wall_normal, dtype),
+            dphi=jnp.asarray(width / A, dtype),
+            x=jnp.asarray(x, dtype),
+            wx=jnp.asarray(w, dtype),
+            xd=jnp.asarray(xd, dtype),
+            wxd=jnp.asarray(wd, dtype),
+            fov=math.radians(scene.sensor.fov_deg),
+            thickness_m=float(scene.waveguide.thickness_m),
+            aperture_m=float(aperture_m),
+            skin=skin,
+        )
+
+
+def _inward_normals(scene: Scene) -> np.ndarray:
+    """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis
+    (the Monte Carlo's convention)."""
+    lx, ly = scene.waveguide.size_m
+    out = []
+    for sp in scene.sensors:
+        x, y = sp.position_m
+        a = math.radians(sp.direction_deg)
+        cands = [(abs(x), (1.0, 0.0)), (abs(x - lx), (-1.0, 0.0)), (abs(y), (0.0, 1.0)), (abs(y - ly), (0.0, -1.0))]
+        near = [nrm for dist, nrm in cands if dist <= 1e-6] or [min(cands)[1]]
+        out.append(max(near, key=lambda nrm: nrm[0] * math.cos(a) + nrm[1] * math.sin(a)))
+    return np.array(out, float)
+
+
+class _Elev(NamedTuple):
+    mu: jax.Array  # (J,) return elevations (positive half; the band is symmetric)
+    c: jax.Array  # (J,) their cosines
+    dmu: jax.Array  # (J,) weights over the whole band (both signs)
+    c_out: jax.Array  # outbound cosine (RMS of the launched beam)
+    mu_out: jax.Array  # mean |mu| of the launched beam
+
+
+def _elevations(gg: GuidedGeometry, n1, distributed: bool = False) -> _Elev:
+    cg = jnp.sqrt(jnp.maximum(1.0 - 1.0 / n1**2, 1e-12))
+    x, wx = (gg.xd, gg.wxd) if distributed else (gg.x, gg.wx)
+    mu = cg * x
+    launch = jnp.minimum(math.sin(0.5 * gg.fov) / n1, cg)
+    return _Elev(mu=mu, c=jnp.sqrt(1.0 - mu**2), dmu=2.0 * cg * wx,
+                 c_out=jnp.sqrt(1.0 - launch**2 / 3.0), mu_out=0.5 * launch)
+
+
+def _weighted_step(times, weights, nodes: Nodes):
+    """Running share of ``weights`` of events at ``times`` (S, Z', E) before each node (cf. step_on)."""
+    w = deposit(times, weights, nodes)
+    return jnp.cumsum(w, axis=-1) - 0.5 * w
+
+
+def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
+    """Skin contacts crossed by each ray: (P_out (S, Z, A, N), P_ret (S, Z, A, N, J), behind (S, Z, A, N),
+    dist (S, N)): the share of light entering the skin on the way out and back along the ray's chord,
+    and whether the contact lies before the ray's far edge (a smooth step)."""
+    p, geom = ctx.params, ctx.geom
+    skin = gg.skin
+    d = p.touch_xy_m[None, :, :] - geom.sensor_xy[:, None, :]  # (S, N, 2)
+    ca, sa = jnp.cos(geom.ray_angle)[..., None], jnp.sin(geom.ray_angle)[..., None]  # (S, Z, A, 1)
+    along = d[:, None, None, :, 0] * ca + d[:, None, None, :, 1] * sa  # (S, Z, A, N)
+    across = -d[:, None, None, :, 0] * sa + d[:, None, None, :, 1] * ca
+    rad = p.touch_radius_m
+    half2 = rad**2 - across**2
+    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
+    chord = jnp.where((along > 0) & (half2 > 0), chord, 0.0)
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
+    hits_out = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
+    P_out = -jnp.expm1(hits_out * jnp.log1p(-fc * (1.0 - Rs_out)))  # share frustrated over the chord
+    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    hits_ret = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
+    P_ret = -jnp.expm1(hits_ret * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))
+    behind = jax.nn.sigmoid((geom.ray_length[..., None] - along) / rad)  # contact before the far edge
+    return P_out * behind, P_ret * behind[..., None], along
+
+
+def _edge(ctx, gg, el, frus):
+    p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
+    L = geom.ray_length[..., None]  # (S, Z, A, 1)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    Lsafe = jnp.maximum(L, 1e-9)
+    amp = (p.end_reflectance * gg.cos_wall[..., None] * gg.cos_sensor[..., None] * gg.dphi[None, :, None, None]
+           / (math.pi * gg.fov * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
+           * jnp.exp(-mu_t * L / el.c_out) * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
+    amp = jnp.where(L > 0, amp, 0.0)
+    if frus is not None:
+        P_out, P_ret, _ = frus
+        amp = amp * jnp.prod(1.0 - P_out, axis=-1)[..., None] * jnp.prod(1.0 - P_ret, axis=-2)
+    elif ctx.contacts is not None:
+        from .components import shadow
+
+        amp = amp * shadow(geom.ray_length, ctx.contacts, p)[..., None]
+    t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
+    S, Z = amp.shape[:2]
+    t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
+    return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
+
+
+def _touch(ctx, gg, el):
+    """Light the skin returns: the share of each contact's light frustrated into the skin (its area over
+    ``D``, the hits per metre of chord) times the albedo, Lambertian from the face (``|mu| / pi`` per
+    steradian), back over the in-plane angle ``a cos / D``; spread over the disk's range like the default
+    touch, and shared among the zones by the contact's angular fraction in each (times depend on the
+    sensor, contact, range sample and elevation only, so they are deposited once per sensor)."""
+    from .components import _chord_samples
+
+    p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
+    skin = gg.skin
+    u, w = _chord_samples(ctx.touch_samples)
+    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
+    rad = p.touch_radius_m
+    D = jnp.maximum(cg.distance[..., None] + rad[:, None] * u, 0.5 * rad[:, None])  # (S, N, M)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
+    chord = 0.5 * math.pi * rad  # mean chord of a disk seen from afar
+    hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
+    P_out = -jnp.expm1(hits * jnp.log1p(-fc * (1.0 - Rs_out)))  # (N,)
+    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    hits_ret = chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)
+    P_ret = -jnp.expm1(hits_ret * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))  # (N, J)
+    albedo = skin.diffuse_albedo_jax(p.n1)
+    width = 2.0 * jnp.arctan(rad / cg.distance)  # (S, N) the contact's angular width
+    ncos = gg.sensor_normal  # (S, 2)
+    d = p.touch_xy_m[None] - ctx.geom.sensor_xy[:, None]  # (S, N, 2)
+    cos_s = jnp.clip(jnp.sum(d * ncos[:, None], -1) / cg.distance, 0.0, 1.0)  # (S, N)
+    # frustrated share of the light sent towards the contact: (its angular width / fov) P_out
+    base = (width * cos_s / gg.fov)[..., None] * P_out[None, :, None] * albedo * w / (math.pi * gg.thickness_m * D)
+    base = base * jnp.exp(-mu_t * D / el.c_out)  # (S, N, M)
+    # the return crosses, on average, half its own contact's chord
+    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
+    amp = amp * (1.0 - 0.5 * P_ret[None, :, None, :])
+    t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
+    S, N = amp.shape[:2]
+    per_contact = deposit(t.reshape(S, N, -1), amp.reshape(S, N, -1), nodes)  # (S, N, K)
+    return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
+
+
+def _touch_diffuse(ctx, gg, el):
+    """Second order: light the diffuse far edges send across a contact, frustrated into the skin and
+    returned. Each ray's wall point is a Lambertian source (``R cos / pi``); the contact's area over
+    its distance ``rho`` from it times ``|mu| / (2 h cos)`` hits per metre gives the frustrated share;
+    the skin returns it to the sensor like the first-order touch (times at the band's mean delay
+    on the middle leg)."""
+    p, geom, nodes, cg = ctx.params, ctx.geom, ctx.nodes, ctx.contacts
+    skin = gg.skin
+    L = geom.ray_length  # (S, Z, A)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    wall = geom.sensor_xy[:, None, None, :] + L[..., None] * jnp.stack([jnp.cos(geom.ray_angle), jnp.sin(geom.ray_angle)], -1)
+    to_c = p.touch_xy_m[None, None, None, :, :] - wall[..., None, :]  # (S, Z, A, N, 2)
+    rho = jnp.sqrt(jnp.sum(to_c**2, -1) + p.touch_radius_m**2)  # (S, Z, A, N), never 0
+    cos_w = jnp.clip(jnp.sum(to_c * gg.wall_normal[..., None, :], -1) / rho, 0.0, 1.0)
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    # frustrated share per unit power leaving the wall point, summed over the band
+    band = jnp.sum(el.dmu * el.mu * (1.0 - Rs) * jnp.exp(-mu_t * rho[..., None] / el.c), -1)  # (S, Z, A, N)
+    frus = p.end_reflectance * cos_w * p.touch_radius_m**2 / (2.0 * gg.thickness_m * rho) * fc * band
+    reach = jnp.where(L > 0, gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 0.0)  # (S, Z, A)
+    src = reach[..., None] * frus * skin.diffuse_albedo_jax(p.n1)  # (S, Z, A, N)
+    # back to the sensor from the contact (distance D, Lambertian from the face)
+    D = jnp.maximum(cg.distance, p.touch_radius_m)  # (S, N)
+    d = p.touch_xy_m[None] - geom.sensor_xy[:, None]
+    cos_s = jnp.clip(jnp.sum(d * gg.sensor_normal[:, None], -1) / cg.distance, 0.0, 1.0)  # (S, N)
+    back = el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (cos_s / (math.pi * gg.thickness_m * D))[..., None]
+    amp = src[..., None] * back[:, None, None]  # (S, Z, A, N, J)
+    inv_c = jnp.sum(el.dmu * el.mu / el.c) / jnp.sum(el.dmu * el.mu)  # mean 1/cos of a Lambertian source
+    t = p.emission_time_s + (L[..., None, None] / el.c_out + rho[..., None] * inv_c + D[:, None, None, :, None] / el.c) / nodes.c1
+    S, N = amp.shape[0], amp.shape[3]
+    amp = jnp.moveaxis(amp, 3, 1).reshape(S, N, -1)
+    t = jnp.moveaxis(jnp.broadcast_to(t, src.shape + el.c.shape), 3, 1).reshape(S, N, -1)
+    per_contact = deposit(t, amp, nodes)  # (S, N, K)
+    return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
+
+
+def _touch_free(ctx, gg, el):
+    """Without a skin model: the free touch strength (counts as the default optics' at 1 m), guided timing."""
+    from .components import _chord_samples, shadow
+
+    p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
+    u, w = _chord_samples(ctx.touch_samples)
+    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
+    r = jnp.maximum(cg.distance[..., None] + p.touch_radius_m[:, None] * u, 0.0)  # (S, N, M)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    beta = p.touch_strength * cg.fraction  # (S, Z, N)
+    fall = 1.0 / (r**2 + p.near_field_m**2)
+    att = jnp.exp(-mu_t * r[..., None] * (1.0 / el.c_out + 1.0 / el.c))  # (S, N, M, J)
+    ew = el.dmu * el.mu / jnp.sum(el.dmu * el.mu)  # Lambertian return over the band
+    amp = beta[..., None, None] * (w[:, None] * fall[..., None] * att * ew)[:, None]  # (S, Z, N, M, J)
+    if ctx.shadowing:
+        sh = shadow(jnp.broadcast_to(r[:, None], amp.shape[:-1]), cg, p, exclude_self=True)
+        amp = amp * sh[..., None]
+    t = p.emission_time_s + r[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
+    S, Z = amp.shape[:2]
+    t = jnp.broadcast_to(t[:, None], amp.shape).reshape(S, Z, -1)
+    return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
+
+
+def _distributed(ctx, gg, el, frus, names):
+    """Volume backscatter and multiple scattering along each ray: density per metre of outbound range,
+    ``1/r`` (asinh over each node, exact), per return elevation, until the ray's far edge."""
+    p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
+    S, Z, A = geom.ray_length.shape
+    J = el.c.shape[0]
+    s_j = (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (J,) seconds per metre of outbound range
+    tau = nodes.t - p.emission_time_s  # (K,)
+    r = tau[None, :] / s_j[:, None]  # (J, K)
+    dr = nodes.h / s_j[:, None]
+    r0 = NEAR_FIELD_PER_THICKNESS * gg.thickness_m
+    fall = (jnp.arcsinh((r + 0.5 * dr) / r0) - jnp.arcsinh((r - 0.5 * dr) / r0))  # integral of 1/sqrt(r^2+r0^2)
+    rp = jnp.maximum(r, 0.0)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    dens = 0.0
+    if "volume" in names:
+        att = jnp.exp(-mu_t * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
+        dens = dens + p.volume_backscatter_fraction / (2.0 * math.pi) * p.mu_s_per_m * att
+    if "multiple_scattering" in names:
+        build = -jnp.expm1(-2.0 * p.mu_s_per_m * rp)
+        att = jnp.exp(-p.mu_a_per_m * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
+        dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
+    dens = dens * fall * el.dmu[:, None]  # (J, K)
+    # coverage: each ray's weight (its angle and the aperture's projection) until its far edge
+    wray = gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m)  # (S, Z, A)
+    end_t = p.emission_time_s + geom.ray_length[:, :, None, :] * s_j[None, None, :, None]  # (S, Z, J, A)
+    wrep = jnp.broadcast_to(wray[:, :, None, :], end_t.shape)
+    ended = _weighted_step(end_t.reshape(S, Z * J, A), wrep.reshape(S, Z * J, A), nodes).reshape(S, Z, J, -1)
+    start = jnp.reshape(p.emission_time_s, (1, 1, 1))
+    emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
+    total = jnp.sum(wray, axis=-1)[:, :, None, None]
+    coverage = jnp.maximum(emitted * total - ended, 0.0)  # (S, Z, J, K)
+    if frus is not None:
+        # beyond a skin contact, the zone loses what its rays lose out and back (the far edge's
+        # factors, averaged over the zone's rays and the return elevations), from its distance on
+        P_out, P_ret, along = frus
+        loss = 1.0 - jnp.mean((1.0 - P_out) * (1.0 - jnp.mean(P_ret, axis=-1)), axis=2)  # (S, Z, N)
+        dist = ctx.contacts.distance  # (S, N)
+        step = jax.nn.sigmoid((rp[None, :, :, None] - dist[:, None, None, :]) / p.touch_radius_m)  # (S, J, K, N)
+        coverage = coverage * jnp.prod(1.0 - loss[:, :, None, None, :] * step[:, None], axis=-1)
+    elif ctx.contacts is not None and ctx.shadowing:
+        from .components import shadow
+
+        rr = jnp.broadcast_to(rp.reshape(-1), (S, Z, rp.size))
+        coverage = coverage * shadow(rr, ctx.contacts, p).reshape(S, Z, J, -1)
+    mass = jnp.einsum("szjk,jk->szk", coverage, dens)
+    return p.gain[:, None, None] * smooth_like_deposit(mass)
+
+
+def guided_node_masses(ctx, gg: GuidedGeometry, components, separate: bool) -> dict:
+    """The guided optics' counts at the time nodes, before the pulse (the hook of ForwardModel)."""
+    p = ctx.params
+    el = _elevations(gg, p.n1)
+    skin_contacts = gg.skin is not None and ctx.contacts is not None
+    frus = _frustration(ctx, gg, el) if skin_contacts else None
+    # shadowing switched off: contacts only add light
+    frus_shadow = frus if ctx.shadowing else None
+    out = {}
+    dist = [n for n in components if n in ("interface", "volume", "multiple_scattering")]
+    if "interface" in dist:
+        # roughness backscatter: no guided model of it; the default optics' term
+        from . import components as C
+
+        cov = _default_coverage(ctx)
+        out["interface"] = C.smooth_like_deposit(cov * C.interface(ctx))
+    g_dist = [n for n in dist if n != "interface"]
+    if g_dist:
+        eld = _elevations(gg, p.n1, distributed=True)
+        frus_d = frus_shadow
+        if separate:
+            for n in g_dist:
+                out[n] = _distributed(ctx, gg, eld, frus_d, (n,))
+        else:
+            out["distributed_guided"] = _distributed(ctx, gg, eld, frus_d, tuple(g_dist))
+    for name in components:
+        if name == "end":
+            if ctx.contacts is not None and not ctx.shadowing:
+                out[name] = _edge(ctx._replace(contacts=None), gg, el, None)
+            else:
+                out[name] = _edge(ctx, gg, el, frus_shadow)
+        elif name == "touch" and p.n_touches:
+            if skin_contacts:
+                out[name] = _touch(ctx, gg, el) + (_touch_diffuse(ctx, gg, el) if SECOND_ORDER else 0.0)
+            else:
+                out[name] = _touch_free(ctx, gg, el)
+        elif name == "crosstalk":
+            from .components import crosstalk
+
+            out[name] = crosstalk(ctx)
+    return out
+
+
+def _default_coverage(ctx):
+    from . import components as C
+
+    p, nodes = ctx.params, ctx.nodes
+    emitted = C.step_on(jnp.reshape(p.emission_time_s, (1, 1, 1)), nodes)
+    ended = C.step_on(ctx.end_times, nodes)
+    return p.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
+
