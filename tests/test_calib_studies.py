@@ -99,3 +99,11 @@ def test_independent_study_quick(tmp_path):
     assert json.loads((tmp_path / "calib_independent.json").read_text())["own"]["summary"]["fits"] == 1
     assert r["own"]["summary"]["converged"] == 1 and r["own"]["summary"]["n1_rel_error_max"] < 0.01
     assert r["batch_speed"]["max_n1_difference_batch_vs_single"] < 1e-6
+    assert set(study.COLUMNS) <= set(r) and r["independent_scene_without_ms"]["summary"]["fits"] == 1
+
+
+def test_detect_calibrated_study_is_a_script():
+    """The six-contact study on calibrated independent data imports and says what it writes
+    (its end-to-end run is the study itself: minutes, not a test)."""
+    mod = load("eval_detect_calibrated")
+    assert "detect_calibrated_independent.json" in mod.__doc__ and "Simulated" in mod.__doc__
