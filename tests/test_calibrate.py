@@ -382,3 +382,38 @@ def test_objective_and_solver_must_match(small):
 
     with pytest.raises(ConfigError, match="not a minimiser"):
         calibrate(simulate(small, 2, seed=0), solver=optx.LevenbergMarquardt(1e-6, 1e-6), objective=PoissonDeviance())
+
+
+@pytest.mark.slow  # 83 s at load 11 (three compilations of the 4-unknown profile and its Jacobians)
+def test_zone_end_profiles_a_reflectance_per_zone(small):
+    """FitConfig.zone_end: the edge reflectance is a fourth non-negative linear unknown per zone;
+    a rig whose zones' edges differ gets them back, and the covariance's linear columns (gain
+    and reflectance per zone) equal forward-mode AD of the full residuals."""
+    import equinox as eqx
+    import jax
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from tofjax.fit.calibrate import base_params, build_problem
+
+    cfg = FitConfig(zone_end=True)
+    problem = build_problem(small.without_touches(), cfg)
+    assert problem.zone_end and "end_reflectance" in problem.linear and "end_reflectance" not in problem.nonlinear
+    p = base_params(small.without_touches(), cfg, jnp.float64)
+    R, P, E = eqx.filter_jit(lambda m, q: m.linear_parts(q, separate_end=True))(problem.model, p)
+    refl = np.random.default_rng(1).uniform(0.2, 0.8, size=(3, 3))
+    g = np.asarray(p.gain)[:, None]
+    mean = g[..., None] * (np.asarray(R) + refl[..., None] * np.asarray(E))
+    mean = mean + np.asarray(p.crosstalk_counts)[..., None] * np.asarray(P) + np.asarray(p.ambient_counts)[..., None]
+    data = jnp.asarray(mean)
+    sigma = jnp.sqrt(jnp.maximum(data, 1.0) / 100)
+    _, m, _, lin = eqx.filter_jit(type(problem).profile)(problem, p, data, sigma)
+    np.testing.assert_allclose(np.asarray(lin["end_reflectance"]), refl, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(m), mean, rtol=1e-8, atol=1e-8 * mean.max())
+    lin = {k: jnp.asarray(v) for k, v in lin.items()}
+    u = problem.pack_jax(p, problem.free, lin)
+    flat, unravel = jax.flatten_util.ravel_pytree(u)
+    prior = problem.pack_jax(p, problem.free)
+    ad = np.asarray(jax.jit(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), p, prior, data, sigma)))(flat))
+    ours = np.asarray(eqx.filter_jit(type(problem).covariance_jacobian)(problem, p, lin, p, data, sigma))
+    np.testing.assert_allclose(ours, ad, rtol=0, atol=1e-9 * np.abs(ad).max())

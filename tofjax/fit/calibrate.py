@@ -160,10 +160,14 @@ class FitConfig:
       crosstalk (default: a real rig's zones differ by several per cent). False: one gain
       per sensor, as the scene states it.
     - ``zone_end``: the far-edge reflectance free per (sensor, zone), profiled out like the
-      gain (default; needs ``zone_gain``): a real edge reflects differently in each zone
-      (angle of incidence, polish); one shared reflectance makes the fit explain the
-      differences with attenuation and biases mu_t. The JSON then has one reflectance per
-      zone; ``Params.end_reflectance`` is their mean.
+      gain (needs ``zone_gain``; default off). A real edge reflects differently in each zone
+      (angle of incidence, polish); one shared reflectance makes the fit explain those
+      differences with attenuation, which biases mu_t (on the independent simulator, whose
+      edge reflectance goes with the cosine of incidence, by about +0.3 /m). Per-zone
+      reflectances remove that bias but also the edge returns' information on mu_t: a
+      baseline then barely pins mu_t below about 1 /m (own-data fits at 0.5 /m ended near 0),
+      so it is an option, not the default. The JSON then has one reflectance per zone;
+      ``Params.end_reflectance`` is their mean.
     - ``envelope``: start from the best point of an (n1, mu_t) grid of profiled
       chi-squares around the timing estimate (default); False: the timing start alone.
     - ``restarts``: further starts (the next best envelope points) when the fit fails or
@@ -202,7 +206,7 @@ class FitConfig:
     gauss_newton_first: int = 10
     free: tuple[str, ...] = DEFAULT_FREE
     zone_gain: bool = True
-    zone_end: bool = True
+    zone_end: bool = False
     envelope: bool = True
     restarts: int = 3
     prior_width: float = 3.0
