@@ -41,7 +41,7 @@ def test_fit_speed_emcee_steps_fast():
     study = load("study_fit_speed")
     from tofjax.scene import load_scene
 
-    e = study.run_emcee(study.EmceeStudy(frames=40, walkers=16, max_steps=120, steps=(60,)), load_scene("optoskin"), False)
+    e = study.run_emcee(study.EmceeStudy(frames=40, walkers=24, max_steps=120, steps=(60,)), load_scene("optoskin"), False)
     assert [x["steps"] for x in e["rows"]] == [60, e["steps_run"]]
     # the whole chain against itself: no error; a prefix: a finite, non-negative one
     assert e["rows"][-1]["n1"]["endpoint_error_over_width"] == 0.0
@@ -54,7 +54,7 @@ def test_fit_speed_emcee_steps_fast():
 
 def test_coverage_study_fast(tmp_path):
     study = load("study_coverage")
-    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=16, max_steps=120)
+    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=24, max_steps=120)
     r = study.run(cfg, tmp_path, progress=False)
     assert r["finished"] and r["laplace"]["replicates"] == 3 and r["posterior"]["replicates"] == 1
     for key in ("laplace", "posterior"):
