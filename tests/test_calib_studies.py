@@ -41,7 +41,7 @@ def test_fit_speed_emcee_steps_fast():
     study = load("study_fit_speed")
     from tofjax.scene import load_scene
 
-    e = study.run_emcee(study.EmceeStudy(frames=40, walkers=16, max_steps=120, steps=(60,)), load_scene("optoskin"), False)
+    e = study.run_emcee(study.EmceeStudy(frames=40, walkers=24, max_steps=120, steps=(60,)), load_scene("optoskin"), False)
     assert [x["steps"] for x in e["rows"]] == [60, e["steps_run"]]
     # the whole chain against itself: no error; a prefix: a finite, non-negative one
     assert e["rows"][-1]["n1"]["endpoint_error_over_width"] == 0.0
@@ -54,7 +54,7 @@ def test_fit_speed_emcee_steps_fast():
 
 def test_coverage_study_fast(tmp_path):
     study = load("study_coverage")
-    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=16, max_steps=120)
+    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=24, max_steps=120)
     r = study.run(cfg, tmp_path, progress=False)
     assert r["finished"] and r["laplace"]["replicates"] == 3 and r["posterior"]["replicates"] == 1
     for key in ("laplace", "posterior"):
@@ -99,3 +99,11 @@ def test_independent_study_quick(tmp_path):
     assert json.loads((tmp_path / "calib_independent.json").read_text())["own"]["summary"]["fits"] == 1
     assert r["own"]["summary"]["converged"] == 1 and r["own"]["summary"]["n1_rel_error_max"] < 0.01
     assert r["batch_speed"]["max_n1_difference_batch_vs_single"] < 1e-6
+    assert set(study.COLUMNS) <= set(r) and r["independent_scene_without_ms"]["summary"]["fits"] == 1
+
+
+def test_detect_calibrated_study_is_a_script():
+    """The six-contact study on calibrated independent data imports and says what it writes
+    (its end-to-end run is the study itself: minutes, not a test)."""
+    mod = load("eval_detect_calibrated")
+    assert "detect_calibrated_independent.json" in mod.__doc__ and "Simulated" in mod.__doc__

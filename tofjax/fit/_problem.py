@@ -14,6 +14,13 @@ by several per cent (lens, SPAD array, calibration of the part) in ways no optic
 The linear parameters of each zone are then the non-negative least-squares solution
 (counts cannot be negative), found exactly by trying every active set of the (at most
 three) unknowns in closed form and keeping the best feasible one.
+
+With ``zone_end`` the far-edge return is a fourth linear unknown per zone: the model is
+``g (R0 + e E) + x P + a`` with ``E`` the edge at unit reflectance, solved for ``h = g e``.
+A real edge reflects differently in each zone (angle of incidence, polish, bevel); with one
+reflectance for all zones the fit explains the zone-to-zone differences of the edge returns
+with the attenuation along each zone's path, and mu_t comes out wrong (on the independent
+simulator, whose edge reflectance goes with the cosine of incidence: +58% at 0.5 /m).
 """
 
 from __future__ import annotations
@@ -55,6 +62,11 @@ def _inv3(g):
     return adj / det[..., None, None], det
 
 
+def _mean_reflectance(e):
+    """The scalar ``Params.end_reflectance`` of per-zone reflectances: their mean, kept in [0, 1]."""
+    return jnp.clip(jnp.mean(e), 0.0, 1.0)
+
+
 class CalibrationProblem(eqx.Module):
     """What is fitted and how; data and start come as arguments.
 
@@ -64,6 +76,7 @@ class CalibrationProblem(eqx.Module):
     - ``transforms``: ``(name, Transform)`` pairs, the unconstrained coordinates of each parameter.
     - ``free``: every free parameter; ``linear``/``nonlinear`` split it.
     - ``zone_gain``: gain free per (sensor, zone) instead of per sensor.
+    - ``zone_end``: the far-edge reflectance free per (sensor, zone), profiled out (needs ``zone_gain``).
     - ``prior_width``: width of the weak Gaussian prior on the nonlinear coordinates (0: none).
     """
 
@@ -74,21 +87,27 @@ class CalibrationProblem(eqx.Module):
     nonlinear: tuple[str, ...] = eqx.field(static=True)
     zone_gain: bool = eqx.field(static=True)
     prior_width: float = eqx.field(static=True)
+    zone_end: bool = eqx.field(static=True, default=False)
 
     @classmethod
-    def build(cls, model: ForwardModel, transforms: dict, free, *, zone_gain: bool, prior_width: float):
+    def build(cls, model: ForwardModel, transforms: dict, free, *, zone_gain: bool, prior_width: float, zone_end: bool = False):
         comps = model.components
         present = {"gain": True, "crosstalk_counts": "crosstalk" in comps, "ambient_counts": "ambient" in comps}
         linear = tuple(p for p in LINEAR if p in free and present[p])
-        nonlinear = tuple(p for p in free if p not in LINEAR)
+        zone_gain = bool(zone_gain and "gain" in linear)
+        zone_end = bool(zone_end and zone_gain and "end_reflectance" in free and "end" in comps)
+        if zone_end:
+            linear = linear + ("end_reflectance",)
+        nonlinear = tuple(p for p in free if p not in linear and p not in LINEAR)
         return cls(
             model=model,
             transforms=tuple(sorted(transforms.items())),
             free=tuple(free),
             linear=linear,
             nonlinear=nonlinear,
-            zone_gain=bool(zone_gain and "gain" in linear),
+            zone_gain=zone_gain,
             prior_width=float(prior_width),
+            zone_end=zone_end,
         )
 
     def transform(self, name: str) -> Transform:
@@ -143,11 +162,21 @@ class CalibrationProblem(eqx.Module):
         phys = self.physical(u)
         if self.zone_gain and "gain" in phys and jnp.ndim(phys["gain"]) == 2:
             phys["gain"] = jnp.mean(phys["gain"], axis=-1)
+        if "end_reflectance" in phys and jnp.ndim(phys["end_reflectance"]) == 2:
+            phys["end_reflectance"] = _mean_reflectance(phys["end_reflectance"])
         return base.replace(**phys)
 
     # ---- the linear parameters, profiled out --------------------------------------------
 
-    def _bases(self, params: Params, R, P):
+    def _linear_parts(self, params: Params):
+        """``(R, P, E)``: ``R`` everything proportional to the gain (without the edge with
+        ``zone_end``), ``P`` the light-entry peak, ``E`` the edge at unit reflectance (or None)."""
+        if self.zone_end:
+            return self.model.linear_parts(params, separate_end=True)
+        R, P = self.model.linear_parts(params)
+        return R, P, None
+
+    def _bases(self, params: Params, R, P, E=None):
         """The zone-local bases and the fixed part of the model (S, Z, B) each."""
         comps = self.model.components
         fixed = jnp.zeros_like(R)
@@ -161,6 +190,9 @@ class CalibrationProblem(eqx.Module):
         if self.zone_gain:
             names.append("gain")
             basis.append(R)
+        if E is not None:
+            names.append("end_reflectance")
+            basis.append(E)
         if "crosstalk_counts" in self.linear:
             names.append("crosstalk_counts")
             basis.append(P)
@@ -177,28 +209,36 @@ class CalibrationProblem(eqx.Module):
         ``sum log det`` of the normal equations (for the posterior), and the profiled values
         themselves (``gain`` (S, Z) with ``zone_gain``).
         """
-        R, P = self.model.linear_parts(params)
+        R, P, E = self._linear_parts(params)
         if self.zone_gain:
-            return self._profile_zone(params, R, P, data, sigma)
+            return self._profile_zone(params, R, P, data, sigma, E)
         return self._profile_sensor(params, R, P, data, sigma)
 
-    def _profile_zone(self, params, R, P, data, sigma):
+    def _profile_zone(self, params, R, P, data, sigma, E=None):
         w = 1.0 / sigma**2
-        fixed, names, basis = self._bases(params, R, P)
+        fixed, names, basis = self._bases(params, R, P, E)
         m = len(basis)
+        n = 4 if E is not None else 3
         y = data - fixed
-        # Gram matrix and projections, padded to 3 unknowns (identity rows for absent ones)
-        Bs = jnp.stack(basis + [jnp.zeros_like(R)] * (3 - m), axis=-2)  # (S, Z, 3, B)
+        # Gram matrix and projections, padded to n unknowns (identity rows for absent ones)
+        Bs = jnp.stack(basis + [jnp.zeros_like(R)] * (n - m), axis=-2)  # (S, Z, n, B)
         G = jnp.einsum("szib,szjb->szij", Bs * w[..., None, :], Bs)
         b = jnp.einsum("szib,szb->szi", Bs * w[..., None, :], y)
         yy = jnp.sum(w * y * y, axis=-1)
-        present = jnp.asarray([1.0] * m + [0.0] * (3 - m), R.dtype)
+        present = jnp.asarray([1.0] * m + [0.0] * (n - m), R.dtype)
         scale = jnp.where(present > 0, jnp.maximum(jnp.diagonal(G, axis1=-2, axis2=-1), jnp.finfo(R.dtype).tiny), 1.0)
         # every active set: the non-negative least-squares optimum is the best feasible one
-        masks = jnp.asarray(list(itertools.product([1.0, 0.0], repeat=3)), R.dtype) * present  # (8, 3)
+        masks = jnp.asarray(list(itertools.product([1.0, 0.0], repeat=n)), R.dtype) * present  # (2^n, n)
         Gm = G[..., None, :, :] * masks[:, :, None] * masks[:, None, :]
-        Gm = Gm + jnp.eye(3, dtype=R.dtype) * ((1.0 - masks)[:, :, None] + 1e-12 * masks[:, :, None]) * scale[..., None, :, None]
-        inv, det = _inv3(Gm)  # (S, Z, 8, 3, 3)
+        Gm = Gm + jnp.eye(n, dtype=R.dtype) * ((1.0 - masks)[:, :, None] + 1e-12 * masks[:, :, None]) * scale[..., None, :, None]
+        if n == 3:
+            inv, det = _inv3(Gm)  # (S, Z, 8, 3, 3)
+        else:
+            # scaled to unit diagonal first: the Gram matrix spans many decades
+            d = 1.0 / jnp.sqrt(jnp.diagonal(Gm, axis1=-2, axis2=-1))
+            inv_s = jnp.linalg.inv(Gm * d[..., :, None] * d[..., None, :])
+            inv = inv_s * d[..., :, None] * d[..., None, :]
+            det = jnp.linalg.det(Gm * d[..., :, None] * d[..., None, :]) / jnp.prod(d, axis=-1) ** 2
         c = jnp.einsum("szkij,szkj->szki", inv, b[..., None, :] * masks)
         ssr = yy[..., None] - 2.0 * jnp.sum(c * b[..., None, :], -1) + jnp.einsum("szki,szkij,szkj->szk", c, Gm, c)
         feasible = jnp.all(c >= 0.0, axis=-1)
@@ -207,10 +247,16 @@ class CalibrationProblem(eqx.Module):
         fitted = fixed + sum(coef[..., i, None] * basis[i] for i in range(m))
         # the first active set is the full one (absent unknowns have unit rows)
         logdet = jnp.sum(jnp.log(jnp.maximum(det[..., 0], jnp.finfo(R.dtype).tiny)))
-        out = {n: coef[..., i] for i, n in enumerate(names)}
+        out = {k: coef[..., i] for i, k in enumerate(names)}
+        if "end_reflectance" in out:
+            # the edge's coefficient is gain x reflectance
+            g = out["gain"]
+            out["end_reflectance"] = jnp.where(g > 0, out["end_reflectance"] / jnp.where(g > 0, g, 1.0), 0.0)
         rep = dict(out)
         if "gain" in rep:
             rep["gain"] = jnp.mean(rep["gain"], axis=-1)
+        if "end_reflectance" in rep:
+            rep["end_reflectance"] = _mean_reflectance(rep["end_reflectance"])
         return params.replace(**rep), fitted, logdet, out
 
     def _profile_sensor(self, params, R, P, data, sigma):
@@ -270,7 +316,7 @@ class CalibrationProblem(eqx.Module):
         parameter the data cannot pin (mu_a -> 0 in log space) finite, barely moves the rest."""
         parts = []
         if self.prior_width > 0:
-            parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in LINEAR]
+            parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in self.linear]
         if "n1" in u and "n1_anchor" in prior:
             # the timing estimate of n1 (edge returns, known geometry) as a measurement:
             # (centre, width); an infinite width (no edge seen) makes it zero
@@ -307,7 +353,9 @@ class CalibrationProblem(eqx.Module):
         phys = self.physical(u)
         params = self.unpack(u, base)
         if self.zone_gain:
-            R, P = self.model.linear_parts(params)
+            R, P, E = self._linear_parts(params)
+            if E is not None:
+                R = R + phys["end_reflectance"][..., None] * E
             m = phys["gain"][..., None] * R
             if "crosstalk" in self.model.components:
                 m = m + params.crosstalk_counts[..., None] * P
@@ -326,15 +374,21 @@ class CalibrationProblem(eqx.Module):
         prior = self.pack_jax(prior_params, self.free)
         if anchor is not None:
             prior["n1_anchor"] = anchor
-        lin = {k: u[k] for k in u if k in LINEAR}
-        nl = {k: u[k] for k in u if k not in LINEAR}
+        lin = {k: u[k] for k in u if k in self.linear}
+        nl = {k: u[k] for k in u if k not in self.linear}
         f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
         j_nl = jax.jacfwd(lambda g: self.full_residuals({**unravel_nl(g), **lin}, params, prior, data, sigma))(f_nl)
         n_rows = j_nl.shape[0]
-        R, P = self.model.linear_parts(params)
+        R, P, E = self._linear_parts(params)
         S, Z, B = R.shape
         ft = j_nl.dtype
         R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
+        if E is not None:
+            E = E.astype(ft)
+            e_z = jnp.asarray(linear["end_reflectance"], ft)
+            g_z = jnp.asarray(linear["gain"], ft)
+            R = R + e_z[..., None] * E  # d/d gain
+            E = g_z[..., None] * E  # d/d reflectance
         cols, pos = {}, 0
         for k in sorted(nl):
             n = int(np.size(nl[k]))
@@ -346,8 +400,8 @@ class CalibrationProblem(eqx.Module):
             dxdu = self.transform(k).derivative(uk)
             if k == "gain" and not self.zone_gain:
                 block = jnp.einsum("szb,st->szbt", R / sig, eye_s * dxdu[None, :]).reshape(S * Z * B, S)
-            elif k == "gain" or (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
-                part = {"gain": R, "crosstalk_counts": P}.get(k, jnp.ones_like(R))
+            elif k in ("gain", "end_reflectance") or (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
+                part = {"gain": R, "crosstalk_counts": P, "end_reflectance": E}.get(k, jnp.ones_like(R))
                 block = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z) * dxdu[None, None, None]
                 block = block.reshape(S * Z * B, S * Z)
             else:

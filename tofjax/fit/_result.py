@@ -214,6 +214,8 @@ def load_calibration(
         want = np.shape(getattr(base, k))
         if k == "gain" and v.shape == (S, Z):
             v = v.mean(-1)  # per-zone gains: the sensor's K is their mean
+        if k == "end_reflectance" and v.shape == (S, Z):
+            v = np.clip(v.mean(), 0.0, 1.0)  # per-zone reflectances: the model's one is their mean
         if v.size == 1 and want != v.shape and np.prod(want, dtype=int) != 1:
             v = np.full(want, float(v.ravel()[0]))
         if k == "gain" and v.size != S:

@@ -63,6 +63,7 @@ __all__ = [
     "FitSolution",
     "PoissonDeviance",
     "RESULTS",
+    "base_params",
     "build_problem",
     "calibrate",
     "calibrate_many",
@@ -88,7 +89,15 @@ DEFAULT_FREE = (
     "emission_time_s",
     "interface_backscatter_per_m",
     "end_reflectance",
+    "near_field_m",
+    "pulse_slow_weight",
+    "pulse_slow_tail_s",
 )
+#: The second tail of the pulse: free only with ``pulse_tails = 2``.
+SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")
+#: Where a two-tail fit starts the slow tail when the scene states none (its share; its time
+#: constant starts at 4x the scene's tail, ``Params.from_scene``). Also the prior's centre.
+SLOW_WEIGHT_START = 0.1
 
 
 # ---- objectives ----------------------------------------------------------------------------
@@ -150,10 +159,26 @@ class FitConfig:
     - ``zone_gain``: the gain is free per (sensor, zone), profiled out like ambient and
       crosstalk (default: a real rig's zones differ by several per cent). False: one gain
       per sensor, as the scene states it.
+    - ``zone_end``: the far-edge reflectance free per (sensor, zone), profiled out like the
+      gain (needs ``zone_gain``; default off). A real edge reflects differently in each zone
+      (angle of incidence, polish); one shared reflectance makes the fit explain those
+      differences with attenuation, which biases mu_t (on the independent simulator, whose
+      edge reflectance goes with the cosine of incidence, by about +0.3 /m). Per-zone
+      reflectances remove that bias but also the edge returns' information on mu_t: a
+      baseline then barely pins mu_t below about 1 /m (own-data fits at 0.5 /m ended near 0),
+      so it is an option, not the default. The JSON then has one reflectance per zone;
+      ``Params.end_reflectance`` is their mean.
     - ``envelope``: start from the best point of an (n1, mu_t) grid of profiled
       chi-squares around the timing estimate (default); False: the timing start alone.
     - ``restarts``: further starts (the next best envelope points) when the fit fails or
       ends on a bound.
+    - ``pulse_tails``: 2 (default): the pulse has a second, slower tail whose share and time
+      constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``): a real SPAD's
+      response is not one exponentially modified Gaussian, and on data tofjax did not make a
+      one-tail pulse leaves a reduced chi-square of 20-46. 1: one tail (the slow-tail
+      parameters drop out of the default ``free``).
+    - ``restarts`` apply to refused fits too (reduced chi-square above ``max_reduced_chi2``):
+      another basin may describe the capture; the best result is kept.
     - ``quadrature``: model fidelity (time nodes per bin).
     - ``dtype``: ``float64`` (default) or ``float32`` for the model.
     - ``max_reduced_chi2``: above this the fit is refused (``converged = false``,
@@ -181,6 +206,7 @@ class FitConfig:
     gauss_newton_first: int = 10
     free: tuple[str, ...] = DEFAULT_FREE
     zone_gain: bool = True
+    zone_end: bool = False
     envelope: bool = True
     restarts: int = 3
     prior_width: float = 3.0
@@ -189,8 +215,18 @@ class FitConfig:
     quadrature: int = 2
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
+    pulse_tails: int = 2
 
     def __post_init__(self):
+        if self.pulse_tails not in (1, 2):
+            raise ConfigError(f"pulse_tails: must be 1 or 2, got {self.pulse_tails!r}")
+        if not isinstance(self.free, tuple):
+            object.__setattr__(self, "free", tuple(self.free))
+        if self.pulse_tails == 1:
+            if self.free == DEFAULT_FREE:
+                object.__setattr__(self, "free", tuple(k for k in DEFAULT_FREE if k not in SLOW_TAIL))
+            elif any(k in SLOW_TAIL for k in self.free):
+                raise ConfigError("free: pulse_slow_weight and pulse_slow_tail_s need pulse_tails = 2")
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver: must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss_tol < 0:
@@ -300,14 +336,25 @@ class FitSolution(NamedTuple):
 
 def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationProblem:
     """The calibration problem of ``scene`` (touches dropped) with ``config``'s free parameters."""
-    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype)
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails)
     if scene.noise.pile_up:
         raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
     base = scene.without_touches()
     model = build_model(base, options)
     return CalibrationProblem.build(
-        model, default_transforms(base), config.free, zone_gain=config.zone_gain, prior_width=config.prior_width
+        model, default_transforms(base), config.free, zone_gain=config.zone_gain, prior_width=config.prior_width,
+        zone_end=config.zone_end,
     )
+
+
+def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
+    """The scene's parameters as a fit sees them: the prior centre, the values of fixed
+    parameters and (timing aside) the start. A two-tail fit starts its slow tail at
+    :data:`SLOW_WEIGHT_START` when the scene states none (a zero share has no gradient)."""
+    base = Params.from_scene(scene, dtype)
+    if config.pulse_tails == 2 and float(base.pulse_slow_weight) == 0.0:
+        base = base.replace(pulse_slow_weight=SLOW_WEIGHT_START)
+    return base
 
 
 def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
@@ -425,7 +472,7 @@ def _on_bound(problem: CalibrationProblem, scene: Scene, params: Params, linear:
         out.append("emission_time_s")
     if "mu_s_per_m" in free and float(params.mu_s_per_m + params.mu_a_per_m) > 1e3:
         out.append("mu_s_per_m + mu_a_per_m")
-    if "end_reflectance" in free and float(params.end_reflectance) > 0.999:
+    if "end_reflectance" in free and not problem.zone_end and float(params.end_reflectance) > 0.999:
         out.append("end_reflectance")
     g = np.asarray(linear.get("gain", params.gain))
     if "gain" in free and np.mean(g <= 0) > 0.25:
@@ -531,7 +578,7 @@ def calibrate(
     _check_pair(solver, objective)
     dtype = problem.model.geometry.ray_length.dtype
     data, sigma = _data(capture, dtype, config.model_error)
-    base = Params.from_scene(scene, dtype)
+    base = base_params(scene, config, dtype)
     start, found = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
     anchor = _anchor(start, found, config, dtype)
     stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
@@ -557,8 +604,9 @@ def calibrate(
         )
         if best is None or _rank(res) < _rank(best):
             best = res
-        if res.result in ("successful", "refused_reduced_chi2"):
-            break  # a restart is for failures and bounds; a poor chi-square is the model's, not the start's
+        if res.result == "successful":
+            break
+        # a failure, a bound or a refused chi-square: the next start is another basin
     held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
     if held is not None:
         best = held
@@ -577,7 +625,10 @@ def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, f
     if abs(float(best.params.n1) / n1_t - 1) <= 0.1 * config.timing_anchor:
         return None
     cfg = dataclasses.replace(config, free=tuple(k for k in config.free if k != "n1"))
-    p2 = CalibrationProblem.build(problem.model, dict(problem.transforms), cfg.free, zone_gain=config.zone_gain, prior_width=config.prior_width)
+    p2 = CalibrationProblem.build(
+        problem.model, dict(problem.transforms), cfg.free, zone_gain=config.zone_gain, prior_width=config.prior_width,
+        zone_end=config.zone_end,
+    )
     s2 = best.params.replace(n1=n1_t)
     no_anchor = jnp.asarray([n1_t, np.inf], data.dtype)
     sol = jax.device_get(
@@ -609,7 +660,7 @@ def calibrate_many(
     solver, objective = config.make_solver(), config.make_objective()
     _check_pair(solver, objective)
     dtype = problem.model.geometry.ray_length.dtype
-    base = Params.from_scene(scene, dtype)
+    base = base_params(scene, config, dtype)
     pairs = [_data(c, dtype, config.model_error) for c in captures]
     timed = [timing_start(problem, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
     starts = [s for s, _ in timed]
@@ -650,7 +701,7 @@ class Calibrator:
 
     def base_params(self) -> Params:
         """The scene's own parameters: the prior centre and the values of fixed parameters."""
-        return Params.from_scene(self.scene, self.problem.model.geometry.ray_length.dtype)
+        return base_params(self.scene, self.config, self.problem.model.geometry.ray_length.dtype)
 
     def fit(self, capture: Capture) -> CalibrationResult:
         return calibrate(capture, self.config, scene=self.scene, problem=self.problem)

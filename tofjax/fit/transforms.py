@@ -79,6 +79,8 @@ FITTABLE = {
     "crosstalk_counts": "counts",
     "pulse_sigma_s": "s",
     "pulse_tail_s": "s",
+    "pulse_slow_weight": "",
+    "pulse_slow_tail_s": "s",
     "emission_time_s": "s",
     "interface_backscatter_per_m": "1/m",
     "end_reflectance": "",
@@ -101,6 +103,9 @@ def default_transforms(scene: Scene) -> dict[str, Transform]:
         "crosstalk_counts": Transform("log", scale=1000.0),
         "pulse_sigma_s": Transform("log", scale=sm.bin_width_s),
         "pulse_tail_s": Transform("log", scale=sm.bin_width_s),
+        # the slow tail's share stays below one half: the fast tail is the main one
+        "pulse_slow_weight": Transform("sigmoid", lo=0.0, hi=0.5),
+        "pulse_slow_tail_s": Transform("log", scale=sm.bin_width_s),
         "emission_time_s": Transform("sigmoid", lo=0.0, hi=window),
         "interface_backscatter_per_m": Transform("log", scale=1.0),
         "end_reflectance": Transform("sigmoid", lo=0.0, hi=1.0),

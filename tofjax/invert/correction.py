@@ -42,9 +42,9 @@ import numpy as np
 
 from ..config import ConfigError
 from ..errors import UserError
-from ..model.components import SPEED_OF_LIGHT_M_PER_S
 from ..model.geometry import Geometry
-from ..model.pulse import emg_cdf
+from ..model.params import speed_in_guide
+from ..model.pulse import binned_response
 from ..scene import Scene
 
 __all__ = [
@@ -82,6 +82,9 @@ class OpticalParams:
     pulse_tail_s: float
     near_field_m: float
     source: str = "scene"
+    # the second pulse tail of a two-tail calibration (share 0: one tail)
+    pulse_slow_weight: float = 0.0
+    pulse_slow_tail_s: float = 0.0
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "OpticalParams":
@@ -111,6 +114,8 @@ class OpticalParams:
             pulse_tail_s=float(params.pulse_tail_s),
             near_field_m=float(params.near_field_m),
             source=source,
+            pulse_slow_weight=float(params.pulse_slow_weight),
+            pulse_slow_tail_s=float(params.pulse_slow_tail_s),
         )
 
     @classmethod
@@ -143,19 +148,24 @@ class OpticalParams:
 
     @property
     def c1(self) -> float:
-        return SPEED_OF_LIGHT_M_PER_S / self.n1
+        return float(speed_in_guide(self.n1))
+
+    @property
+    def pulse_tails(self) -> int:
+        """2 where a calibration found a second, slow pulse tail."""
+        return 2 if self.pulse_slow_weight > 0 and self.pulse_slow_tail_s > 0 else 1
+
+    def binned_response(self, t, bin_width_s: float) -> np.ndarray:
+        """The pulse (one or two tails) integrated over a bin centred ``t`` after a point event."""
+        slow = (self.pulse_slow_weight, self.pulse_slow_tail_s) if self.pulse_tails == 2 else (0.0, None)
+        return binned_response(np.asarray(t, float), bin_width_s, self.pulse_sigma_s, self.pulse_tail_s, *slow)
 
     def response_delay_s(self, bin_width_s: float) -> float:
         """Where a point event's binned response peaks, after the event: the mode of the
-        exponentially modified Gaussian integrated over one bin. A map's maximum sits at that
+        pulse (one or two tails) integrated over one bin. A map's maximum sits at that
         mode, so this is the delay that puts it at the contact's range."""
         t = np.linspace(-3 * self.pulse_sigma_s, 6 * self.pulse_tail_s + 3 * self.pulse_sigma_s, 4001)
-        with jax.ensure_compile_time_eval():
-            binned = np.asarray(
-                emg_cdf(jnp.asarray(t + 0.5 * bin_width_s), self.pulse_sigma_s, self.pulse_tail_s)
-                - emg_cdf(jnp.asarray(t - 0.5 * bin_width_s), self.pulse_sigma_s, self.pulse_tail_s)
-            )
-        return float(t[np.argmax(binned)])
+        return float(t[np.argmax(self.binned_response(t, bin_width_s))])
 
 
 @dataclass(frozen=True)

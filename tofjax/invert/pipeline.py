@@ -108,14 +108,9 @@ class ProcessResult:
 def _unit_peak(optical: OpticalParams, bin_width_s: float, delay_s: float) -> float:
     """Map value at a unit-strength point contact, averaged over its phase within a bin:
     the binned response, linearly interpolated at the peak delay."""
-    from ..model.pulse import emg_cdf
 
     def binned(t):
-        with jax.ensure_compile_time_eval():
-            return np.asarray(
-                emg_cdf(jnp.asarray(t + 0.5 * bin_width_s), optical.pulse_sigma_s, optical.pulse_tail_s)
-                - emg_cdf(jnp.asarray(t - 0.5 * bin_width_s), optical.pulse_sigma_s, optical.pulse_tail_s)
-            )
+        return optical.binned_response(t, bin_width_s)
 
     # Bin centres at (k - phase) * width after the event; interpolate at the delay.
     phase = np.linspace(0, 1, 16, endpoint=False)

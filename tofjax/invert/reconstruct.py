@@ -100,6 +100,8 @@ def _params_with_optics(scene: Scene, optical: OpticalParams, dtype) -> Params:
         pulse_sigma_s=optical.pulse_sigma_s,
         pulse_tail_s=optical.pulse_tail_s,
         near_field_m=optical.near_field_m,
+        **({"pulse_slow_weight": optical.pulse_slow_weight, "pulse_slow_tail_s": optical.pulse_slow_tail_s}
+           if optical.pulse_tails == 2 else {}),
     )
 
 
@@ -119,7 +121,7 @@ def response_matrix(
     """
     base = scene.without_touches()
     proto = base.replace(touches=(Touch((0.15, 0.15), radius_m, 1.0),))
-    opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32")
+    opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32", pulse_tails=optical.pulse_tails)
     comps = tuple(c for c in proto.components() if c != "touch") if shadow else ("touch",)
     if shadow and "shadowing" not in comps:
         return np.zeros((len(centres), *scene.shape))

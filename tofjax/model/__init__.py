@@ -8,5 +8,6 @@ from .forward import pile_up as pile_up
 from .geometry import Geometry as Geometry
 from .noise import sample_counts as sample_counts
 from .params import Params as Params
+from .params import speed_in_guide as speed_in_guide
 from .pulse import emg_cdf as emg_cdf
 from .pulse import emg_pdf as emg_pdf

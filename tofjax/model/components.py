@@ -30,9 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from .geometry import Geometry
-from .params import Params
-
-SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
+from .params import SPEED_OF_LIGHT_M_PER_S, Params
 
 __all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "make_nodes", "falloff", "transmittance"]
 
@@ -51,7 +49,7 @@ def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes
     dtype = params.n1.dtype
     h = jnp.asarray(bin_width_s / q, dtype)
     t = (jnp.arange(n_bins * q, dtype=dtype) + 0.5) * h
-    c1 = SPEED_OF_LIGHT_M_PER_S / params.n1
+    c1 = params.c1
     return Nodes(t=t, h=h, r=0.5 * c1 * (t - params.emission_time_s), dr=0.5 * c1 * h, c1=c1)
 
 

@@ -30,6 +30,8 @@ class ModelOptions:
       as ``1/quadrature^2``.
     - ``angles_per_zone``: rays per zone for the far-edge distance and range truncation.
     - ``touch_samples``: range samples across each contact disk.
+    - ``pulse_tails``: 1 (an exponentially modified Gaussian, the default) or 2 (a second,
+      slower tail: ``Params.pulse_slow_weight``, ``Params.pulse_slow_tail_s``).
     - ``dtype``: ``"float64"`` (needs ``jax_enable_x64``, see :func:`tofjax.enable_x64`) or ``"float32"``.
     - ``optics``: ``"default"`` (seed 000's Eq. 4-5: in-plane light at ``c / n1``, ``1/r^2``) or
       ``"guided"`` (:mod:`tofjax.model.guided`: elevations inside the slab, ``1/r`` slab
@@ -49,6 +51,7 @@ class ModelOptions:
     elevations: int = 8
     aperture_m: float = 1e-3
     skin: Any = None
+    pulse_tails: int = 1
 
     def __post_init__(self):
         for k in ("quadrature", "angles_per_zone", "touch_samples", "elevations"):
@@ -67,6 +70,8 @@ class ModelOptions:
                 raise ConfigError(f"skin: expected a SkinContact or None, got {type(self.skin).__name__}")
             if self.optics != "guided":
                 raise ConfigError("skin: only with optics='guided' (the default optics keep the free touch strength)")
+        if self.pulse_tails not in (1, 2):
+            raise ConfigError(f"pulse_tails: must be 1 or 2, got {self.pulse_tails!r}")
 
     @property
     def jnp_dtype(self):
@@ -174,7 +179,8 @@ class ForwardModel(eqx.Module):
 
     def _apply_pulse(self, masses, params: Params):
         q = self.options.quadrature
-        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, params.pulse_sigma_s, params.pulse_tail_s, params.n1.dtype)
+        slow = (params.pulse_slow_weight, params.pulse_slow_tail_s) if self.options.pulse_tails == 2 else (None, None)
+        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, params.pulse_sigma_s, params.pulse_tail_s, params.n1.dtype, *slow)
         return apply_kernels(masses, kernels, self.n_bins, q)
 
     def _finish(self, binned, params: Params):
@@ -190,21 +196,27 @@ class ForwardModel(eqx.Module):
         total = sum(masses.values()) if masses else jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
         return self._finish(self._apply_pulse(total, params), params)
 
-    def linear_parts(self, params: Params) -> tuple[jax.Array, jax.Array]:
+    def linear_parts(self, params: Params, separate_end: bool = False) -> tuple[jax.Array, ...]:
         """The model as ``gain[s] * R + crosstalk[s, z] * P + ambient[s, z]`` (no pile-up):
         returns ``R`` (everything proportional to K, at unit gain) and ``P`` (the light-entry
         peak of unit size), both (sensors, zones, bins). Calibration profiles the linear
-        parameters out with these."""
+        parameters out with these. With ``separate_end``: ``(R - E, P, E)``, ``E`` the far-edge
+        return at unit gain and unit reflectance (so it can be scaled per zone)."""
         if self.pile_up:
             raise ValueError("with pile-up the model is not linear in gain, crosstalk and ambient")
         S, Z, B = self.shape
         unit = params.replace(gain=jnp.ones_like(params.gain), crosstalk_counts=jnp.ones_like(params.crosstalk_counts))
+        if separate_end:
+            unit = unit.replace(end_reflectance=1.0)
         masses = self._node_masses(unit)
         zero = jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
         cross = masses.pop("crosstalk", zero)
+        parts = [cross]
+        if separate_end:
+            parts.append(masses.pop("end", zero))
         rest = sum(masses.values()) if masses else zero
-        binned = self._apply_pulse(jnp.stack([rest, cross]), params)
-        return binned[0], binned[1]
+        binned = self._apply_pulse(jnp.stack([rest] + parts), params)
+        return tuple(binned[i] for i in range(len(parts) + 1))
 
     def breakdown(self, params: Params) -> dict[str, jax.Array]:
         """Each component's contribution in counts per bin (before pile-up), for plots and pruning."""

@@ -16,7 +16,16 @@ from jaxtyping import Array, Float
 from ..errors import UserError
 from ..scene import Scene
 
-__all__ = ["Params", "ParamsError"]
+__all__ = ["Params", "ParamsError", "SPEED_OF_LIGHT_M_PER_S", "speed_in_guide"]
+
+SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
+
+
+def speed_in_guide(n1):
+    """Speed of light in the waveguide, ``c / n1`` (m/s): the one place it is computed (the
+    model's components, the inversion's time-to-range conversion and the fit's timing start
+    all call this). Works on floats, NumPy and JAX values alike."""
+    return SPEED_OF_LIGHT_M_PER_S / n1
 
 
 class ParamsError(UserError):
@@ -32,6 +41,8 @@ _RANGES = (
     ("gain", 0.0, np.inf, True),
     ("pulse_sigma_s", 0.0, np.inf, False),
     ("pulse_tail_s", 0.0, np.inf, False),
+    ("pulse_slow_weight", 0.0, 1.0, True),
+    ("pulse_slow_tail_s", 0.0, np.inf, False),
     ("emission_time_s", -np.inf, np.inf, True),
     ("crosstalk_counts", 0.0, np.inf, True),
     ("ambient_counts", 0.0, np.inf, True),
@@ -66,6 +77,10 @@ class Params(eqx.Module):
     gain: Float[Array, " S"]  # K of Eq. 3, counts m^2
     pulse_sigma_s: Float[Array, ""]
     pulse_tail_s: Float[Array, ""]
+    # the second, slower tail of a two-tail pulse (ModelOptions.pulse_tails = 2): a share
+    # ``pulse_slow_weight`` of each return decays with ``pulse_slow_tail_s`` instead
+    pulse_slow_weight: Float[Array, ""]
+    pulse_slow_tail_s: Float[Array, ""]
     emission_time_s: Float[Array, ""]
     crosstalk_counts: Float[Array, "S Z"]
     ambient_counts: Float[Array, "S Z"]
@@ -129,6 +144,9 @@ class Params(eqx.Module):
             gain=f(scene.gains()),
             pulse_sigma_s=f(sm.pulse_sigma_s),
             pulse_tail_s=f(sm.pulse_tail_s),
+            # a scene states one tail; the slow one starts switched off, 4x the fast one
+            pulse_slow_weight=f(0.0),
+            pulse_slow_tail_s=f(4.0 * sm.pulse_tail_s),
             emission_time_s=f(sm.emission_time),
             crosstalk_counts=jnp.full((S, Z), sm.crosstalk_counts, dtype),
             ambient_counts=jnp.full((S, Z), sm.ambient_counts, dtype),
@@ -142,6 +160,11 @@ class Params(eqx.Module):
             touch_radius_m=f(el[:, 2]),
             touch_strength=f(el[:, 3]),
         )
+
+    @property
+    def c1(self):
+        """Speed of light in the waveguide, m/s (:func:`speed_in_guide`)."""
+        return speed_in_guide(self.n1)
 
     @property
     def n_touches(self) -> int:

@@ -15,6 +15,8 @@ __all__ = [
     "emg_cdf",
     "emg_pdf",
     "emg_mixture_cdf",
+    "pulse_cdf",
+    "binned_response",
     "bin_kernels",
     "apply_kernels",
     "template_cdf",
@@ -72,6 +74,30 @@ def emg_mixture_cdf(x, weights, sigmas, taus, delays, floor=0.0):
     return jnp.sum(w * emg_cdf(x - jnp.asarray(delays), jnp.asarray(sigmas), jnp.asarray(taus), floor), axis=-1)
 
 
+def pulse_cdf(x, sigma, tau, slow_weight=0.0, slow_tau=None, floor=0.0):
+    """CDF of the model's pulse: one EMG, or with ``slow_weight > 0`` the two-tail pulse
+    ``(1 - w) EMG(sigma, tau) + w EMG(sigma, slow_tau)`` (a Gaussian convolved with two
+    exponential tails, the second slower: what a real SPAD's diffusion tail looks like)."""
+    fast = emg_cdf(x, sigma, tau, floor)
+    if slow_tau is None:
+        return fast
+    return (1.0 - slow_weight) * fast + slow_weight * emg_cdf(x, sigma, slow_tau, floor)
+
+
+def binned_response(t, bin_width_s, sigma, tau, slow_weight=0.0, slow_tau=None):
+    """The pulse integrated over a bin centred ``t`` after a point event (NumPy in, NumPy out;
+    for the inversion's response delay and unit peak)."""
+    import jax
+    import numpy as np
+
+    with jax.ensure_compile_time_eval():
+        t = jnp.asarray(t)
+        return np.asarray(
+            pulse_cdf(t + 0.5 * bin_width_s, sigma, tau, slow_weight, slow_tau)
+            - pulse_cdf(t - 0.5 * bin_width_s, sigma, tau, slow_weight, slow_tau)
+        )
+
+
 def template_cdf(u, pdf, start, step):
     """CDF of an empirical instrument response at ``u`` (any shape, same units as ``step``).
 
@@ -109,7 +135,7 @@ def template_bin_masses(shift_bins, pdf, start_bins, step_bins, n_bins, edges=No
     return c[..., 1:] - c[..., :-1]
 
 
-def bin_kernels(node_h, n_bins, q, sigma, tau, dtype):
+def bin_kernels(node_h, n_bins, q, sigma, tau, dtype, slow_weight=None, slow_tau=None):
     """Bin-integrated pulse for unit mass at each node phase: (q, 2 n_bins - 1).
 
     Nodes sit at ``(k + 1/2) h`` (``h = bin_width / q``) and bin ``b`` spans
@@ -117,6 +143,8 @@ def bin_kernels(node_h, n_bins, q, sigma, tau, dtype):
     ``kernel[j, b - b' + n_bins - 1]`` counts per unit mass to bin ``b``: the
     difference of the pulse CDF at the bin's two edges, i.e. exact bin
     integration of the pulse. Only ``q (2 n_bins)`` CDF values are computed.
+
+    With ``slow_weight`` and ``slow_tau`` the pulse has two tails (:func:`pulse_cdf`).
     """
     n = jnp.arange(-(n_bins - 1), n_bins + 1, dtype=dtype)  # bin offsets b - b', one extra edge
     j = jnp.arange(q, dtype=dtype)[:, None]
@@ -127,7 +155,11 @@ def bin_kernels(node_h, n_bins, q, sigma, tau, dtype):
     # (a smooth max keeps this differentiable), so errors fall faster with q.
     s2 = sig**2 - 0.25
     sig_k = jnp.sqrt(0.5 * (s2 + jnp.sqrt(s2**2 + 0.0625**2)))
-    edges = emg_cdf(n * q - j - 0.5, sig_k, tail, floor=1e-3)  # (q, 2 n_bins)
+    x = n * q - j - 0.5
+    edges = emg_cdf(x, sig_k, tail, floor=1e-3)  # (q, 2 n_bins)
+    if slow_weight is not None:
+        slow = emg_cdf(x, sig_k, slow_tau / node_h, floor=1e-3)
+        edges = (1.0 - slow_weight) * edges + slow_weight * slow
     return edges[:, 1:] - edges[:, :-1]
 
 
