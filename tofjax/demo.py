@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from .capture import write_capture
-from .model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
+from .model import ModelOptions, Params, build_model, speed_in_guide
 from .outputs import atomic_write_text
 from .plot import plot_capture, plot_components, plot_scene
 from .scene import Scene, Touch, default_scene
@@ -87,7 +87,7 @@ def run_demo(
         "",
         "contacts: strongest zone, signal over baseline (expected counts) and its peak bin",
     ]
-    c1 = SPEED_OF_LIGHT_M_PER_S / wg.n1
+    c1 = speed_in_guide(wg.n1)
     t0 = sm.emission_time
     for j, t in enumerate(touch_scene.touches):
         single = build_model(base_scene.replace(touches=(t,)), opts)

@@ -60,7 +60,7 @@ from jax.sharding import PartitionSpec as P
 
 from ..config import ConfigError
 from ..errors import UserError
-from ..model.components import SPEED_OF_LIGHT_M_PER_S
+from ..model.params import speed_in_guide
 from ..model.pulse import apply_kernels, bin_kernels
 from ..scene import Scene
 from .contact import SkinContact
@@ -322,7 +322,7 @@ class _Static:
         self.q = opts.quadrature
         self.K = self.B * self.q
         n1 = float(wg.n1)
-        c1 = SPEED_OF_LIGHT_M_PER_S / n1
+        c1 = speed_in_guide(n1)
         h = float(sm.bin_width_s) / self.q
         t_e = float(sm.emission_time)
         el = scene.contact_elements()
