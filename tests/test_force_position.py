@@ -18,7 +18,7 @@ from tofjax.force.forest import (
     forest_predict_numpy,
     forest_to_arrays,
 )
-from tofjax.force.generate import Protocol, generate, simulate_session
+from tofjax.force.generate import Protocol, simulate_session
 from tofjax.force.train import load_predictor, run_config_from_dict, train
 
 FAST = dict(velocities_mm_s=(5.0,), train_forces_n=(20.0, 50.0), hold_s=1.0, rest_s=0.5, baseline_s=1.0)
