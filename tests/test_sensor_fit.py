@@ -88,6 +88,40 @@ def test_saturated_frames_are_named_and_left_out():
     assert 2 not in model.report["frames"]
 
 
+def test_second_order_shape_drift_round_trip_and_range(tmp_path):
+    """A model whose pulse changes shape to second order with distance (the default fit on real
+    data): the file keeps it, the expected counts use it, and ranging inverts it."""
+    from tofjax.sensor import load_sensor_model
+
+    truth = _truth_model()
+    K = truth.pulse.shape[1]
+    x = np.linspace(-1, 1, K)
+    bump = np.exp(-((x - 0.1) / 0.1) ** 2)
+    d1 = bump - bump.mean() * (x + 1.1 > 0)  # zero area on the knots (trapezoid, to the penalty's precision)
+    terms = np.stack([0.03 * d1, 0.02 * np.roll(d1, 4)])[None]  # (Z=1, order 2, K)
+    m = SensorResponse(**{**truth.__dict__, "pulse_drift": terms})
+    assert m.drift_order == 2 and m.drift_terms(0).shape == (2, K)
+    back = load_sensor_model(m.save(tmp_path / "d2.json"))
+    assert back.drift_order == 2
+    d = np.array([0.06, 0.3])
+    lam = expected_counts(back, d)
+    np.testing.assert_allclose(lam, expected_counts(m, d))
+    assert np.abs(lam - expected_counts(truth, d)).max() > 1.0  # the drift does change the shape
+    res = range_histograms(back, lam)
+    np.testing.assert_allclose(res["distance_m"][:, 0], d, atol=2e-5)
+    bad = {**m.to_json(), "pulse_drift": np.zeros((1, 2, K + 1)).tolist()}
+    with pytest.raises(SensorModelError, match="pulse_drift .* does not match the pulse"):
+        SensorResponse.from_json(bad)
+
+
+def test_range_refuses_saturated_histograms(synthetic):
+    _, model, _, _ = synthetic
+    h = np.round(expected_counts(model, [0.1, 0.2, 0.3]))
+    h[1, 0, 30] = 2**24 - 1
+    with pytest.raises(SensorModelError, match=r"^frame 1 has saturated bins \(a count of 2\^24 - 1\)[^\n]*$"):
+        range_histograms(model, h)
+
+
 def test_model_file_round_trip(tmp_path, synthetic):
     from tofjax.sensor import load_sensor_model
 
