@@ -158,7 +158,7 @@ def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
         d = np.diag(A).copy()
         d[d <= 0] = 1.0
         improved = False
-        for _ in range(12):
+        for _ in range(40):  # up to lam * 4^40: far from the minimum a tiny (gradient) step may be all that helps
             try:
                 step = -np.linalg.solve(A + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
