@@ -301,6 +301,24 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift
     }
 
 
+def centroid_offset(pulse, drift, shift, start, step):
+    """How far the centroid of the drifted pulse ``P0 + a P1 + a^2 P2 ...`` lies from that of
+    ``P0`` (bins; ``a = (shift - 28) / 10``), per frame; zeros without a drift."""
+    shift = np.asarray(shift, float)
+    if drift is None:
+        return np.zeros_like(shift)
+    from .response import SHAPE_REF_BINS, SHAPE_SCALE_BINS
+
+    u = start + step * np.arange(len(pulse))
+    a = (shift - SHAPE_REF_BINS) / SHAPE_SCALE_BINS
+    terms = np.atleast_2d(drift)
+    p = pulse[None, :] + sum(a[:, None] ** (k + 1) * terms[k][None, :] for k in range(len(terms)))
+    def trap(y):  # the integral over the knots (np.trapezoid is numpy >= 2 only)
+        return np.sum(0.5 * (y[..., 1:] + y[..., :-1]), axis=-1) * step
+
+    return trap(u * p) / trap(p) - trap(u * pulse) / trap(pulse)
+
+
 def _parameter_count(options, F, Z, K, walk, echo):
     """How many numbers the model has: what every capture shares, and what each capture sets."""
     per_zone = {
@@ -382,7 +400,12 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         a, b, *_ = line_fit(ds, peaks[:, z])
         shift0 = a + b * ds
         res = fit_pulse(hs[:, z], shift0, options, zero_shift=a)
-        t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], res["shift"][line_sel])
+        # With a shape drift the pulse's origin is not a time (a drift term can move the pulse as
+        # well as reshape it): the line goes through each frame's pulse centroid instead.
+        pos = res["shift"] + centroid_offset(res["pulse"], res["drift"], res["shift"], res["start"], res["step"])
+        t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], pos[line_sel])
+        if z == (grid[0] // 2) * grid[1] + grid[1] // 2:
+            origin_slope = line_fit(ds[line_sel], res["shift"][line_sel])[1]
         pa, pb, pa_se, pb_se, prms = line_fit(ds[line_sel], peaks[line_sel, z])
         gain = res["amplitude"] * ds**2
         walk = None
@@ -423,6 +446,8 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         "bin_width_from_peak_line_s": w_peak,
         "bin_width_from_peak_line_se_s": w_peak * peak_slope_se / peak_slope,
         "bin_width_relative_difference": w / w_peak - 1.0,
+        # the same line through the pulse's origin instead of its centroid (they differ with a shape drift)
+        "bin_width_from_pulse_origin_s": 2.0 / (C_AIR * origin_slope),
         "centre_zone": centre,
         "line_distances_m": [float(ds[line_sel].min()), float(ds[line_sel].max())],
         "zero_range_s": None,  # filled below from the model (the pulse peak at zero range)
