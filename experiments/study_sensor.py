@@ -127,6 +127,7 @@ def main(argv=None) -> dict:
             "bin_width_from_peak_line_s": r["bin_width_from_peak_line_s"],
             "bin_width_from_peak_line_se_s": r["bin_width_from_peak_line_se_s"],
             "bin_width_relative_difference": r["bin_width_relative_difference"],
+            "bin_width_from_pulse_origin_s": r.get("bin_width_from_pulse_origin_s"),
             "zero_range_s": r["zero_range_s"],
             "pulses_per_histogram": r["pulses_per_histogram"],
             "path_scale": r["path_scale"],
