@@ -11,9 +11,11 @@ Real data (80 captures of a flat plane at 5-400 mm, `../shared/data/tmf8820-plan
    per frame; the bin width from the pulse fit and from a straight line through the raw
    peak times (100-400 mm), with standard errors.
 
-Writes ``study_sensor.json`` and figures to ``--out`` (default ``out/study_sensor``)::
+Writes the figures and both sensor models to ``--out`` (default ``out/study_sensor``) and the
+figures' numbers to ``--json`` (default ``docs/results/sensor_study.json``; ``--overwrite`` to
+replace it)::
 
-    python experiments/study_sensor.py --data ../shared/data/tmf8820-plane-sweep/captures.json
+    python experiments/study_sensor.py --data ../shared/data/tmf8820-plane-sweep/captures.json --overwrite
 """
 
 from __future__ import annotations
@@ -31,7 +33,10 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default="../shared/data/tmf8820-plane-sweep/captures.json")
     p.add_argument("--out", default="out/study_sensor")
-    p.add_argument("--knots-per-bin", type=int, default=8)
+    p.add_argument("--json", default="docs/results/sensor_study.json", help="the results (JSON)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json")
+    p.add_argument("--knots-per-bin", type=int, default=4)
+    p.add_argument("--drift-order", type=int, default=2, help="order of the pulse's shape drift (default 2)")
     p.add_argument("--max-iterations", type=int, default=40)
     p.add_argument("--skip-full", action="store_true", help="only the held-out part")
     p.add_argument("--no-drift", action="store_true", help="a fixed pulse shape (no first-order change with position)")
@@ -44,20 +49,23 @@ def main(argv=None) -> dict:
     from tofjax.sensor import SensorFitOptions, fit_sensor, range_histograms, read_tmf882x_json
     from tofjax.sensor.plots import plot_sensor_fit
 
+    from tofjax.outputs import atomic_write_text, check_output
+
     tofjax.enable_x64()
+    check_output(a.json, overwrite=a.overwrite, inputs=[a.data], flag="--json")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     fr = read_tmf882x_json(a.data)
     H, D = fr.histograms, fr.target_distance_m
     onchip = fr.onchip_distance_m
     opts = SensorFitOptions(knots_per_bin=a.knots_per_bin, max_iterations=a.max_iterations, shape_drift=not a.no_drift,
-                            echo=not a.no_echo)
+                            drift_order=a.drift_order, echo=not a.no_echo)
     sel = np.flatnonzero((D >= 0.04 - 1e-9) & (D <= 0.40 + 1e-9))
     train, test = sel[::2], sel[1::2]
     result = {
         "data": str(a.data),
         "data_kind": "real (TMF8820 plane sweep, MIT licence)",
-        "machine": f"{platform.machine()} {platform.system()}, 2-core shared VM, CPU only; jax {jax.__version__}",
+        "machine": f"{platform.machine()} {platform.system()}, 2-core shared VM (loaded by other jobs), CPU only; jax {jax.__version__}",
         "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__},
     }
 
@@ -119,17 +127,21 @@ def main(argv=None) -> dict:
             "bin_width_from_peak_line_s": r["bin_width_from_peak_line_s"],
             "bin_width_from_peak_line_se_s": r["bin_width_from_peak_line_se_s"],
             "bin_width_relative_difference": r["bin_width_relative_difference"],
+            "bin_width_from_pulse_origin_s": r.get("bin_width_from_pulse_origin_s"),
             "zero_range_s": r["zero_range_s"],
             "pulses_per_histogram": r["pulses_per_histogram"],
             "path_scale": r["path_scale"],
             "reference_median_reduced_chi2": r["reference_median_reduced_chi2"],
+            "median_reduced_chi2_40_95mm": float(np.median(np.asarray(r["frame_reduced_chi2"])[np.asarray(r["distances_m"]) < 0.0955])),
+            "median_reduced_chi2_100_400mm": float(np.median(np.asarray(r["frame_reduced_chi2"])[np.asarray(r["distances_m"]) > 0.0955])),
+            "parameters": r["parameters"],
         }
         full.save(out / "sensor.json")
         plot_sensor_fit(full, fdet, out)
         print(f"full: median reduced chi2 {r['median_reduced_chi2']:.2f}; bin width {r['bin_width_s'] * 1e12:.2f} +- "
               f"{r['bin_width_se_s'] * 1e12:.2f} ps, peak line {r['bin_width_from_peak_line_s'] * 1e12:.2f} ps")
-    (out / "study_sensor.json").write_text(json.dumps(result, indent=1))
-    print(f"wrote {out / 'study_sensor.json'}")
+    atomic_write_text(a.json, json.dumps(result, indent=1))
+    print(f"wrote {a.json}")
     return result
 
 
@@ -150,8 +162,9 @@ def _plot_heldout(h, d_test, path):
     ax.set_title("centre zone, real TMF8820, model fitted on the other distances", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from tofjax.outputs import save_figure
+
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

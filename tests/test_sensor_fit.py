@@ -60,6 +60,9 @@ def test_fit_recovers_a_known_sensor(synthetic):
     assert abs(r["pulses_per_histogram"][0] / 3e6 - 1) < 0.3
     # the zero-range time of the pulse peak, not of the pulse's arbitrary origin
     assert abs(model.zero_range_s()[0] / truth.zero_range_s()[0] - 1) < 0.01
+    n = r["parameters"]  # a fixed shape: knots, pile-up, line, echo law shared; 4 numbers per capture and zone
+    assert n["shared_per_zone"]["shape_drift_knots"] == 0 and n["per_capture_per_zone"] == 4
+    assert n["fitted_total"] == n["shared_total"] + 4 * len(r["frames"])
 
 
 def test_range_on_fresh_noise(synthetic):
@@ -78,14 +81,51 @@ def test_single_distance_is_an_error():
         fit_sensor(lam, np.full(4, 0.2), FAST)
 
 
-def test_saturated_frames_are_named_and_left_out():
+def test_saturated_frames_are_named_and_left_out(synthetic):
+    from tofjax.sensor.importer import DroppedFramesWarning
+
     truth = _truth_model()
-    d = np.linspace(0.05, 0.35, 5)
+    # the synthetic fit's 14 distances plus one saturated frame: the fit left has the same shapes
+    # (its compiled problem is reused)
+    d = np.insert(np.linspace(0.05, 0.35, 14), 2, 0.1)
     lam = expected_counts(truth, d)
     lam[2, 0, 20] = 2**24 - 1
-    with pytest.warns(UserWarning, match="frames 2 have saturated bins"):
+    with pytest.warns(DroppedFramesWarning, match="frames 2 have saturated bins"):
         model, _ = fit_sensor(np.round(lam), d, FAST)
-    assert 2 not in model.report["frames"]
+    assert 2 not in model.report["frames"] and len(model.report["frames"]) == 14
+
+
+def test_second_order_shape_drift_round_trip_and_range(tmp_path):
+    """A model whose pulse changes shape to second order with distance (the default fit on real
+    data): the file keeps it and the expected counts use it."""
+    from tofjax.sensor import load_sensor_model
+
+    truth = _truth_model()
+    K = truth.pulse.shape[1]
+    x = np.linspace(-1, 1, K)
+    bump = np.exp(-((x - 0.1) / 0.1) ** 2)
+    d1 = bump - bump.mean() * (x + 1.1 > 0)  # zero area on the knots (trapezoid, to the penalty's precision)
+    terms = np.stack([0.03 * d1, 0.02 * np.roll(d1, 4)])[None]  # (Z=1, order 2, K)
+    m = SensorResponse(**{**truth.__dict__, "pulse_drift": terms})
+    assert m.drift_order == 2 and m.drift_terms(0).shape == (2, K)
+    back = load_sensor_model(m.save(tmp_path / "d2.json"))
+    assert back.drift_order == 2
+    d = np.array([0.06, 0.3])
+    lam = expected_counts(back, d)
+    np.testing.assert_allclose(lam, expected_counts(m, d))
+    assert np.abs(lam - expected_counts(truth, d)).max() > 1.0  # the drift does change the shape
+    # (ranging with a second-order drift: test_study_sensor_runs_on_the_slice, marked slow)
+    bad = {**m.to_json(), "pulse_drift": np.zeros((1, 2, K + 1)).tolist()}
+    with pytest.raises(SensorModelError, match="pulse_drift .* does not match the pulse"):
+        SensorResponse.from_json(bad)
+
+
+def test_range_refuses_saturated_histograms(synthetic):
+    _, model, _, _ = synthetic
+    h = np.round(expected_counts(model, [0.1, 0.2, 0.3]))
+    h[1, 0, 30] = 2**24 - 1
+    with pytest.raises(SensorModelError, match=r"^frame 1 has saturated bins \(a count of 2\^24 - 1\)[^\n]*$"):
+        range_histograms(model, h)
 
 
 def test_model_file_round_trip(tmp_path, synthetic):
@@ -213,3 +253,26 @@ def test_simulated_and_emulated_histograms_come_from_the_fitted_model(tmp_path, 
     zones = emu.last_frame[0]
     assert zones.shape == (9, 128) and counts.max() > 0
     assert np.all(np.abs(range_histograms(truth, zones[None].astype(float))["distance_m"] - 0.15) < 1e-3)
+
+
+@pytest.mark.slow
+def test_study_sensor_runs_on_the_slice(tmp_path):
+    """experiments/study_sensor.py end to end on the 8-capture slice (a few iterations): it writes
+    its JSON (held out and full parts, the parameter count) and refuses to overwrite it."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("study_sensor", Path(__file__).parents[1] / "experiments" / "study_sensor.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "r.json"
+    argv = ["--data", str(DATA), "--out", str(tmp_path / "o"), "--json", str(out), "--max-iterations", "3", "--knots-per-bin", "2"]
+    res = mod.main(argv)
+    back = json.loads(out.read_text())
+    assert back["held_out"]["centre_range_std_m"] == res["held_out"]["centre_range_std_m"] > 0
+    assert back["full"]["parameters"]["shared_per_zone"]["shape_drift_knots"] == 2 * back["full"]["parameters"]["shared_per_zone"]["pulse_knots"]
+    assert "real" in back["data_kind"] and "2-core" in back["machine"]
+    assert np.isfinite(back["held_out"]["centre_range_errors_m"]).all()  # ranging with the second-order drift
+    from tofjax.outputs import OutputError
+
+    with pytest.raises(OutputError):
+        mod.main(argv)

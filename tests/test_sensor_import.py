@@ -71,6 +71,20 @@ def test_json_saturated_bins_dropped(tmp_path, entries):
         assert read_tmf882x_json(p).n_frames == 2
 
 
+def test_cli_names_dropped_frames_on_stderr(tmp_path, entries, capsys):
+    """`tofjax import` exits 0, and the warning goes to stderr in one line, named by its class."""
+    bad = [dict(e) for e in entries[:3]]
+    bad[1]["hists"] = [list(r) for r in bad[1]["hists"]]
+    bad[1]["hists"][0][30] = 2**24 - 1
+    p = tmp_path / "sat.json"
+    p.write_text(json.dumps(bad))
+    assert main(["import", str(p), "--format", "tmf882x-json", "--out", str(tmp_path / "c.h5")]) == 0
+    out, err = capsys.readouterr()
+    lines = [line for line in err.splitlines() if "warning" in line]
+    assert len(lines) == 1 and "warning: DroppedFramesWarning:" in lines[0] and "dropped frame 1: saturated bins" in lines[0]
+    assert "warning" not in out and "1 frames dropped" in out
+
+
 def _log_lines(counts, obj_distances_mm, result_number=0):
     """One frame of an Arduino log from (10, 128) counts: 30 #Raw packets and one #Obj line."""
     c = np.asarray(counts, np.int64)

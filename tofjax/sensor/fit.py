@@ -45,7 +45,9 @@ class SensorFitOptions:
     - ``walk_degree``: degree of the range-walk polynomial (position minus the straight line
       against distance, fitted over every fitted frame); -1: none.
     - ``echo``: model the double bounce (target -> sensor cover -> target) at twice the distance.
-    - ``shape_drift``: let the pulse's shape change (to first order) with its position.
+    - ``shape_drift``, ``drift_order``: let the pulse's shape change with its position, as a
+      polynomial of order ``drift_order`` (one learned shape per order, each with zero area
+      and the same curvature penalty; the real sweep's strongest returns need order 2).
     - ``dnl``: also fit each bin's edges (time-to-digital converter non-linearity).
     - ``max_iterations``: Levenberg-Marquardt steps per zone.
     """
@@ -61,6 +63,7 @@ class SensorFitOptions:
     walk_degree: int = 4
     dnl: bool = False
     shape_drift: bool = True
+    drift_order: int = 2
     echo: bool = True
     max_iterations: int = 60
 
@@ -69,6 +72,13 @@ class SensorFitOptions:
             raise SensorModelError(f"min_distance_m, max_distance_m: need 0 <= min < max, got {self.min_distance_m}, {self.max_distance_m}")
         if self.knots_per_bin < 1 or self.pulse_bins <= 2:
             raise SensorModelError("knots_per_bin must be >= 1 and pulse_bins > 2")
+        if not 1 <= self.drift_order <= 3:
+            raise SensorModelError(f"drift_order must be 1, 2 or 3, got {self.drift_order}")
+
+    @property
+    def order(self) -> int:
+        """The shape drift's order in effect (0: a fixed shape)."""
+        return self.drift_order if self.shape_drift else 0
 
 
 # ---- statistics ----------------------------------------------------------------------------
@@ -148,7 +158,7 @@ def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
         d = np.diag(A).copy()
         d[d <= 0] = 1.0
         improved = False
-        for _ in range(12):
+        for _ in range(40):  # up to lam * 4^40: far from the minimum a tiny (gradient) step may be all that helps
             try:
                 step = -np.linalg.solve(A + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
@@ -176,13 +186,13 @@ def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
 
 # ---- the per-zone joint fit ----------------------------------------------------------------
 @functools.lru_cache(maxsize=8)
-def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl, drift=False, echo=False):
+def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl, drift=0, echo=False):
     E = n_bins - 1 if dnl else 0
-    P0 = K + 1 + 3 * F + E  # where the drift knots start
-    Q0 = P0 + (K if drift else 0)  # where the per-frame echo amplitudes (log) start
+    P0 = K + 1 + 3 * F + E  # where the drift knots start (``drift`` blocks of K: its order)
+    Q0 = P0 + K * drift  # where the per-frame echo amplitudes (log) start
 
     def drift_of(th):
-        return th[P0 : P0 + K] if drift else None
+        return th[P0:Q0].reshape(drift, K) if drift else None
 
     def unpack(th):
         pdf = th[:K]
@@ -220,9 +230,9 @@ def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl, drift=False, ech
             extra.append(math.sqrt(smooth / step**3) * jnp.diff(pdf, 2) / jnp.max(jnp.abs(pdf)))
         if drift:
             dr = drift_of(th)
-            extra.append(jnp.atleast_1d(100.0 * step * (jnp.sum(dr) - 0.5 * (dr[0] + dr[-1]))))  # no area change
+            extra.append(100.0 * step * (jnp.sum(dr, -1) - 0.5 * (dr[:, 0] + dr[:, -1])))  # no area change
             if smooth > 0:
-                extra.append(math.sqrt(smooth / step**3) * jnp.diff(dr, 2) / jnp.max(jnp.abs(pdf)))
+                extra.append((math.sqrt(smooth / step**3) * jnp.diff(dr, 2, axis=-1) / jnp.max(jnp.abs(pdf))).ravel())
         return jnp.concatenate([r.ravel(), *extra])
 
     compiled = (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
@@ -252,9 +262,9 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift
     prof /= step * prof.sum()
     a0 = np.log(np.maximum(h.sum(1) - amb0 * B, 10.0))
     unpack, model, resid, edges, compiled = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl,
-                                                          options.shape_drift, options.echo and zero_shift is not None)
+                                                          options.order, options.echo and zero_shift is not None)
     th0 = np.concatenate([prof, [math.log(n_pulses0)], shift0, a0, amb0, np.zeros(B - 1 if options.dnl else 0),
-                          np.zeros(K if options.shape_drift else 0), np.log(np.exp(a0) * 1e-3) if options.echo and zero_shift is not None else []])
+                          np.zeros(K * options.order), np.log(np.exp(a0) * 1e-3) if options.echo and zero_shift is not None else []])
     w = np.ones(F)
     zs = jnp.asarray(0.0 if zero_shift is None else float(zero_shift))
     th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0), zs), max_iterations=options.max_iterations,
@@ -270,10 +280,10 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift
     infl = max(1.0, float(np.median(chi2)))
     se = np.sqrt(np.maximum(np.diag(cov), 0.0) * infl)
     P0 = K + 1 + 3 * F + (B - 1 if options.dnl else 0)
-    Q0 = P0 + (K if options.shape_drift else 0)
+    Q0 = P0 + K * options.order
     return {
         "echo": np.exp(th[Q0 : Q0 + F]) if options.echo and zero_shift is not None else None,
-        "drift": th[P0 : P0 + K] / area if options.shape_drift else None,
+        "drift": th[P0:Q0].reshape(options.order, K) / area if options.order else None,
         "pulse": pdf / area,
         "start": start,
         "step": step,
@@ -289,6 +299,55 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift
         "iterations": its,
         "converged": conv,
     }
+
+
+def centroid_offset(pulse, drift, shift, start, step):
+    """How far the centroid of the drifted pulse ``P0 + a P1 + a^2 P2 ...`` lies from that of
+    ``P0`` (bins; ``a = (shift - 28) / 10``), per frame; zeros without a drift."""
+    shift = np.asarray(shift, float)
+    if drift is None:
+        return np.zeros_like(shift)
+    from .response import SHAPE_REF_BINS, SHAPE_SCALE_BINS
+
+    u = start + step * np.arange(len(pulse))
+    a = (shift - SHAPE_REF_BINS) / SHAPE_SCALE_BINS
+    terms = np.atleast_2d(drift)
+    p = pulse[None, :] + sum(a[:, None] ** (k + 1) * terms[k][None, :] for k in range(len(terms)))
+    def trap(y):  # the integral over the knots (np.trapezoid is numpy >= 2 only)
+        return np.sum(0.5 * (y[..., 1:] + y[..., :-1]), axis=-1) * step
+
+    return trap(u * p) / trap(p) - trap(u * pulse) / trap(pulse)
+
+
+def _parameter_count(options, F, Z, K, walk, echo):
+    """How many numbers the model has: what every capture shares, and what each capture sets."""
+    per_zone = {
+        "pulse_knots": K,
+        "shape_drift_knots": K * options.order,
+        "pulses_per_histogram": 1 if options.pile_up else 0,
+        "zero_range_and_path_scale": 2,
+        "range_walk": options.walk_degree + 1 if walk else 0,
+        "echo_law": 2 if echo else 0,
+    }
+    shared_zone = sum(per_zone.values())
+    per_capture_zone = 3 + (1 if echo else 0)  # position, amplitude, floor (+ echo amplitude)
+    return {
+        "shared_per_zone": per_zone,
+        "shared_per_zone_total": shared_zone,
+        "shared_total": shared_zone * Z,
+        "per_capture_per_zone": per_capture_zone,
+        "per_capture_total": per_capture_zone * Z,
+        "fitted_total": (shared_zone + per_capture_zone * F) * Z,
+        "note": "the pulse knots are tied by a curvature penalty (fewer effective degrees of freedom); the reference "
+                "channel's own pulse is not counted",
+    }
+
+
+def _drift_array(terms):
+    """Per-zone drift terms (order, K) -> the model's ``pulse_drift``: (Z, K) for first order (the
+    layout older files have), (Z, order, K) above."""
+    a = np.stack(terms)
+    return a[:, 0] if a.shape[1] == 1 else a
 
 
 def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOptions(), *, reference=None,
@@ -321,7 +380,10 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
     if sat.any():
         import warnings
 
-        warnings.warn(f"frames {', '.join(map(str, np.flatnonzero(sat)))} have saturated bins (>= 2^24-1): left out of the fit", stacklevel=2)
+        from .importer import DroppedFramesWarning
+
+        warnings.warn(f"frames {', '.join(map(str, np.flatnonzero(sat)))} have saturated bins (>= 2^24-1): left out of the fit",
+                      DroppedFramesWarning, stacklevel=2)
     if len(np.unique(np.round(d[sel], 6))) < 3:
         raise SensorModelError(
             f"the bin width cannot be identified: {len(np.unique(np.round(d[sel], 6)))} distinct target distance(s) in "
@@ -338,7 +400,12 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         a, b, *_ = line_fit(ds, peaks[:, z])
         shift0 = a + b * ds
         res = fit_pulse(hs[:, z], shift0, options, zero_shift=a)
-        t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], res["shift"][line_sel])
+        # With a shape drift the pulse's origin is not a time (a drift term can move the pulse as
+        # well as reshape it): the line goes through each frame's pulse centroid instead.
+        pos = res["shift"] + centroid_offset(res["pulse"], res["drift"], res["shift"], res["start"], res["step"])
+        t0, slope, t0_se, slope_se, rms = line_fit(ds[line_sel], pos[line_sel])
+        if z == (grid[0] // 2) * grid[1] + grid[1] // 2:
+            origin_slope = line_fit(ds[line_sel], res["shift"][line_sel])[1]
         pa, pb, pa_se, pb_se, prms = line_fit(ds[line_sel], peaks[line_sel, z])
         gain = res["amplitude"] * ds**2
         walk = None
@@ -379,6 +446,8 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         "bin_width_from_peak_line_s": w_peak,
         "bin_width_from_peak_line_se_s": w_peak * peak_slope_se / peak_slope,
         "bin_width_relative_difference": w / w_peak - 1.0,
+        # the same line through the pulse's origin instead of its centroid (they differ with a shape drift)
+        "bin_width_from_pulse_origin_s": 2.0 / (C_AIR * origin_slope),
         "centre_zone": centre,
         "line_distances_m": [float(ds[line_sel].min()), float(ds[line_sel].max())],
         "zero_range_s": None,  # filled below from the model (the pulse peak at zero range)
@@ -398,6 +467,8 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         "converged": all(zr[0]["converged"] for zr in zones),
         "reference_median_reduced_chi2": None if ref is None else float(np.median(ref["chi2"])),
         "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
+        "parameters": _parameter_count(options, len(idx), Z, zones[0][0]["pulse"].shape[0], zones[0][0]["walk"] is not None,
+                                       zones[0][0]["echo"] is not None),
     }
     model = SensorResponse(
         bin_width_s=w,
@@ -411,7 +482,7 @@ def fit_sensor(histograms, distances_m, options: SensorFitOptions = SensorFitOpt
         pulses_per_histogram=np.array([zones[z][0]["pulses"] for z in Zs]) if options.pile_up else None,
         echo_ratio=None if zones[0][0]["echo"] is None else np.array([zones[z][13][0] for z in Zs]),
         echo_power=None if zones[0][0]["echo"] is None else np.array([zones[z][13][1] for z in Zs]),
-        pulse_drift=np.stack([zones[z][0]["drift"] for z in Zs]) if options.shape_drift else None,
+        pulse_drift=_drift_array([zones[z][0]["drift"] for z in Zs]) if options.order else None,
         walk_coeffs=None if zones[0][0]["walk"] is None else np.stack([zones[z][0]["walk"] for z in Zs]),
         gain_m2=np.array(report["gain_m2"]),
         ambient_counts=np.array([float(np.median(zones[z][0]["ambient"])) for z in Zs]),

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..capture import BadFramesWarning
 from ..errors import UserError
 
-__all__ = ["ImportedFrames", "TmfImportError", "read_tmf882x_json", "read_tmf882x_log", "import_file", "FORMATS"]
+__all__ = ["DroppedFramesWarning", "ImportedFrames", "TmfImportError", "read_tmf882x_json", "read_tmf882x_log", "import_file", "FORMATS"]
 
 FORMATS = ("tmf882x-json", "tmf882x-log")
 #: Largest 24-bit count: a bin holding it has saturated.
@@ -36,6 +37,13 @@ N_BINS = 128
 
 class TmfImportError(UserError):
     """A recording cannot be imported; the message says why, in one line."""
+
+
+class DroppedFramesWarning(BadFramesWarning):
+    """Frames of a real recording were dropped (torn lines, missing byte planes, repeated
+    packets, saturated bins, no ground truth) or left out of a sensor fit; the message names
+    them by their index in the recording. The CLI shows it on stderr as
+    ``tofjax <command>: warning: DroppedFramesWarning: ...``."""
 
 
 @dataclass
@@ -67,7 +75,8 @@ def _warn_dropped(path, dropped: list[tuple[int, str]]) -> None:
     for i, why in dropped:
         by_reason.setdefault(why, []).append(i)
     for why, idx in by_reason.items():
-        warnings.warn(f"{path}: dropped frame{'s' if len(idx) > 1 else ''} {_frames_text(idx)}: {why}", stacklevel=3)
+        warnings.warn(f"{path}: dropped frame{'s' if len(idx) > 1 else ''} {_frames_text(idx)}: {why}", DroppedFramesWarning,
+                      stacklevel=3)
 
 
 def _grid_for(zones: int) -> tuple[int, int]:

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import peak_positions, poisson_deviance_residuals
+from .fit import SATURATION, peak_positions, poisson_deviance_residuals
 from .response import SensorModelError, SensorResponse, zone_counts
 
 __all__ = ["range_histograms", "ranges_to_json"]
@@ -99,6 +99,11 @@ def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30)
     F, Z, B = h.shape
     if Z != model.n_zones or B != model.n_bins:
         raise SensorModelError(f"histograms have {Z} zones x {B} bins, the sensor model {model.n_zones} x {model.n_bins}")
+    sat = np.flatnonzero(np.any(h >= SATURATION, axis=(1, 2)))
+    if len(sat):
+        shown = ", ".join(map(str, sat[:12])) + (f", ... ({len(sat)} in all)" if len(sat) > 12 else "")
+        raise SensorModelError(f"frame{'s' if len(sat) > 1 else ''} {shown} {'have' if len(sat) > 1 else 'has'} saturated bins (a count of 2^24 - 1): "
+                               "a saturated histogram has lost the shape a range needs; leave those frames out")
     out = {k: np.zeros((F, Z)) for k in ("distance_m", "stderr_m", "reduced_chi2", "shift_bins", "amplitude", "ambient")}
     peaks = peak_positions(h)  # start at the highest bin's parabola, less the pulse's own peak offset
     for z in range(Z):
@@ -117,7 +122,7 @@ def range_histograms(model: SensorResponse, histograms, *, iterations: int = 30)
         with_drift = model.pulse_drift is not None
         with_echo = model.echo_ratio is not None
         f = _ranger(float(model.pulse_start_bins), float(model.pulse_step_bins), B, pile, iterations, with_drift, with_echo)
-        drift = jnp.asarray(model.pulse_drift[z]) if with_drift else jnp.zeros_like(pulse)
+        drift = jnp.asarray(model.drift_terms(z)) if with_drift else jnp.zeros_like(pulse)
         echo = jnp.asarray([model.echo_ratio[z], model.echo_power[z], model.zero_range_bins[z], model.bins_per_m[z]]
                            if with_echo else [0.0, 0.0, 0.0, 1.0])
         x, se, chi2 = (np.asarray(v) for v in f(jnp.asarray(h[:, z]), jnp.asarray(x0), pulse, jnp.asarray(N), drift, echo))

@@ -58,7 +58,8 @@ class SensorResponse:
     #: Double-bounce echo: its amplitude relative to the first return, ``echo_ratio[z] * (d / 0.2 m)^echo_power[z]``.
     echo_ratio: np.ndarray | None = None
     echo_power: np.ndarray | None = None
-    #: (Z, K) first-order change of the pulse shape with its position (None: a fixed shape).
+    #: How the pulse's shape changes with its position (None: a fixed shape): (Z, K) first
+    #: order only, or (Z, order, K), term ``k`` multiplying ``((shift - 28) / 10)^(k + 1)``.
     pulse_drift: np.ndarray | None = None
     #: Signal amplitude model for simulation: amplitude = gain_m2[z] / d^2 (counts at 1 m), ambient counts per bin.
     gain_m2: np.ndarray | None = None
@@ -74,6 +75,19 @@ class SensorResponse:
     @property
     def n_zones(self) -> int:
         return int(self.zero_range_bins.shape[0])
+
+    @property
+    def drift_order(self) -> int:
+        """Order of the pulse's shape drift (0: a fixed shape)."""
+        if self.pulse_drift is None:
+            return 0
+        return 1 if self.pulse_drift.ndim == 2 else int(self.pulse_drift.shape[1])
+
+    def drift_terms(self, zone: int) -> np.ndarray | None:
+        """The zone's shape-drift terms (order, K), or None for a fixed shape."""
+        if self.pulse_drift is None:
+            return None
+        return np.asarray(self.pulse_drift[zone]).reshape(self.drift_order, -1)
 
     def walk_bins(self, distance_m, zone: int):
         """The range-walk correction of ``zone`` at ``distance_m`` (bins; 0 without one)."""
@@ -181,6 +195,9 @@ class SensorResponse:
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise SensorModelError(f"{source}: missing or malformed field: {e}") from None
         Z = m.n_zones
+        if m.pulse_drift is not None and (m.pulse_drift.ndim not in (2, 3) or m.pulse_drift.shape[0] != Z
+                                          or m.pulse_drift.shape[-1] != m.pulse.shape[-1]):
+            raise SensorModelError(f"{source}: pulse_drift {m.pulse_drift.shape} does not match the pulse {m.pulse.shape}")
         if m.pulse.ndim != 2 or m.pulse.shape[0] != Z or m.bins_per_m.shape != (Z,) or m.grid[0] * m.grid[1] != Z:
             raise SensorModelError(f"{source}: zone counts disagree (grid {m.grid}, {Z} zero-range offsets, pulse {m.pulse.shape})")
         return m
@@ -214,16 +231,19 @@ def zone_counts(pulse, start, step, n_bins, shift, amplitude, ambient, pulses=No
     """The model of one zone for many frames (jax): shift, amplitude, ambient (...,) -> (..., n_bins).
 
     ``edges`` (n_bins + 1,): the bin edges in nominal bins when the bins are unequal (the
-    ambient floor then scales with each bin's width too). ``drift`` (K,): how the pulse's
-    shape changes with its position (a first-order term; the bin integrals are linear in the
-    pulse, so it costs one more pass). ``echo`` (...,): the amplitude of the double bounce
+    ambient floor then scales with each bin's width too). ``drift`` (K,) or (order, K): how
+    the pulse's shape changes with its position, term ``k`` times ``a^(k + 1)`` with
+    ``a = (shift - 28) / 10`` (the bin integrals are linear in the pulse: one more pass per
+    order). ``echo`` (...,): the amplitude of the double bounce
     (target -> sensor cover -> target -> sensor), the same pulse at twice the distance:
     position ``2 shift - zero_shift``.
     """
     m = template_bin_masses(shift, pulse, start, step, n_bins, edges)
     if drift is not None:
         a = (jnp.asarray(shift) - SHAPE_REF_BINS) / SHAPE_SCALE_BINS
-        m = m + a[..., None] * template_bin_masses(shift, drift, start, step, n_bins, edges)
+        terms = jnp.atleast_2d(jnp.asarray(drift))
+        for k in range(terms.shape[0]):
+            m = m + (a ** (k + 1))[..., None] * template_bin_masses(shift, terms[k], start, step, n_bins, edges)
     width = 1.0 if edges is None else jnp.diff(edges)
     lam = jnp.asarray(ambient)[..., None] * width + jnp.asarray(amplitude)[..., None] * m
     if echo is not None:
@@ -256,7 +276,7 @@ def expected_counts(model: SensorResponse, distance_m, amplitude=None, ambient=N
             zone_counts(
                 jnp.asarray(model.pulse[z]), model.pulse_start_bins, model.pulse_step_bins, model.n_bins,
                 jnp.asarray(shift), jnp.asarray(amplitude[:, z]), jnp.asarray(ambient[:, z]), N,
-                drift=None if model.pulse_drift is None else jnp.asarray(model.pulse_drift[z]),
+                drift=None if model.pulse_drift is None else jnp.asarray(model.drift_terms(z)),
                 echo=None if model.echo_ratio is None else jnp.asarray(
                     amplitude[:, z] * model.echo_ratio[z] * (d / 0.2) ** model.echo_power[z]),
                 zero_shift=float(model.zero_range_bins[z]),
