@@ -51,7 +51,7 @@ def test_nuts_short_run(fitted, tmp_path):
     """A short run (the targets are benchmarked in experiments/bench_posterior.py): draws near
     the truth, every diagnostic reported per parameter, plots written."""
     small, cal, res, cap = fitted
-    r = sample_nuts(cal, cap, res, NutsOptions(chains=2, warmup=60, draws=60, max_tree_depth=6))
+    r = sample_nuts(cal, cap, res, NutsOptions(chains=2, warmup=60, draws=60))
     assert r.samples.shape == (120, len(r.names)) and np.isfinite(r.samples).all()
     s = r.summary()
     for key in ("ess_bulk", "ess_tail", "rhat"):
