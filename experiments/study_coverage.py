@@ -257,6 +257,9 @@ def main(argv=None):
     ap.add_argument("--out", default="out/coverage")
     args = ap.parse_args(argv)
     tofjax.enable_x64()
+    from tofjax.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # the user cache: a rerun skips compiling the model, the fit and NUTS
     config = from_dict(CoverageConfig, load_toml(args.config), where=args.config)
     r = run(config, Path(args.out))
     print(markdown(r))

@@ -75,7 +75,8 @@ class NutsResult:
     mean_tree_depth: float
     mean_accept: float
     gradient_evaluations: int  # leapfrog steps, all chains, warm-up included
-    wall_s: float  # warm-up and sampling; compilation too on the first call of a problem shape
+    wall_s: float  # warm-up and sampling (compilation excluded)
+    compile_s: float  # tracing and compiling (or reading the compilation cache); ~0 when reused
     diagnostics: dict[str, Any]
     options: NutsOptions
 
@@ -94,6 +95,7 @@ class NutsResult:
             "mean_accept": self.mean_accept,
             "gradient_evaluations": self.gradient_evaluations,
             "wall_s": self.wall_s,
+            "compile_s": self.compile_s,
             "ess_bulk": d["ess_bulk"],
             "ess_tail": d["ess_tail"],
             "rhat": d["rhat"],
@@ -160,6 +162,29 @@ def _run(problem, template, args, flat0, chol, keys, z0, warmup: int, draws: int
     return jax.vmap(one_chain)(keys, z0)
 
 
+_COMPILED: dict = {}
+
+
+def _compiled(run_args, statics):
+    """The compiled sampler for these shapes and settings, compiled ahead of time (so the
+    sampling is timed without it) and kept for the next call of the same shapes."""
+    dyn, stat = eqx.partition(run_args, eqx.is_array)
+    leaves, tree = jax.tree_util.tree_flatten(dyn)
+    try:
+        key = (tree, tuple((x.shape, str(x.dtype)) for x in leaves), jax.tree_util.tree_flatten(stat), statics)
+        hash(key)
+    except TypeError:
+        key = None
+    if key is not None and key in _COMPILED:
+        return _COMPILED[key]
+    compiled = _run.lower(*run_args, *statics).compile()
+    if key is not None:
+        if len(_COMPILED) > 8:
+            _COMPILED.clear()
+        _COMPILED[key] = compiled
+    return compiled
+
+
 def sample_nuts(
     calibrator: Calibrator,
     capture: Capture,
@@ -186,7 +211,10 @@ def sample_nuts(
     statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth)
     run_args = (ld.problem, ld.template, ld.args, jnp.asarray(ld.flat0, dtype), jnp.asarray(chol, dtype), keys, z0)
     t = time.perf_counter()
-    out = jax.block_until_ready(_run(*run_args, *statics))
+    compiled = _compiled(run_args, statics)
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    out = jax.block_until_ready(compiled(*run_args, *statics))
     wall = time.perf_counter() - t
     zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.asarray(x) for x in out)
     C, N = zs.shape[:2]
@@ -205,6 +233,7 @@ def sample_nuts(
         mean_accept=float(acc.mean()),
         gradient_evaluations=int(nsteps.sum() + warm_steps.sum()),
         wall_s=wall,
+        compile_s=compile_s,
         diagnostics=diag,
         options=options,
     )
