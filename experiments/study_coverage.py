@@ -24,6 +24,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,6 +126,7 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         return {
             "study": "interval coverage",
             "data": "simulated",
+            "machine": f"{os.cpu_count()} CPUs shared with other jobs (load average now {os.getloadavg()[0]:.1f})",
             "config": dataclasses.asdict(config),
             "scene": f"{config.sensors} sensors x {config.zones} zones x {config.bins} bins of {config.scene}, "
             f"{config.frames} frames per baseline",
