@@ -73,8 +73,17 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
     }
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path) -> dict:
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
     scene = load_scene(scene_name)
+    label = f"{scene_name} baseline"
+    if small:  # (sensors, zones, bins): a smaller scene of the same physics
+        from tofjax.scene import SensorModel
+
+        S, Z, B = small
+        sm = scene.sensor
+        scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
+                              sensors=scene.sensors[:S])
+        label = f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
     t = time.perf_counter()
@@ -117,7 +126,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
     }
     result = {
         "benchmark": "calibration posterior: NUTS (blackjax) against emcee on the same log-density",
-        "data": f"simulated {scene_name} baseline, {frames} frames (seed 1)",
+        "data": f"simulated {label}, {frames} frames (seed 1)",
         "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
         f"(load average at the end {os.getloadavg()[0]:.1f}); JAX {__import__('jax').__version__}",
         "posterior": {"coordinates": list(ld.coords), "parameters": ld.names, "nuisance_width": nuts.nuisance_width,
@@ -141,6 +150,8 @@ def main(argv=None):
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
+    ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
+                    help="a reduced scene instead of the default baseline (e.g. 3 3 96)")
     ap.add_argument("--out", default="out/bench_posterior")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -152,7 +163,7 @@ def main(argv=None):
     check_output(out / "posterior.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})
