@@ -118,6 +118,7 @@ def _cmd_calibrate(a) -> int:
         print(
             f"posterior (NUTS): {opts.chains} chains x {opts.draws} draws in {post.wall_s:.1f} s, min ESS {s['ess_min']:.0f} "
             f"({s['ess_min_per_s']:.0f}/s), max R-hat {s['rhat_max']:.3f}, {post.divergences} divergences"
+            + ("" if s["rhat_max"] <= 1.01 and not post.divergences else " -- NOT converged (raise --warmup/--draws)")
         )
         for k, v in s["parameters"].items():
             print(f"  {k:30s} median {v['median']:.6g}  95% [{v['interval95'][0]:.6g}, {v['interval95'][1]:.6g}]"
