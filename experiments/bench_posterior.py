@@ -1,12 +1,20 @@
-"""Benchmark: the calibration posterior to 50 autocorrelation times on the default baseline.
+"""Benchmark: NUTS against emcee on the same calibration posterior, in one run.
 
-Simulates the default OptoSkin baseline (100 frames), fits it, then runs the emcee posterior
-(``tofjax calibrate --mcmc``'s defaults: 32 walkers, a check every 100 steps, stop at 50 tau
-with tau stable to 1%, or at ``--max-steps``) and writes the wall time, the steps, tau, the
-acceptance and the cost of one vectorised log-probability call (all walkers) to
-``posterior_speed.json``.
+Simulates the default OptoSkin baseline (100 frames), fits it, builds the posterior once
+(:func:`tofjax.fit.posterior.log_density`: the linear parameters integrated out, the fit's
+weak prior, the nuisance prior of width ``--nuisance-width``) and samples it with both:
 
-    python experiments/bench_posterior.py --out out/posterior_speed
+- NUTS (:func:`tofjax.fit.nuts.sample_nuts`): ``--chains`` x (``--warmup`` + ``--draws``);
+  compiled ahead of time, so ``wall_s`` is the warm sampling time (``compile_s`` beside it).
+- emcee (:func:`tofjax.fit.posterior.sample_posterior`'s sampler): ``--walkers`` walkers for
+  ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in.
+
+Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-normalised
+split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
+through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
+burn-in included). Writes ``posterior.json`` in ``--out``.
+
+    python experiments/bench_posterior.py --out out/bench_posterior
 """
 
 from __future__ import annotations
@@ -14,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import time
 from pathlib import Path
 
@@ -21,39 +30,113 @@ import numpy as np
 
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
-from tofjax.fit.posterior import PosteriorOptions, sample_posterior
+from tofjax.fit.nuts import NutsOptions, diagnostics, sample_nuts
+from tofjax.fit.posterior import NUISANCE_WIDTH, log_density
+from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
 
 
-def run(scene_name: str, frames: int, max_steps: int, walkers: int | None, dtype: str, out: Path, progress=True) -> dict:
-    scene = load_scene(scene_name)
-    cap = simulate(scene, frames, seed=1)
-    cal = Calibrator(scene, FitConfig(dtype=dtype))
-    fit = cal.fit(cap)
+def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
+    import emcee
+
+    P = ld.flat0.size
+    rng = np.random.default_rng(seed)
+    scale = np.sqrt(np.diag(ld.laplace_cov))
+    start = ld.flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(walkers, P))
+    ld.batch(start)  # compile outside the timing
+    sampler = emcee.EnsembleSampler(walkers, P, ld.batch, vectorize=True)
     t = time.perf_counter()
-    post = sample_posterior(cal, cap, fit, PosteriorOptions(walkers=walkers, max_steps=max_steps, progress=progress))
-    seconds = time.perf_counter() - t
-    tau = float(np.nanmax(post.tau))
-    result = {
-        "benchmark": "calibration posterior to 50 tau",
-        "data": f"simulated {scene_name} baseline, {frames} frames",
-        "machine": f"{os.cpu_count()} CPUs shared with other jobs (load average at the end {os.getloadavg()[0]:.1f})",
-        "dtype": dtype,
-        "walkers": int(post.chain.shape[1]),
-        "parameters": int(post.chain.shape[2]),
-        "seconds": seconds,
-        "steps": post.steps,
-        "ms_per_step": 1e3 * seconds / max(post.steps, 1),
-        "tau_max": tau,
-        "steps_over_tau": post.steps / tau,
-        "converged_50_tau": post.converged,
-        "acceptance": post.acceptance,
-        "n_effective": post.n_effective,
-        "target_s": 120.0,
+    sampler.run_mcmc(start, steps, progress=False)
+    wall = time.perf_counter() - t
+    chain = sampler.get_chain()  # (steps, walkers, P)
+    keep = chain[steps // 4 :]
+    phys = ld.to_physical(keep.reshape(-1, P)).reshape(keep.shape[0], walkers, -1).transpose(1, 0, 2)
+    d = diagnostics(ld.names, phys)
+    tau = sampler.get_autocorr_time(tol=0)
+    return {
+        "walkers": walkers,
+        "steps": steps,
+        "burn_in": steps // 4,
+        "wall_s": wall,
+        "ess_min": d["ess_min"],
+        "ess_min_per_s": d["ess_min"] / wall,
+        "rhat_max": d["rhat_max"],
+        "ess_bulk": d["ess_bulk"],
+        "ess_tail": d["ess_tail"],
+        "rhat": d["rhat"],
+        "acceptance": float(np.mean(sampler.acceptance_fraction)),
+        "tau_max_steps": float(np.nanmax(tau)),
+        "steps_over_tau": float(steps / np.nanmax(tau)),
+        "ess_emcee_tau": float(keep.shape[0] * walkers / np.nanmax(tau)),
+        "log_prob_calls": steps,
     }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "posterior_speed.json").write_text(json.dumps(result, indent=1))
+
+
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+    scene = load_scene(scene_name)
+    label = f"{scene_name} baseline"
+    if small:  # (sensors, zones, bins): a smaller scene of the same physics
+        from tofjax.scene import SensorModel
+
+        S, Z, B = small
+        sm = scene.sensor
+        scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
+                              sensors=scene.sensors[:S])
+        label = f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
+    cap = simulate(scene, frames, seed=1)
+    cal = Calibrator(scene, FitConfig())
+    t = time.perf_counter()
+    fit = cal.fit(cap)
+    fit_s = time.perf_counter() - t
+    print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
+    ld = log_density(cal, cap, fit, nuts.nuisance_width)
+    t = time.perf_counter()
+    warm = sample_nuts(cal, cap, fit, nuts, density=ld)
+    warm_total = time.perf_counter() - t
+    s = warm.summary()
+    nuts_row = {
+        "chains": nuts.chains,
+        "warmup": nuts.warmup,
+        "draws": nuts.draws,
+        "wall_s": warm.wall_s,
+        "wall_s_with_compile_and_diagnostics": warm_total,
+        "compile_s": warm.compile_s,
+        "ess_min": s["ess_min"],
+        "ess_min_per_s": s["ess_min_per_s"],
+        "rhat_max": s["rhat_max"],
+        "ess_bulk": s["ess_bulk"],
+        "ess_tail": s["ess_tail"],
+        "rhat": s["rhat"],
+        "divergences": warm.divergences,
+        "step_size": s["step_size"],
+        "mean_tree_depth": warm.mean_tree_depth,
+        "mean_accept": warm.mean_accept,
+        "gradient_evaluations": warm.gradient_evaluations,
+    }
+    print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
+    em = run_emcee(ld, walkers, emcee_steps)
+    ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
+    targets = {
+        "nuts_ess_min_ge_1000": nuts_row["ess_min"] >= 1000,
+        "nuts_wall_le_60s": nuts_row["wall_s"] <= 60,
+        "nuts_rhat_le_1.01": nuts_row["rhat_max"] <= 1.01,
+        "nuts_no_divergences": nuts_row["divergences"] == 0,
+        "nuts_over_emcee_ess_per_s_ge_10": ratio >= 10,
+    }
+    result = {
+        "benchmark": "calibration posterior: NUTS (blackjax) against emcee on the same log-density",
+        "data": f"simulated {label}, {frames} frames (seed 1)",
+        "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
+        f"(load average at the end {os.getloadavg()[0]:.1f}); JAX {__import__('jax').__version__}",
+        "posterior": {"coordinates": list(ld.coords), "parameters": ld.names, "nuisance_width": nuts.nuisance_width,
+                      "linear_parameters": "integrated out analytically"},
+        "fit_s": fit_s,
+        "samplers": {"nuts": nuts_row, "emcee": em},
+        "nuts_over_emcee_ess_min_per_s": ratio,
+        "targets": targets,
+    }
+    atomic_write_text(out / "posterior.json", json.dumps(result, indent=1))
     return result
 
 
@@ -61,14 +144,29 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="optoskin")
     ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--max-steps", type=int, default=6000)
-    ap.add_argument("--walkers", type=int, default=None)
-    ap.add_argument("--dtype", default="float64")
-    ap.add_argument("--out", default="out/posterior_speed")
+    ap.add_argument("--chains", type=int, default=4)
+    ap.add_argument("--warmup", type=int, default=500)
+    ap.add_argument("--draws", type=int, default=1000)
+    ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
+    ap.add_argument("--walkers", type=int, default=32)
+    ap.add_argument("--emcee-steps", type=int, default=3000)
+    ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
+                    help="a reduced scene instead of the default baseline (e.g. 3 3 96)")
+    ap.add_argument("--out", default="out/bench_posterior")
+    ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     tofjax.enable_x64()
-    r = run(a.scene, a.frames, a.max_steps, a.walkers, a.dtype, Path(a.out))
-    print(json.dumps(r, indent=1))
+    from tofjax.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # the user cache: a rerun skips compiling the model, the fit and NUTS
+    out = Path(a.out)
+    check_output(out / "posterior.json", overwrite=a.overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small)
+    print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
+    for k, v in r["samplers"].items():
+        print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})
 
 
 if __name__ == "__main__":

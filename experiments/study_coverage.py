@@ -2,10 +2,15 @@
 
 Simulates ``replicates`` baselines of one (small) scene with known parameters, fits each,
 and counts how often the Laplace 95% interval of n1, mu_s, mu_a and mu_s + mu_a contains
-the truth; for the first ``posterior_replicates`` it also samples the emcee posterior
-(``walkers``, up to ``max_steps`` or 50 autocorrelation times) and counts the same for its
-95% intervals. A well-calibrated interval covers 95% of the time; with R replicates the
-binomial standard error is sqrt(0.95 x 0.05 / R) (2.2% at R = 100).
+the truth; for the first ``posterior_replicates`` it also samples the posterior and counts
+the same for its 95% intervals. ``sampler = "nuts"`` (default: ``chains`` x (``warmup`` +
+``draws``), compiled once for every replicate) or ``"emcee"`` (``walkers``, up to
+``max_steps`` or 50 autocorrelation times). The posterior is
+:func:`tofjax.fit.posterior.log_density` with the nuisance prior of width
+``nuisance_width`` (centred on the truth here: the scene's values are the prior's centre).
+A well-calibrated interval covers 95% of the time; each coverage p over R replicates is
+reported with its binomial standard error sqrt(p (1 - p) / R), and the nominal one,
+sqrt(0.95 x 0.05 / R) (2.2% at R = 100).
 
 All point fits run first, then the posteriors; ``coverage.json`` is rewritten after the fits
 and after every posterior, so a long run that is stopped still leaves its counts; ``coverage.md`` and ``coverage.png`` come at the end.
@@ -19,6 +24,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +33,9 @@ import numpy as np
 from tqdm import tqdm
 
 import tofjax
-from tofjax.config import from_dict, load_toml
+from tofjax.config import ConfigError, from_dict, load_toml
 from tofjax.fit.calibrate import Calibrator
+from tofjax.outputs import atomic_write_text, save_figure
 from tofjax.scene import SensorModel, load_scene
 from tofjax.simulate import simulate
 
@@ -47,6 +54,15 @@ class CoverageConfig:
     walkers: int = 32
     max_steps: int = 2500
     seed: int = 20000
+    sampler: str = "nuts"
+    chains: int = 2
+    warmup: int = 200
+    draws: int = 300
+    nuisance_width: float = 0.3
+
+    def __post_init__(self):
+        if self.sampler not in ("nuts", "emcee"):
+            raise ConfigError(f"sampler: must be nuts or emcee, got {self.sampler!r}")
 
 
 def small_scene(config: CoverageConfig):
@@ -82,15 +98,19 @@ def _summary(rows, key) -> dict:
     if not n:
         return {"replicates": 0}
     cover = {q: sum(r[key][q]["covers"] for r in used) for q in QUANTITIES}
+    p = {q: cover[q] / n for q in QUANTITIES}
     return {
         "replicates": n,
-        "coverage": {q: cover[q] / n for q in QUANTITIES},
+        "coverage": p,
+        "coverage_stderr": {q: math.sqrt(max(p[q] * (1 - p[q]), 0.25 / n) / n) for q in QUANTITIES},
+        "within_90_98": {q: 0.90 <= p[q] <= 0.98 for q in QUANTITIES},
         "binomial_stderr": math.sqrt(0.95 * 0.05 / n),
         "median_width": {q: float(np.median([r[key][q]["width"] for r in used])) for q in QUANTITIES},
     }
 
 
 def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
+    from tofjax.fit.nuts import NutsOptions, sample_nuts
     from tofjax.fit.posterior import PosteriorOptions, sample_posterior
 
     scene = small_scene(config)
@@ -106,6 +126,7 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         return {
             "study": "interval coverage",
             "data": "simulated",
+            "machine": f"{os.cpu_count()} CPUs shared with other jobs (load average now {os.getloadavg()[0]:.1f})",
             "config": dataclasses.asdict(config),
             "scene": f"{config.sensors} sensors x {config.zones} zones x {config.bins} bins of {config.scene}, "
             f"{config.frames} frames per baseline",
@@ -116,7 +137,11 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
             "seconds_posteriors": post_s,
             "laplace": _summary(rows, "laplace"),
             "posterior": _summary(rows, "posterior"),
+            "seconds_per_posterior": post_s / max(sum(1 for r in rows if r.get("posterior")), 1),
             "posterior_reached_50_tau": sum(1 for r in rows if r.get("posterior_converged")),
+            "posterior_rhat_max_median": float(np.median([r["posterior_rhat_max"] for r in rows if "posterior_rhat_max" in r]))
+            if any("posterior_rhat_max" in r for r in rows)
+            else float("nan"),
             "posterior_tau_median": float(np.median([r["posterior_tau_max"] for r in rows if "posterior_tau_max" in r]))
             if any("posterior_tau_max" in r for r in rows)
             else float("nan"),
@@ -138,25 +163,37 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         rows.append(row)
         if k < config.posterior_replicates and res.converged:
             caps[k] = (cap, res)
-    (out / "coverage.json").write_text(json.dumps(result(False), indent=1))
+    atomic_write_text(out / "coverage.json", json.dumps(result(False), indent=1))
     for k, (cap, res) in tqdm(caps.items(), desc="posteriors", disable=not progress):
         t = time.perf_counter()
-        post = sample_posterior(
-            cal, cap, res, PosteriorOptions(walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False)
-        )
+        if config.sampler == "nuts":
+            opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
+                               nuisance_width=config.nuisance_width)
+            post = sample_nuts(cal, cap, res, opts)
+        else:
+            post = sample_posterior(cal, cap, res, PosteriorOptions(
+                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width))
         post_s += time.perf_counter() - t
         row = rows[k]
         row["posterior"] = {
             q: {"interval": list(iv), "covers": bool(iv[0] <= truth[q] <= iv[1]), "width": iv[1] - iv[0]}
             for q, iv in posterior_intervals(post).items()
         }
-        row["posterior_converged"] = post.converged
-        row["posterior_steps"] = post.steps
-        row["posterior_tau_max"] = float(np.nanmax(post.tau))
-        (out / "coverage.json").write_text(json.dumps(result(False), indent=1))
+        if config.sampler == "nuts":
+            d = post.diagnostics
+            row["posterior_rhat_max"] = d["rhat_max"]
+            row["posterior_ess_min"] = d["ess_min"]
+            row["posterior_ess_n1_mu"] = {q: min(d["ess_bulk"][q], d["ess_tail"][q]) for q in QUANTITIES[:3]}
+            row["posterior_divergences"] = post.divergences
+            row["posterior_seconds"] = post.wall_s
+        else:
+            row["posterior_converged"] = post.converged
+            row["posterior_steps"] = post.steps
+            row["posterior_tau_max"] = float(np.nanmax(post.tau))
+        atomic_write_text(out / "coverage.json", json.dumps(result(False), indent=1))
     r = result(True)
-    (out / "coverage.json").write_text(json.dumps(r, indent=1))
-    (out / "coverage.md").write_text(markdown(r))
+    atomic_write_text(out / "coverage.json", json.dumps(r, indent=1))
+    atomic_write_text(out / "coverage.md", markdown(r))
     plot(r, out / "coverage.png")
     return r
 
@@ -166,13 +203,19 @@ def markdown(r: dict) -> str:
     lines = [
         f"# Interval coverage ({r['data']}: {r['scene']})",
         "",
-        f"{r['laplace']['replicates']} replicates with a Laplace interval, {r['posterior']['replicates']} with an emcee "
-        f"posterior ({c['walkers']} walkers, up to {c['max_steps']} steps or 50 tau; "
-        f"{r['posterior_reached_50_tau']} reached 50 tau; median tau "
-        f"{r['posterior_tau_median']:.0f} steps). Target: 95% nominal, 90-98% accepted. "
-        f"Run time {r['seconds']:.0f} s (fits {r['seconds_fits']:.0f} s, posteriors {r['seconds_posteriors']:.0f} s).",
+        f"{r['laplace']['replicates']} replicates with a Laplace interval, {r['posterior']['replicates']} with a "
+        + (
+            f"NUTS posterior ({c['chains']} chains x ({c['warmup']} warm-up + {c['draws']} draws), nuisance prior width "
+            f"{c['nuisance_width']}; median of the largest R-hat {r['posterior_rhat_max_median']:.3f}"
+            if c["sampler"] == "nuts"
+            else f"emcee posterior ({c['walkers']} walkers, up to {c['max_steps']} steps or 50 tau; "
+            f"{r['posterior_reached_50_tau']} reached 50 tau; median tau {r['posterior_tau_median']:.0f} steps"
+        )
+        + f"; {r['seconds_per_posterior']:.1f} s per posterior). Target: 95% nominal, 90-98% accepted. "
+        f"Run time {r['seconds']:.0f} s (fits {r['seconds_fits']:.0f} s, posteriors {r['seconds_posteriors']:.0f} s). "
+        "Each coverage +- its binomial standard error.",
         "",
-        "| interval | n1 | mu_s | mu_a | mu_s + mu_a | binomial stderr |",
+        "| interval | n1 | mu_s | mu_a | mu_s + mu_a | nominal binomial stderr |",
         "|---|---|---|---|---|---|",
     ]
     for key in ("laplace", "posterior"):
@@ -180,7 +223,7 @@ def markdown(r: dict) -> str:
         if s["replicates"]:
             lines.append(
                 f"| {key} ({s['replicates']}) | "
-                + " | ".join(f"{100 * s['coverage'][q]:.0f}%" for q in QUANTITIES)
+                + " | ".join(f"{100 * s['coverage'][q]:.0f} +- {100 * s['coverage_stderr'][q]:.0f}%" for q in QUANTITIES)
                 + f" | {100 * s['binomial_stderr']:.1f}% |"
             )
     return "\n".join(lines) + "\n"
@@ -207,8 +250,7 @@ def plot(r: dict, path: Path) -> None:
             ax.set_yscale("log")
     fig.suptitle("95% intervals against the truth (simulated; blue Laplace, orange posterior, red: missed)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None):
@@ -217,6 +259,9 @@ def main(argv=None):
     ap.add_argument("--out", default="out/coverage")
     args = ap.parse_args(argv)
     tofjax.enable_x64()
+    from tofjax.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # the user cache: a rerun skips compiling the model, the fit and NUTS
     config = from_dict(CoverageConfig, load_toml(args.config), where=args.config)
     r = run(config, Path(args.out))
     print(markdown(r))

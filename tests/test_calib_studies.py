@@ -54,7 +54,8 @@ def test_fit_speed_emcee_steps_fast():
 
 def test_coverage_study_fast(tmp_path):
     study = load("study_coverage")
-    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, walkers=24, max_steps=120)
+    # NUTS with test_nuts.py's shapes and settings: one compiled program for both
+    cfg = study.CoverageConfig(frames=30, replicates=3, posterior_replicates=1, chains=2, warmup=60, draws=60)
     r = study.run(cfg, tmp_path, progress=False)
     assert r["finished"] and r["laplace"]["replicates"] == 3 and r["posterior"]["replicates"] == 1
     for key in ("laplace", "posterior"):
@@ -64,6 +65,8 @@ def test_coverage_study_fast(tmp_path):
     assert lo < hi and row["laplace"]["n1"]["covers"] == (lo <= r["truth"]["n1"] <= hi)
     assert json.loads((tmp_path / "coverage.json").read_text())["data"] == "simulated"
     assert "| laplace (3) |" in (tmp_path / "coverage.md").read_text()
+    assert set(r["posterior"]["coverage_stderr"]) == set(r["posterior"]["coverage"])
+    assert row["posterior_rhat_max"] > 0.9 and row["posterior_seconds"] > 0
     assert (tmp_path / "coverage.png").stat().st_size > 5000
 
 

@@ -359,6 +359,10 @@ def _cases() -> list[Case]:
         ("process", "--resolution-mm", ["0", "nan"]),
         ("calibrate", "--walkers", ["0", "1"]),
         ("calibrate", "--max-steps", ["0", "-1"]),
+        ("calibrate", "--mcmc", ["hmc", "1"]),
+        ("calibrate", "--chains", ["0", "-1", "4"]),  # 4: only for --mcmc nuts
+        ("calibrate", "--warmup", ["0", "5", "x"]),
+        ("calibrate", "--draws", ["0", "-3"]),
         ("acquire", "--frames", ["0", "-1"]),
         ("acquire", "--duration", ["0", "-1", "nan", "inf"]),
         ("acquire", "--bus", ["-1", "300"]),

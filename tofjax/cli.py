@@ -86,6 +86,9 @@ def _cmd_calibrate(a) -> int:
     from .fit.calibrate import CalibrationError, Calibrator, FitConfig, fit_report, load_fit_config
     from .scene import load_scene
 
+    nuts_only = [_flag(k) for k in ("chains", "warmup", "draws") if getattr(a, k) is not None]
+    if nuts_only and a.mcmc != "nuts":
+        raise UserError(f"{nuts_only[0]}: only for --mcmc nuts")
     cap = read_capture(a.baseline)
     scene = load_scene(a.scene) if a.scene else None
     if scene is not None and scene.shape != cap.scene.shape:
@@ -104,7 +107,26 @@ def _cmd_calibrate(a) -> int:
     out = Path(a.out)
     atomic_write_text(out, json.dumps(report, indent=2))
     print(fit_report(result))
-    if a.mcmc and result.converged:
+    if a.mcmc == "nuts" and result.converged:
+        from .fit.nuts import NutsOptions, plot_nuts, sample_nuts
+
+        opts = NutsOptions(chains=a.chains or 4, warmup=a.warmup or 500, draws=a.draws or 1000)
+        post = sample_nuts(calibrator, cap, result, opts)
+        report["posterior"] = post.summary()
+        atomic_write_text(out, json.dumps(report, indent=2))
+        s = report["posterior"]
+        print(
+            f"posterior (NUTS): {opts.chains} chains x {opts.draws} draws in {post.wall_s:.1f} s, min ESS {s['ess_min']:.0f} "
+            f"({s['ess_min_per_s']:.0f}/s), max R-hat {s['rhat_max']:.3f}, {post.divergences} divergences"
+            + ("" if s["rhat_max"] <= 1.01 and not post.divergences else " -- NOT converged (raise --warmup/--draws)")
+        )
+        for k, v in s["parameters"].items():
+            print(f"  {k:30s} median {v['median']:.6g}  95% [{v['interval95'][0]:.6g}, {v['interval95'][1]:.6g}]"
+                  f"  ESS {min(s['ess_bulk'][k], s['ess_tail'][k]):.0f}  R-hat {s['rhat'][k]:.3f}")
+        if a.plots:
+            plot_nuts(post, a.plots)
+            print(f"wrote corner.png and traces.png to {a.plots}/")
+    elif a.mcmc and result.converged:
         from .fit.posterior import PosteriorOptions, sample_posterior
 
         post = sample_posterior(
@@ -125,7 +147,7 @@ def _cmd_calibrate(a) -> int:
             from .plot import plot_posterior, plot_traces
 
             plot_posterior(post.samples, post.names, None, Path(a.plots) / "corner.png")
-            plot_traces(post.chain, post.names, Path(a.plots) / "traces.png")
+            plot_traces(post.chain_physical, post.names, Path(a.plots) / "traces.png")
             print(f"wrote corner.png and traces.png to {a.plots}/")
     if a.plots:
         from .fit._discrepancy import plot_residual_map
@@ -193,6 +215,9 @@ _RANGES = {
     "min_strength": (0.0, 1e12),
     "walkers": (2, 100_000),
     "max_steps": (1, 10**8),
+    "chains": (1, 1024),
+    "warmup": (10, 10**6),
+    "draws": (10, 10**7),
     "photons": (1, 10**10),
     "batch": (1, 10**8),
     "repeats": (1, 10**6),
@@ -319,7 +344,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output JSON")
     s.add_argument("--plots", help="folder for fit and loss plots")
     s.add_argument("--allow-unconverged", action="store_true", help="exit 0 even if the fit did not converge")
-    s.add_argument("--mcmc", action="store_true", help="also sample the posterior with emcee")
+    s.add_argument("--mcmc", nargs="?", const="emcee", choices=("emcee", "nuts"),
+                   help="also sample the posterior: emcee (the default, derivative-free) or nuts (blackjax, gradients)")
+    s.add_argument("--chains", type=int, default=None, help="NUTS chains (default 4)")
+    s.add_argument("--warmup", type=int, default=None, help="NUTS warm-up steps per chain (default 500)")
+    s.add_argument("--draws", type=int, default=None, help="NUTS draws per chain (default 1000)")
     s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")

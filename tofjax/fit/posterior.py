@@ -1,12 +1,15 @@
-"""Posterior of the calibration parameters with emcee.
+"""Posterior of the calibration parameters: one log-density, two samplers.
 
-The sampled parameters are the nonlinear ones (n1, mu_s, mu_a, pulse, emission
-time, reflectances) in the fit's unconstrained space. The linear ones (gain,
-light-entry and ambient counts) are integrated out analytically: for the
-Gaussian (Poisson-weighted) likelihood with flat priors on them, that adds
-``-1/2 log det(A^T W A)`` to the profiled log-likelihood. The prior is the fit
-config's weak Gaussian in the unconstrained space. One jitted, vmapped
-log-probability serves all walkers (``vectorize=True``).
+:func:`log_density` is the posterior both samplers draw from (emcee here,
+:func:`tofjax.fit.nuts.sample_nuts` with NUTS). Its coordinates are the nonlinear
+parameters (n1, mu_s, mu_a, pulse, emission time, reflectances) in the fit's
+unconstrained space (:mod:`tofjax.fit.transforms`; mu_s and mu_a as log extinction and
+logit albedo). The linear ones (gain, light-entry and ambient counts) never reach the
+sampler: for the Gaussian (Poisson-weighted) likelihood with flat priors on them they are
+integrated out analytically, which adds ``-1/2 log det(A^T W A)`` to the profiled
+log-likelihood. The rest is the fit's own objective: the same noise (photon noise and
+``model_error``), the fit config's weak Gaussian prior in the unconstrained space, and the
+timing anchor on n1 where the fit had one.
 """
 
 from __future__ import annotations
@@ -18,14 +21,160 @@ from pathlib import Path
 from typing import Any
 
 import emcee
+import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from .calibrate import CalibrationError, CalibrationResult, Calibrator, scene_fingerprint
+from ._start import timing_start
+from .calibrate import CalibrationError, CalibrationResult, Calibrator, _anchor, _data, scene_fingerprint
 
-__all__ = ["PosteriorOptions", "PosteriorResult", "sample_posterior"]
+__all__ = ["LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "sample_posterior", "summarise"]
+
+
+#: Nuisance parameters the default baseline barely identifies: with only the fit's weak prior
+#: (width 3 in the unconstrained space, i.e. a factor of 20 either way) they and the albedo
+#: slide together along a thin curved ridge that no sampler crosses in reasonable time.
+NUISANCE = ("interface_backscatter_per_m", "end_reflectance", "multiple_scattering", "volume_backscatter_fraction", "near_field_m")
+#: Default width of their prior in the unconstrained space (log or logit): 0.3, i.e. +-35%
+#: (one sigma) for a positive one, 0.43-0.57 for a reflectance at 0.5. Wider (1.0) still
+#: leaves R-hat at 1.4-1.8 after 4 x 200 NUTS draws on the 3-sensor scene (docs/calibration.md).
+NUISANCE_WIDTH = 0.3
+
+
+def log_prob(problem, template, args, flat):
+    """The log posterior at the flat coordinates ``flat`` (module-level, so one compiled
+    program serves every capture of the same shape). ``template``: the coordinates' pytree
+    (gives the flat order); ``args = (base, data, sigma, prior)`` as the fit's residuals."""
+    base, data, sigma, prior, widths = args
+    _, unravel = jax.flatten_util.ravel_pytree(template)
+    u = unravel(flat)
+    params = problem.unpack(u, base)
+    if problem.linear:
+        _, m, logdet, _ = problem.profile(params, data, sigma)
+    else:
+        m, logdet = problem.model(params), 0.0
+    r = (m - data) / sigma
+    lp = -0.5 * jnp.sum(r**2) - 0.5 * logdet - 0.5 * jnp.sum(problem.prior_residuals(u, prior) ** 2)
+    for k, w in widths.items():  # the nuisance prior, on top of the fit's weak one
+        lp = lp - 0.5 * jnp.sum(((u[k] - prior[k]) / w) ** 2)
+    return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
+
+
+_log_prob_batch = eqx.filter_jit(eqx.filter_vmap(log_prob, in_axes=(None, None, None, 0)))
+
+
+@eqx.filter_jit
+def _laplace_flat(problem, template, args, flat):
+    _, unravel = jax.flatten_util.ravel_pytree(template)
+    jac = jax.jacfwd(lambda f: problem.residuals(unravel(f), args[:4]))(flat)
+    widths = args[4]
+    extra = {k: jnp.zeros_like(v) + (1.0 / widths[k] ** 2 if k in widths else 0.0) for k, v in template.items()}
+    return jac.T @ jac + jnp.diag(jax.flatten_util.ravel_pytree(extra)[0])
+
+
+@eqx.filter_jit
+def _to_physical_batch(problem, template, flats):
+    _, unravel = jax.flatten_util.ravel_pytree(template)
+
+    def one(f):
+        x = problem.physical(unravel(f))
+        return jnp.concatenate([jnp.ravel(x[k]) for k in sorted(x)])
+
+    return jax.vmap(one)(flats)
+
+
+@dataclass(frozen=True)
+class LogDensity:
+    """The calibration posterior in the sampler's flat coordinates.
+
+    - ``problem``, ``template`` (the coordinates' pytree at the fit), ``args`` (data, noise,
+      prior): :func:`log_prob`'s arguments; :meth:`fn` is it with them bound.
+    - ``flat0``: the point fit's coordinates; ``laplace_cov``: the Laplace covariance there,
+      ``(J^T J)^-1`` of the profiled residuals and the prior (P, P).
+    - ``coords``: the coordinates' names (``ravel_pytree``'s order: sorted).
+    - ``names``: the physical parameters the samples report (sorted; arrays as ``k[i]``),
+      the columns of :meth:`to_physical`.
+    """
+
+    problem: Any
+    template: dict
+    args: tuple
+    flat0: np.ndarray
+    laplace_cov: np.ndarray
+    coords: tuple[str, ...]
+    names: list[str]
+
+    def fn(self, flat):
+        return log_prob(self.problem, self.template, self.args, flat)
+
+    def batch(self, flats) -> np.ndarray:
+        """:meth:`fn` of many points (N, P) in one compiled call, as float64 NumPy."""
+        return np.asarray(_log_prob_batch(self.problem, self.template, self.args, jnp.asarray(flats)), np.float64)
+
+    def to_physical(self, flats) -> np.ndarray:
+        """Physical values (N, len(names)) of flat coordinates (N, P)."""
+        return np.asarray(_to_physical_batch(self.problem, self.template, jnp.asarray(flats)), np.float64)
+
+
+def log_density(
+    calibrator: Calibrator, capture: Capture, fit: CalibrationResult, nuisance_width: float | None = NUISANCE_WIDTH
+) -> LogDensity:
+    """The posterior of ``calibrator``'s nonlinear parameters given ``capture``, around the
+    point fit ``fit`` (which must be of this scene).
+
+    ``nuisance_width``: the width, in the unconstrained space, of a Gaussian prior centred on
+    the scene's value of each weakly identified nuisance parameter (:data:`NUISANCE`), on top
+    of the fit's weak one; None: none (the fit's own objective alone)."""
+    problem = calibrator.problem
+    if fit.scene_fingerprint and fit.scene_fingerprint != scene_fingerprint(calibrator.scene):
+        raise CalibrationError("the point fit was made for another scene than this calibrator's")
+    if not problem.nonlinear:
+        raise CalibrationError("the posterior needs at least one free nonlinear parameter")
+    config = calibrator.config
+    names = tuple(problem.nonlinear)
+    base = fit.params
+    dtype = problem.model.geometry.ray_length.dtype
+    data, sigma = _data(capture, dtype, config.model_error)
+    prior_params = calibrator.base_params()
+    prior = problem.pack_jax(prior_params, names)
+    if "n1" in names:
+        start, found = timing_start(problem, np.asarray(data), capture.n_frames, calibrator.scene, prior_params)
+        prior["n1_anchor"] = _anchor(start, found, config, dtype)
+    template = {k: jnp.asarray(v, dtype) for k, v in problem.pack(base, names).items()}
+    flat0, _ = jax.flatten_util.ravel_pytree(template)
+    if nuisance_width is not None and not (0 < nuisance_width < np.inf):
+        raise CalibrationError(f"nuisance_width: must be a positive number, got {nuisance_width!r}")
+    widths = {k: jnp.asarray(nuisance_width, dtype) for k in NUISANCE if k in template and nuisance_width is not None}
+    args = (base, data, sigma, prior, widths)
+    jtj = np.asarray(_laplace_flat(problem, template, args, flat0), np.float64)
+    cov = np.linalg.pinv(jtj, hermitian=True)
+    labels = []
+    for k in sorted(problem.physical(template)):  # the columns of to_physical
+        n = int(np.size(getattr(base, k)))
+        labels += [k] if np.ndim(getattr(base, k)) == 0 else [f"{k}[{i}]" for i in range(n)]
+    return LogDensity(
+        problem=problem, template=template, args=args, flat0=np.asarray(flat0, np.float64),
+        laplace_cov=0.5 * (cov + cov.T), coords=tuple(sorted(template)), names=labels,
+    )
+
+
+def summarise(names: list[str], samples: np.ndarray) -> dict[str, Any]:
+    """Mean, median and 68/95% intervals per parameter, and the correlation matrix."""
+    out = {}
+    for i, k in enumerate(names):
+        x = samples[:, i]
+        q = np.percentile(x, [2.5, 16, 50, 84, 97.5])
+        out[k] = {
+            "mean": float(x.mean()),
+            "median": float(q[2]),
+            "interval68": [float(q[1]), float(q[3])],
+            "interval95": [float(q[0]), float(q[4])],
+        }
+    corr = np.corrcoef(samples.T) if len(names) > 1 else np.ones((1, 1))
+    return {"parameters": out, "correlation": {"labels": names, "matrix": np.asarray(corr).tolist()}}
 
 
 @dataclass(frozen=True)
@@ -33,7 +182,8 @@ class PosteriorOptions:
     """``walkers`` (default: max(32, 4 x parameters)), ``max_steps``, ``check_every`` steps
     between autocorrelation checks, ``tau_factor`` (stop once the chain is longer than this
     many autocorrelation times and tau changed by less than ``tau_rtol``), ``seed``,
-    ``chain`` (an HDF5 file: the run resumes from it), ``progress`` (a progress bar)."""
+    ``chain`` (an HDF5 file: the run resumes from it), ``progress`` (a progress bar),
+    ``nuisance_width`` (:func:`log_density`'s)."""
 
     walkers: int | None = None
     max_steps: int = 5000
@@ -43,6 +193,7 @@ class PosteriorOptions:
     seed: int = 0
     chain: str | None = None
     progress: bool = True
+    nuisance_width: float | None = NUISANCE_WIDTH
 
 
 @dataclass
@@ -58,20 +209,9 @@ class PosteriorResult:
     chain_physical: np.ndarray | None = None  # the same chain in physical units (columns as ``names``)
 
     def summary(self) -> dict[str, Any]:
-        out = {}
-        for i, k in enumerate(self.names):
-            x = self.samples[:, i]
-            q = np.percentile(x, [2.5, 16, 50, 84, 97.5])
-            out[k] = {
-                "mean": float(x.mean()),
-                "median": float(q[2]),
-                "interval68": [float(q[1]), float(q[3])],
-                "interval95": [float(q[0]), float(q[4])],
-            }
-        corr = np.corrcoef(self.samples.T) if len(self.names) > 1 else np.ones((1, 1))
         return {
-            "parameters": out,
-            "correlation": {"labels": self.names, "matrix": np.asarray(corr).tolist()},
+            "sampler": "emcee",
+            **summarise(self.names, self.samples),
             "tau": self.tau.tolist(),
             "acceptance_fraction": self.acceptance,
             "steps": self.steps,
@@ -97,47 +237,20 @@ def sample_posterior(
     ``max_steps``; with ``chain`` set, an interrupted run resumes where it stopped (refused if
     the data or settings differ).
     """
-    problem = calibrator.problem
-    if fit.scene_fingerprint and fit.scene_fingerprint != scene_fingerprint(calibrator.scene):
-        raise CalibrationError("the point fit was made for another scene than this calibrator's")
-    names = tuple(sorted(problem.nonlinear))
-    base = fit.params
-    u_fit = problem.pack(base, names)
-    prior = problem.pack(calibrator.base_params(), names)
-    flat0, unravel = jax.flatten_util.ravel_pytree(u_fit)
-    P = flat0.size
+    ld = log_density(calibrator, capture, fit, options.nuisance_width)
+    flat0, P = ld.flat0, ld.flat0.size
     W = options.walkers or max(32, 4 * P)
     if W < 2 * P:
         raise CalibrationError(f"walkers: emcee needs at least 2 x {P} = {2 * P} walkers, got {W}")
-    dtype = problem.model.geometry.ray_length.dtype
-    mean = capture.mean()
-    data = jnp.asarray(mean, dtype)
-    sigma = jnp.asarray(np.sqrt(np.maximum(mean, 1.0) / capture.n_frames), dtype)
-
-    def log_prob(flat):
-        u = unravel(flat)
-        params = problem.unpack(u, base)
-        if problem.linear:
-            _, m, logdet, _ = problem.profile(params, data, sigma)
-        else:
-            m, logdet = problem.model(params), 0.0
-        r = (m - data) / sigma
-        lp = -0.5 * jnp.sum(r**2) - 0.5 * logdet - 0.5 * jnp.sum(problem.prior_residuals(u, prior) ** 2)
-        return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
-
-    batched = jax.jit(jax.vmap(log_prob))
-
-    def vectorised(x):
-        return np.asarray(batched(jnp.asarray(x)), np.float64)
+    vectorised = ld.batch
 
     # initial scatter from the Laplace errors in the unconstrained space
-    scale = np.concatenate([np.ravel(fit.unconstrained_stderr[k]) for k in sorted(u_fit)])
-    scale = np.maximum(scale, 1e-6)
+    scale = np.maximum(np.sqrt(np.diag(ld.laplace_cov)), 1e-6)
     rng = np.random.default_rng(options.seed)
 
     backend = None
-    start = np.asarray(flat0)[None, :] + 0.1 * scale[None, :] * rng.normal(size=(W, P))
-    fingerprint = _fingerprint(capture, (*names, *sorted(u_fit)), W)  # coordinates too
+    start = flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(W, P))
+    fingerprint = _fingerprint(capture, (*ld.names, *ld.coords, f"nuisance {options.nuisance_width}"), W)  # coordinates too
     if options.chain:
         import h5py
 
@@ -176,16 +289,10 @@ def sample_posterior(
     burn = int(2 * np.nanmax(tau)) if np.all(np.isfinite(tau)) else sampler.iteration // 2
     thin = max(int(0.5 * np.nanmin(tau)), 1) if np.all(np.isfinite(tau)) else 1
     flat = sampler.get_chain(discard=min(burn, sampler.iteration - 1), thin=thin, flat=True)
-    # back to physical units
-    to_phys = jax.jit(jax.vmap(lambda f: jnp.concatenate([jnp.ravel(v) for _, v in sorted(problem.physical(unravel(f)).items())])))
-    samples = np.asarray(to_phys(jnp.asarray(flat)))
-    labels = []
-    for k in names:  # sorted, as the columns of ``samples``
-        n = int(np.size(getattr(base, k)))
-        labels += [k] if np.ndim(getattr(base, k)) == 0 else [f"{k}[{i}]" for i in range(n)]
+    samples = ld.to_physical(flat)
     n_samples_total = (sampler.iteration - min(burn, sampler.iteration - 1)) * W
     return PosteriorResult(
-        names=labels,
+        names=ld.names,
         samples=samples,
         tau=np.asarray(tau),
         acceptance=float(np.mean(sampler.acceptance_fraction)),
@@ -193,5 +300,5 @@ def sample_posterior(
         converged=converged,
         n_effective=float(n_samples_total / np.nanmax(tau)) if np.all(np.isfinite(tau)) else 0.0,
         chain=sampler.get_chain(),
-        chain_physical=np.asarray(to_phys(jnp.asarray(sampler.get_chain().reshape(-1, P)))).reshape(sampler.iteration, W, -1),
+        chain_physical=ld.to_physical(sampler.get_chain().reshape(-1, P)).reshape(sampler.iteration, W, -1),
     )

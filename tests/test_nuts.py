@@ -1,0 +1,96 @@
+"""NUTS posterior (tofjax/fit/nuts.py) and the log-density it shares with emcee: a short run on
+a small scene, the ArviZ diagnostics as properties, and one-line errors for bad options."""
+
+import numpy as np
+import pytest
+
+from tofjax.cli import main
+from tofjax.errors import UserError
+from tofjax.fit.calibrate import Calibrator
+from tofjax.fit.nuts import NutsOptions, diagnostics, plot_nuts, sample_nuts
+from tofjax.fit.posterior import NUISANCE, log_density
+from tofjax.scene import SensorModel
+from tofjax.simulate import simulate
+
+
+@pytest.fixture(scope="module")
+def fitted(optoskin):
+    """Three OptoSkin sensors, 3 zones, 96 bins (the shapes test_calibrate compiles too)."""
+    small = optoskin.replace(sensor=SensorModel(bin_width_s=1e-10, n_bins=96, zones=3, fov_deg=29.0),
+                             sensors=optoskin.sensors[:3])
+    cap = simulate(small, 60, seed=3)
+    cal = Calibrator(small)
+    return small, cal, cal.fit(cap), cap
+
+
+def test_log_density_is_shared_and_whitenable(fitted):
+    """One log-density: the bound function and the batched one (emcee's) agree; it is finite
+    with a finite gradient at the fit; the Laplace covariance is symmetric positive definite;
+    the nuisance prior only adds curvature."""
+    import jax
+    import jax.numpy as jnp
+
+    _, cal, res, cap = fitted
+    ld = log_density(cal, cap, res)
+    f0 = jnp.asarray(ld.flat0)
+    v, g = jax.value_and_grad(ld.fn)(f0)
+    assert np.isfinite(float(v)) and np.isfinite(np.asarray(g)).all()
+    assert float(v) == pytest.approx(float(ld.batch(ld.flat0[None])[0]), rel=1e-12)
+    np.testing.assert_allclose(ld.laplace_cov, ld.laplace_cov.T, rtol=1e-12, atol=0)
+    assert np.linalg.eigvalsh(ld.laplace_cov).min() > 0
+    assert set(ld.coords) == set(cal.problem.pack(res.params, cal.problem.nonlinear))
+    assert len(ld.names) == ld.to_physical(ld.flat0[None]).shape[1]
+    loose = log_density(cal, cap, res, nuisance_width=None)
+    for k in NUISANCE:
+        if k in ld.coords:
+            i = ld.coords.index(k)
+            assert ld.laplace_cov[i, i] < loose.laplace_cov[i, i]
+
+
+def test_nuts_short_run(fitted, tmp_path):
+    """A short run (the targets are benchmarked in experiments/bench_posterior.py): draws near
+    the truth, every diagnostic reported per parameter, plots written."""
+    small, cal, res, cap = fitted
+    r = sample_nuts(cal, cap, res, NutsOptions(chains=2, warmup=60, draws=60))
+    assert r.samples.shape == (120, len(r.names)) and np.isfinite(r.samples).all()
+    s = r.summary()
+    for key in ("ess_bulk", "ess_tail", "rhat"):
+        assert set(s[key]) == set(r.names)
+    assert s["wall_s"] > 0 and s["ess_min_per_s"] == pytest.approx(s["ess_min"] / s["wall_s"])
+    assert 0 < s["ess_min"] and 0.9 < s["rhat_max"]
+    assert r.gradient_evaluations >= 2 * 120
+    n1 = s["parameters"]["n1"]
+    assert n1["interval95"][0] < n1["median"] < n1["interval95"][1]
+    assert abs(n1["median"] - small.waveguide.n1) < 0.01
+    mu_t = r.samples[:, r.names.index("mu_s_per_m")] + r.samples[:, r.names.index("mu_a_per_m")]
+    truth = small.waveguide.mu_s_per_m + small.waveguide.mu_a_per_m
+    assert np.median(mu_t) == pytest.approx(truth, rel=0.1)
+    paths = plot_nuts(r, tmp_path)
+    assert all(p.stat().st_size > 5000 for p in paths)
+
+
+def test_diagnostics_properties():
+    """ArviZ's numbers behave: independent draws give ESS near their count and R-hat near 1;
+    chains stuck apart give R-hat far above 1."""
+    rng = np.random.default_rng(0)
+    iid = rng.normal(size=(4, 500, 2))
+    d = diagnostics(["a", "b"], iid)
+    assert d["ess_min"] > 1000 and d["rhat_max"] < 1.02
+    apart = iid + np.arange(4)[:, None, None]
+    assert diagnostics(["a", "b"], apart)["rhat_max"] > 1.5
+
+
+@pytest.mark.parametrize("kw", [{"chains": 0}, {"warmup": 5}, {"draws": -1}, {"draws": 1.5}, {"target_accept": 1.0},
+                                {"max_tree_depth": 0}, {"chains": True}])
+def test_bad_options_are_one_line_errors(kw):
+    with pytest.raises(UserError, match=next(iter(kw))):
+        NutsOptions(**kw)
+
+
+def test_cli_nuts_options_need_nuts(tmp_path, capsys):
+    """--chains/--warmup/--draws only with --mcmc nuts; refused before any file is read."""
+    rc = main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "c.json"), "--mcmc", "emcee", "--chains", "4"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "--chains: only for --mcmc nuts" in err and "Traceback" not in err
+    with pytest.raises(SystemExit):  # argparse: an unknown sampler
+        main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "c.json"), "--mcmc", "hmc"])
