@@ -47,6 +47,7 @@ def test_log_density_is_shared_and_whitenable(fitted):
             assert ld.laplace_cov[i, i] < loose.laplace_cov[i, i]
 
 
+@pytest.mark.slow  # 55 s cold; the default run samples with NUTS in test_calib_studies' coverage test
 def test_nuts_short_run(fitted, tmp_path):
     """A short run (the targets are benchmarked in experiments/bench_posterior.py): draws near
     the truth, every diagnostic reported per parameter, plots written."""
