@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from ..outputs import save_figure
+
 __all__ = ["discrepancy_report", "plot_residual_map"]
 
 
@@ -71,6 +73,5 @@ def plot_residual_map(residuals: np.ndarray, path: str | Path, bin_width_s: floa
     fig.colorbar(im, ax=ax, label="residual (sigma)")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return path

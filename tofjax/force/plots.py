@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..outputs import save_figure
+
 __all__ = ["plot_by_velocity", "plot_mlp_vs_forest"]
 
 
@@ -45,8 +47,7 @@ def plot_mlp_vs_forest(ds, preds: dict, path) -> Path:
     fig.suptitle("Test set (unseen forces, simulated)")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path
 
 
@@ -72,6 +73,5 @@ def plot_by_velocity(ds, preds: dict, path, title: str = "") -> Path:
     fig.suptitle(f"{title} ({key.replace('_', ' + ')}), simulated")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path

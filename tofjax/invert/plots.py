@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 from ..scene import Scene  # noqa: E402
 from .detect import Detection  # noqa: E402
 from .maps import Grid  # noqa: E402
+from ..outputs import save_figure  # noqa: E402
 
 __all__ = ["draw_map", "plot_map", "plot_map_grid"]
 
@@ -73,6 +74,5 @@ def plot_map_grid(
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path

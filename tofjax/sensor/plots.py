@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..outputs import save_figure
+
 
 def plot_sensor_fit(model, details, out) -> list[Path]:
     import matplotlib
@@ -37,8 +39,7 @@ def plot_sensor_fit(model, details, out) -> list[Path]:
             ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(out / "residuals.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save_figure(fig, paths[-1], dpi=110)
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
     ax[0].semilogy(d * 1e3, model.report["frame_reduced_chi2"], "o", ms=3)
@@ -56,8 +57,7 @@ def plot_sensor_fit(model, details, out) -> list[Path]:
     ax[1].legend(fontsize=8)
     fig.tight_layout()
     paths.append(out / "chi2_and_line.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save_figure(fig, paths[-1], dpi=110)
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     knots = model.pulse_start_bins + model.pulse_step_bins * np.arange(model.pulse.shape[1])
@@ -71,6 +71,5 @@ def plot_sensor_fit(model, details, out) -> list[Path]:
     ax.legend(fontsize=8)
     fig.tight_layout()
     paths.append(out / "pulses.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save_figure(fig, paths[-1], dpi=110)
     return paths
