@@ -179,12 +179,12 @@ def plot_posterior(samples: np.ndarray, names: list[str], truths, path: str | Pa
 
 
 def plot_traces(chain: np.ndarray, names: list[str], path: str | Path) -> Path:
-    """Walker traces, (steps, walkers, parameters), one panel per parameter."""
+    """Walker traces in physical units, (steps, walkers, parameters), one panel per parameter."""
     P = chain.shape[-1]
     fig, axes = plt.subplots(P, 1, figsize=(7, 1.3 * P + 0.5), sharex=True, squeeze=False)
     for i in range(P):
         axes[i, 0].plot(chain[:, :, i], color="k", alpha=0.15, lw=0.5)
         axes[i, 0].set_ylabel(names[i], fontsize=7)
     axes[-1, 0].set_xlabel("step")
-    fig.suptitle("posterior: walker traces (unconstrained space)")
+    fig.suptitle("posterior: walker traces (physical units)")
     return _save(fig, path)
