@@ -113,7 +113,7 @@ def detect(
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(sd > 0, (m - np.asarray(floor, float)) / sd, 0.0)
         on_noise = z > options.n_sigma
-    elif noise is not None:
+    elif noise is not None and options.n_sigma > 0:  # n_sigma = 0: no noise gate (0 x an infinite sigma is NaN)
         on_noise = m > options.n_sigma * np.asarray(noise, float)
     else:
         on_noise = np.ones(m.shape, bool)
