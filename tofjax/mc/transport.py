@@ -60,6 +60,7 @@ from jax.sharding import PartitionSpec as P
 
 from ..config import ConfigError
 from ..errors import UserError
+from ..model.guided import inward_normals
 from ..model.params import speed_in_guide
 from ..model.pulse import apply_kernels, bin_kernels
 from ..scene import Scene
@@ -298,19 +299,6 @@ def _launch_uz(opts: "MCOptions", fov_deg: float, n1: float) -> float:
     return min(math.sin(math.radians(half)) / n1, guided)
 
 
-def _inward_normals(scene: Scene) -> np.ndarray:
-    """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis."""
-    lx, ly = scene.waveguide.size_m
-    out = []
-    for sp in scene.sensors:
-        x, y = sp.position_m
-        a = math.radians(sp.direction_deg)
-        cands = [(abs(x), (1.0, 0.0)), (abs(x - lx), (-1.0, 0.0)), (abs(y), (0.0, 1.0)), (abs(y - ly), (0.0, -1.0))]
-        near = [nrm for dist, nrm in cands if dist <= 1e-6] or [min(cands)[1]]
-        out.append(max(near, key=lambda nrm: nrm[0] * math.cos(a) + nrm[1] * math.sin(a)))
-    return np.array(out, float)
-
-
 class _Static:
     """A run's settings, split into what shapes the program (``key``: hashable, compiled once per
     value) and the physics (``dyn``: arrays passed at run time, so another scene with the same
@@ -351,7 +339,7 @@ class _Static:
             "fov": math.radians(sm.fov_deg),
             "sensor_xy": np.array([s.position_m for s in scene.sensors], float),
             "sensor_dir": np.radians([s.direction_deg for s in scene.sensors]),
-            "sensor_normal": _inward_normals(scene),
+            "sensor_normal": inward_normals(scene),
             "contacts": el[:, :3].astype(float).reshape(-1, 3),
             "albedo": albedo.astype(float),
             "coupling": coupling.astype(float),

@@ -46,7 +46,7 @@ import numpy as np
 from ..scene import Scene
 from .components import Nodes, deposit, smooth_like_deposit
 
-__all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction"]
+__all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inward_normals"]
 
 #: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
 #: they are smooth in time already, and their cost grows with the node count.
@@ -109,7 +109,7 @@ class GuidedGeometry(eqx.Module):
         ang = np.asarray(ray_angle, float)  # (S, Z, A)
         S, Z, A = ang.shape
         c, s = np.cos(ang), np.sin(ang)
-        normals = _inward_normals(scene)  # (S, 2)
+        normals = inward_normals(scene)  # (S, 2)
         cos_sensor = np.clip(c * normals[:, None, None, 0] + s * normals[:, None, None, 1], 0.0, 1.0)
         # which wall each ray ends on: the nearer of the x and y walls along it
         xy = np.array([sp.position_m for sp in scene.sensors], float)[:, None, None, :]
@@ -140,9 +140,9 @@ class GuidedGeometry(eqx.Module):
         )
 
 
-def _inward_normals(scene: Scene) -> np.ndarray:
+def inward_normals(scene: Scene) -> np.ndarray:
     """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis
-    (the Monte Carlo's convention)."""
+    (the Monte Carlo launches from the same normals)."""
     lx, ly = scene.waveguide.size_m
     out = []
     for sp in scene.sensors:
