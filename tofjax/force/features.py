@@ -190,12 +190,8 @@ def find_window(captures: list[Capture], config: FeatureConfig) -> Window:
     """
     if config.source == "inversion":
         return find_inversion_window(captures, config)
-    if not captures:
-        raise FeatureError("no training captures")
-    shape = captures[0].scene.shape
+    shape = _training_shape(captures, config)
     S, Z, B = shape
-    if config.bins > B:
-        raise FeatureError(f"features.bins = {config.bins} is more than the {B} bins of the captures")
     deltas, forces = [], []
     for i, cap in enumerate(captures):
         if cap.scene.shape != shape:
@@ -655,15 +651,21 @@ def capture_rows(cap: Capture, window: Window, config: FeatureConfig, source: st
     return rows
 
 
-def find_inversion_window(captures: list[Capture], config: FeatureConfig) -> Window:
-    """The sensor whose corrected signal shows the training contacts most strongly (or ``config.sensor``);
-    the window's bins follow each contact (``start_bin`` -1)."""
+def _training_shape(captures: list[Capture], config: FeatureConfig) -> tuple[int, int, int]:
+    """The captures' (sensors, zones, bins), after checking there are captures and enough bins."""
     if not captures:
         raise FeatureError("no training captures")
     shape = captures[0].scene.shape
+    if config.bins > shape[2]:
+        raise FeatureError(f"features.bins = {config.bins} is more than the {shape[2]} bins of the captures")
+    return shape
+
+
+def find_inversion_window(captures: list[Capture], config: FeatureConfig) -> Window:
+    """The sensor whose corrected signal shows the training contacts most strongly (or ``config.sensor``);
+    the window's bins follow each contact (``start_bin`` -1)."""
+    shape = _training_shape(captures, config)
     S, Z, B = shape
-    if config.bins > B:
-        raise FeatureError(f"features.bins = {config.bins} is more than the {B} bins of the captures")
     zw = 1 if config.zones == "sum" else Z
     if config.sensor is not None:
         if not 0 <= config.sensor < S:
