@@ -174,6 +174,14 @@ def _chord_samples(m: int):
     return jnp.cos(theta), w / jnp.sum(w)
 
 
+def contact_ranges(ctx, floor=0.0):
+    """Each contact disk's range samples ``r`` (S, N, M), never below ``floor``, and their weights (M,)."""
+    p, cg = ctx.params, ctx.contacts
+    u, w = _chord_samples(ctx.touch_samples)
+    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
+    return jnp.maximum(cg.distance[..., None] + p.touch_radius_m[:, None] * u, floor), w
+
+
 # ---- the components ---------------------------------------------------------------------
 
 
@@ -230,9 +238,7 @@ def touch(ctx) -> jax.Array:
     distance. Its range spread is that of a disk (a semicircle around ``D``).
     """
     p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
-    u, w = _chord_samples(ctx.touch_samples)
-    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
-    r = jnp.maximum(cg.distance[..., None] + p.touch_radius_m[:, None] * u, 0.0)  # (S, N, M)
+    r, w = contact_ranges(ctx)  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     beta = p.touch_strength * cg.fraction  # (S, Z, N)
     amp = beta[..., None] * (w * falloff(r, p.near_field_m) * transmittance(r, mu_t))[:, None]  # (S,Z,N,M)

@@ -230,14 +230,12 @@ def _touch(ctx, gg, el):
     steradian), back over the in-plane angle ``a cos / D``; spread over the disk's range like the default
     touch, and shared among the zones by the contact's angular fraction in each (times depend on the
     sensor, contact, range sample and elevation only, so they are deposited once per sensor)."""
-    from .components import _chord_samples
+    from .components import contact_ranges
 
     p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
     skin = gg.skin
-    u, w = _chord_samples(ctx.touch_samples)
-    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
     rad = p.touch_radius_m
-    D = jnp.maximum(cg.distance[..., None] + rad[:, None] * u, 0.5 * rad[:, None])  # (S, N, M)
+    D, w = contact_ranges(ctx, floor=0.5 * rad[:, None])  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
     Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
@@ -302,15 +300,13 @@ def _touch_diffuse(ctx, gg, el):
 
 def _touch_free(ctx, gg, el):
     """Without a skin model: the free touch strength (counts as the default optics' at 1 m), guided timing."""
-    from .components import _chord_samples, shadow
+    from .components import contact_ranges, falloff, shadow
 
     p, nodes, cg = ctx.params, ctx.nodes, ctx.contacts
-    u, w = _chord_samples(ctx.touch_samples)
-    u, w = u.astype(p.n1.dtype), w.astype(p.n1.dtype)
-    r = jnp.maximum(cg.distance[..., None] + p.touch_radius_m[:, None] * u, 0.0)  # (S, N, M)
+    r, w = contact_ranges(ctx)  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     beta = p.touch_strength * cg.fraction  # (S, Z, N)
-    fall = 1.0 / (r**2 + p.near_field_m**2)
+    fall = falloff(r, p.near_field_m)
     att = jnp.exp(-mu_t * r[..., None] * (1.0 / el.c_out + 1.0 / el.c))  # (S, N, M, J)
     ew = el.dmu * el.mu / jnp.sum(el.dmu * el.mu)  # Lambertian return over the band
     amp = beta[..., None, None] * (w[:, None] * fall[..., None] * att * ew)[:, None]  # (S, Z, N, M, J)
