@@ -7,7 +7,11 @@ same simulated baseline as separate processes:
 
 * ``off``: ``TOFJAX_COMPILATION_CACHE=0`` (what every run cost before the cache);
 * ``cold``: an empty cache folder (the first run on a machine: compiles and writes entries);
-* ``warm``: the same folder again (every later run on that machine).
+* ``warm``: the same folder again (every later run on that machine): the compiled program from
+  the XLA cache and the traced program from tofjax's program store
+  (:func:`tofjax.compile_cache.call_stored`);
+* ``warm_xla_only``: the same folder with the program store off (``TOFJAX_PROGRAM_STORE=0``):
+  what the XLA cache alone gives, the process traces the fit again.
 
 Each is repeated ``--repeats`` times (cold uses a fresh folder each time) and the medians are
 reported, with the warm/off ratio measured side by side in one run. The times are whole
@@ -37,8 +41,8 @@ import time
 from pathlib import Path
 
 
-def _run(cmd: list[str], cache: str) -> float:
-    env = dict(os.environ, TOFJAX_COMPILATION_CACHE=cache)
+def _run(cmd: list[str], cache: str, store: str = "1") -> float:
+    env = dict(os.environ, TOFJAX_COMPILATION_CACHE=cache, TOFJAX_PROGRAM_STORE=store)
     t0 = time.perf_counter()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -61,16 +65,18 @@ def main(argv: list[str] | None = None) -> int:
         cap = Path(tmp) / "baseline.h5"
         _run(tofjax + ["simulate", a.scene, "--frames", str(a.frames), "--out", str(cap)], "0")
         fit = tofjax + ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
-        times: dict[str, list[float]] = {"off": [], "cold": [], "warm": []}
+        times: dict[str, list[float]] = {"off": [], "cold": [], "warm": [], "warm_xla_only": []}
         for r in range(a.repeats):
             folder = Path(tmp) / f"cache{r}"
             times["off"].append(_run(fit, "0"))
             times["cold"].append(_run(fit, str(folder)))
             times["warm"].append(_run(fit, str(folder)))
+            times["warm_xla_only"].append(_run(fit, str(folder), store="0"))
             entries = sum(1 for _ in folder.rglob("*") if _.is_file())
             shutil.rmtree(folder, ignore_errors=True)
             print(f"repeat {r}: off {times['off'][-1]:.1f} s, cold {times['cold'][-1]:.1f} s, "
-                  f"warm {times['warm'][-1]:.1f} s ({entries} cache files)", flush=True)
+                  f"warm {times['warm'][-1]:.1f} s, warm without the program store {times['warm_xla_only'][-1]:.1f} s "
+                  f"({entries} cache files)", flush=True)
     med = {k: statistics.median(v) for k, v in times.items()}
     report = {
         "what": "wall time of a whole `tofjax calibrate` process on a simulated baseline",
@@ -80,11 +86,16 @@ def main(argv: list[str] | None = None) -> int:
         "seconds": times,
         "median_s": med,
         "warm_over_off": med["warm"] / med["off"],
+        "warm_over_warm_xla_only": med["warm"] / med["warm_xla_only"],
+        "load_average_1min": os.getloadavg()[0],
         "cold_over_off": med["cold"] / med["off"],
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
     }
-    (out / "first_fit.json").write_text(json.dumps(report, indent=2))
-    print(f"median: off {med['off']:.1f} s, cold {med['cold']:.1f} s, warm {med['warm']:.1f} s "
+    from tofjax.outputs import atomic_write_text
+
+    atomic_write_text(out / "first_fit.json", json.dumps(report, indent=2))
+    print(f"median: off {med['off']:.1f} s, cold {med['cold']:.1f} s, warm {med['warm']:.1f} s, "
+          f"warm without the program store {med['warm_xla_only']:.1f} s "
           f"(warm/off {report['warm_over_off']:.2f}); wrote {out / 'first_fit.json'}")
     return 0
 

@@ -17,6 +17,9 @@ jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 # The CLI's main() turns on the user's cache (~/.cache/tofjax/jax): point it at the test cache.
 os.environ["TOFJAX_COMPILATION_CACHE"] = _cache
+# The CLI also keeps exported (traced) programs; in one test process that would compile the same
+# fit twice (exported and plain). Off here; tests/test_compile_cache.py turns it on where tested.
+os.environ["TOFJAX_PROGRAM_STORE"] = "0"
 
 # Every example compiles or runs a model: few examples, no deadline (CI machines are slow and shared).
 settings.register_profile("tofjax", max_examples=15, deadline=None, derandomize=True)

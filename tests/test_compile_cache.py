@@ -67,3 +67,120 @@ def test_cli_uses_env_folder(tmp_path, monkeypatch, cmd, capsys):
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cli-cache")
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+# ---- exported programs (call_stored) ------------------------------------------------------------
+
+_TOY = '''
+import json, sys
+import equinox as eqx, jax, jax.numpy as jnp
+from tofjax import compile_cache
+
+traces = []
+
+class Toy(eqx.Module):
+    w: jax.Array
+    power: int = eqx.field(static=True)
+
+def fn(m, x, scale):
+    traces.append(1)
+    return {"y": jnp.sum(m.w * x ** m.power) * scale, "z": [x[:2], None]}
+
+compile_cache._program_dir = None if sys.argv[1] == "-" else __import__("pathlib").Path(sys.argv[1])
+out = compile_cache.call_stored("toy", jax.jit(fn, static_argnums=2), (Toy(jnp.arange(3.0), 2), jnp.ones(3) * 2, 0.5),
+                                to_plain=lambda o: o, from_plain=lambda p, a: p)
+print(json.dumps({"y": float(out["y"]), "traces": len(traces)}))
+'''
+
+
+def _toy_run(folder) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _TOY, str(folder)], capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_second_process_reads_the_stored_program(tmp_path):
+    """The first process traces and stores the program; the second reads it and traces nothing."""
+    first, second = _toy_run(tmp_path / "programs"), _toy_run(tmp_path / "programs")
+    assert first == {"y": 0.5 * (0 * 4 + 1 * 4 + 2 * 4), "traces": 1}
+    assert second == {"y": first["y"], "traces": 0}
+    assert len(list((tmp_path / "programs").glob("*.exported"))) == 1
+
+
+def test_call_stored_in_process(tmp_path, monkeypatch):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from tofjax import compile_cache
+
+    class Holder(eqx.Module):
+        w: jnp.ndarray
+        tag: object = eqx.field(static=True)
+
+    def fn(h, x):
+        return (h.w * x, jnp.sum(x))
+
+    args = (Holder(jnp.arange(4.0), "a"), jnp.full(4, 3.0))
+    plain = dict(to_plain=lambda o: o, from_plain=lambda p, a: tuple(p))
+    monkeypatch.setattr(compile_cache, "_program_dir", tmp_path)
+    monkeypatch.setattr(compile_cache, "_loaded", {})
+    want = fn(*args)
+    got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
+    assert all(bool(jnp.all(a == b)) for a, b in zip(got, want))
+    (entry,) = tmp_path.glob("*.exported")
+    # a truncated entry is dropped and traced afresh, never an error
+    entry.write_bytes(entry.read_bytes()[:50])
+    monkeypatch.setattr(compile_cache, "_loaded", {})
+    got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
+    assert bool(jnp.all(got[0] == want[0]))
+    assert entry.stat().st_size > 50
+    # another static value is another program
+    compile_cache.call_stored("holder", jax.jit(fn), (Holder(jnp.arange(4.0), "b"), args[1]), **plain)
+    assert len(list(tmp_path.glob("*.exported"))) == 2
+    # an argument known only by its address has no stable key: it runs, nothing is stored
+    got = compile_cache.call_stored("holder", jax.jit(fn), (Holder(jnp.arange(4.0), object()), args[1]), **plain)
+    assert bool(jnp.all(got[0] == want[0]))
+    assert len(list(tmp_path.glob("*.exported"))) == 2
+
+
+def test_program_store_follows_the_environment(tmp_path, monkeypatch):
+    from tofjax import compile_cache
+
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        monkeypatch.setattr(compile_cache, "_program_dir", None)
+        monkeypatch.setenv("TOFJAX_PROGRAM_STORE", "1")
+        assert enable_compilation_cache(tmp_path / "c") == tmp_path / "c"
+        assert compile_cache.program_store() == tmp_path / "c" / "programs"
+        monkeypatch.setenv("TOFJAX_PROGRAM_STORE", "0")
+        enable_compilation_cache(tmp_path / "c")
+        assert compile_cache.program_store() is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+
+
+@pytest.mark.slow
+def test_cli_calibration_through_the_store(tmp_path):
+    """A whole ``tofjax calibrate`` in two processes: the second reads the stored fit and gives the
+    same calibration as a process without the store."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    cli = [sys.executable, "-m", "tofjax.cli"]
+    env = dict(os.environ, TOFJAX_COMPILATION_CACHE=str(tmp_path / "cache"), TOFJAX_PROGRAM_STORE="1")
+    subprocess.run(cli + ["simulate", "optoskin", "--frames", "5", "--out", str(tmp_path / "b.h5")], env=env, check=True)
+    outs = []
+    for k, store in enumerate(["1", "1", "0"]):
+        out = tmp_path / f"c{k}.json"
+        subprocess.run(cli + ["calibrate", str(tmp_path / "b.h5"), "--out", str(out)],
+                       env=dict(env, TOFJAX_PROGRAM_STORE=store), check=True, capture_output=True)
+        outs.append(json.loads(out.read_text()))
+    assert len(list((tmp_path / "cache" / "programs").glob("*.exported"))) >= 1
+    for o in outs[1:]:
+        assert o["parameters"] == outs[0]["parameters"]
+        assert o["reduced_chi2"] == outs[0]["reduced_chi2"]

@@ -32,6 +32,7 @@ import numpy as np
 import optimistix as optx
 
 from ..capture import Capture
+from ..compile_cache import call_stored
 from ..config import ConfigError, from_dict, load_toml
 from ..model import ModelOptions, Params, build_model
 from ..scene import Scene
@@ -451,6 +452,35 @@ def fit_problem_batch(
     return jax.vmap(one)(starts, data, sigma, anchors)
 
 
+def _fit_positional(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
+    return fit_problem(problem, objective, solver, start, data, sigma, prior_params, anchor,
+                       max_steps=max_steps, loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
+
+
+def _solution_to_plain(sol: FitSolution):
+    result_leaves = jax.tree_util.tree_leaves(sol.result)
+    if len(result_leaves) != 1:
+        raise TypeError("unexpected result code structure")
+    return (jax.tree_util.tree_leaves(sol.params), sol.linear, result_leaves[0], sol.steps, sol.history, sol.chi2,
+            sol.residuals, sol.hessian, sol.dphys)
+
+
+def _solution_from_plain(plain, args) -> FitSolution:
+    params_leaves, linear, code, *rest = plain
+    params = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(args[3]), params_leaves)
+    result = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(optx.RESULTS.successful), [code])
+    return FitSolution(params, linear, result, *rest)
+
+
+def run_fit(problem, objective, solver, start, data, sigma, prior_params, anchor, *, max_steps=200, loss_tol=1e-3,
+            gn_first=10, with_cov=True) -> FitSolution:
+    """:func:`fit_problem` through the program store (:func:`tofjax.compile_cache.call_stored`):
+    where the CLI (or :func:`tofjax.enable_compilation_cache`) turned the store on, a new process
+    reads the traced fit from disk instead of tracing it again; otherwise it is ``fit_problem``."""
+    args = (problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov)
+    return call_stored("calibration fit", _fit_positional, args, to_plain=_solution_to_plain, from_plain=_solution_from_plain)
+
+
 # ---- from a capture to a result -----------------------------------------------------------------
 
 
@@ -592,7 +622,7 @@ def calibrate(
     fingerprint = scene_fingerprint(scene)
     best = None
     for k, s in enumerate(candidates):
-        sol = fit_problem(
+        sol = run_fit(
             problem, objective, solver, s, data, sigma, base, anchor,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
         )
@@ -632,7 +662,7 @@ def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, f
     s2 = best.params.replace(n1=n1_t)
     no_anchor = jnp.asarray([n1_t, np.inf], data.dtype)
     sol = jax.device_get(
-        fit_problem(p2, objective, solver, s2, data, sigma, base.replace(n1=n1_t), no_anchor,
+        run_fit(p2, objective, solver, s2, data, sigma, base.replace(n1=n1_t), no_anchor,
                     max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True)
     )
     res = _assemble(p2, scene, cfg, sol, frames, stages, fingerprint)
