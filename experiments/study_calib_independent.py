@@ -194,11 +194,19 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
                     f"mu_t err {100 * r['mu_t_rel_error']:+7.1f}% chi2 {r['reduced_chi2']:7.2f} ({r['seconds']:.1f} s)",
                     flush=True,
                 )
+        # written after every truth: a part stopped by the 10-minute limit keeps what it fitted
+        atomic_write_text(path, json.dumps(_result(config, p, truths, rows, columns, None), indent=2))
     speed = None
     if batch:
         wg = dataclasses.replace(nominal.waveguide, n1=1.45, mu_s_per_m=0.4, mu_a_per_m=0.1)
         speed = batch_speed(cal, nominal.replace(waveguide=wg), p["frames"], p["batch"], seed=5000)
-    result = {
+    result = _result(config, p, truths, rows, columns, speed)
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def _result(config, p, truths, rows, columns, speed) -> dict:
+    return {
         "study": "calibration on own and independent simulated data",
         "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
@@ -209,8 +217,6 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
         **{k: {"summary": _summary(rows[k]), "fits": rows[k]} for k in columns if rows[k]},
         "batch_speed": speed,
     }
-    atomic_write_text(path, json.dumps(result, indent=2))
-    return result
 
 
 def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
