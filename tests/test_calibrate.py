@@ -502,3 +502,20 @@ def test_restarts_visit_other_basins_first():
     assert mu[idx[1]] == pytest.approx(0.1, rel=0.3) and mu[idx[2]] == pytest.approx(4.0, rel=0.3)
     assert all(j == 1 for j, _ in order) and len(idx) == 19 and len(set(idx)) == 19
     assert basin_order(np.full((2, 5), np.nan)) == ([], 0)
+
+
+def test_basin_check_keeps_the_lowest_chi2_of_the_basins(fitted, small):
+    """With the basin check on every fit (threshold below any chi-square), every other basin
+    of the envelope is fitted after a success, only basins (no neighbour of a fit's end), and
+    the lowest chi-square among the successful fits is the result."""
+    cal, ref, cap = fitted
+    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6), scene=small, problem=cal.problem)
+    fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
+    assert res.converged and 1 <= len(fits) <= 1 + FitConfig().restarts
+    ok = [f for f in fits if f["result"] == "successful"]
+    assert res.reduced_chi2 == pytest.approx(min(f["reduced_chi2"] for f in ok))
+    assert res.reduced_chi2 <= ref.reduced_chi2 + 1e-9
+    ends = [f["mu_t_per_m"] for f in fits]
+    for i in range(1, len(ends)):  # each further start was in another basin than the ends before it
+        start = [s for s in res.stages if s.get("stage") == "envelope"][0]["starts"][int(fits[i]["stage"].split()[-1])]
+        assert all(abs(np.log(start["mu_t_per_m"] / e)) >= np.log(2.0) for e in ends[:i])
