@@ -200,9 +200,10 @@ class FitConfig:
     - ``basin_check_chi2``: a successful fit whose reduced chi-square is above this is not
       taken at once: the envelope's other basins (interior local minima of its chi-square
       along mu_t, among the ``1 + restarts`` starts, with an extinction more than 2x from
-      every fit's end point so far) are fitted too, and the lowest chi-square wins. A strongly attenuating guide (4 /m) has a second basin near 0.1 /m
-      whose chi-square (2.7-3.2 on the independent simulator) is under ``max_reduced_chi2``
-      but well above the true basin's. Default 1.5; ``inf`` turns the check off.
+      every fit's end point so far) are fitted too, and the lowest chi-square wins. A
+      strongly attenuating guide (4 /m) has a second basin near 0.1 /m whose chi-square
+      (2.7-3.2 on the independent simulator) is under ``max_reduced_chi2`` but above the
+      true basin's (1.7-2.1). Default 1.5; ``inf`` turns the check off.
     - ``free`` includes ``end_incidence_power`` by default: the edge's angle law
       ``R(theta) = end_reflectance cos(theta)^p`` (docs/physics.md); a scene states ``p = 0``.
     """
