@@ -112,7 +112,7 @@ def test_detect_calibrated_study_is_a_script():
     assert "detect_calibrated_independent.json" in mod.__doc__ and "Simulated" in mod.__doc__
 
 
-@pytest.mark.slow  # three fits of a 3 x 7 x 128 baseline: 157 s at load 15 on the shared VM
+@pytest.mark.slow  # three fits of a 3 x 7 x 128 baseline: 76-157 s at load 15 on the shared VM
 def test_second_basin_at_4_per_m_is_left(tmp_path):
     """Issue 13's second basin: the independent simulator at n1 = 1.3, mu_t = 4 /m, fitted
     from the nominal scene stating no multiple scattering, ended at mu_t of about 0.1 /m with
