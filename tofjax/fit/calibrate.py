@@ -171,8 +171,8 @@ class FitConfig:
       ``Params.end_reflectance`` is their mean.
     - ``envelope``: start from the best point of an (n1, mu_t) grid of profiled
       chi-squares around the timing estimate (default); False: the timing start alone.
-    - ``restarts``: further starts (the next best envelope points) when the fit fails or
-      ends on a bound.
+    - ``restarts``: further starts (the envelope's other basins first, then its next best
+      points) when the fit fails or ends on a bound.
     - ``pulse_tails``: 2 (default): the pulse has a second, slower tail whose share and time
       constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``): a real SPAD's
       response is not one exponentially modified Gaussian, and on data tofjax did not make a
