@@ -15,6 +15,12 @@ Then the batch speed-up: the same compiled fit run on ``batch`` captures as sepa
 and as one vmapped call (``tofjax.fit.fit_problem_batch``), from the same starts.
 
     python experiments/study_calib_independent.py --out out/calib_independent [--quick] [--overwrite]
+        [--columns own,independent] [--n1 1.3 ...] [--mu-t 4 ...] [--no-batch]
+    python experiments/study_calib_independent.py --merge out/a/calib_independent.json out/b/... --out out/all
+
+The whole grid takes longer than one 10-minute command on the shared 2-core VM: run it in
+parts (``--columns``, ``--n1``, ``--mu-t``, ``--no-batch``; each part writes its own JSON)
+and ``--merge`` them (fits in grid order, summaries recomputed over the merged rows).
 
 Writes ``calib_independent.json`` (copy it to ``docs/results/``). **Simulated** data.
 """
@@ -73,6 +79,9 @@ def _row(res, n1, mu_t, seconds):
         "mu_t_rel_error": f_mu / mu_t - 1,
         "reduced_chi2": res.reduced_chi2,
         "worst_zone": (res.discrepancy.get("worst_zones") or [None])[0],
+        "end_reflectance": float(res.params.end_reflectance),
+        "end_incidence_power": float(res.params.end_incidence_power),
+        "starts_fitted": sum(str(st.get("stage", "")).startswith("fit from start") for st in res.stages),
         "seconds": seconds,
     }
 
@@ -153,23 +162,28 @@ def batch_speed(cal: Calibrator, truth, frames: int, batch: int, seed: int) -> d
 COLUMNS = ("own", "independent", "independent_scene_without_ms")
 
 
-def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False,
+        columns=COLUMNS, n1s=None, mu_ts=None, batch: bool = True) -> dict:
     path = check_output(out / "calib_independent.json", overwrite=overwrite)
-    p = QUICK if quick else FULL
+    p = dict(QUICK if quick else FULL)
+    grid = list(itertools.product(p["n1"], p["mu_t"]))  # seeds follow the full grid's order
+    keep = [(k, n1, mu_t) for k, (n1, mu_t) in enumerate(grid)
+            if (n1s is None or n1 in n1s) and (mu_ts is None or mu_t in mu_ts)]
     nominal = _scene(load_scene("optoskin"), p["sensors"], p["zones"], p["bins"])
     cal = Calibrator(nominal, config)
     no_ms = nominal.replace(waveguide=dataclasses.replace(nominal.waveguide, multiple_scattering=0.0))
     cal_no_ms = Calibrator(no_ms, config)
-    rows = {k: [] for k in COLUMNS}
+    rows = {k: [] for k in columns}
     truths = []
-    for k, (n1, mu_t) in enumerate(itertools.product(p["n1"], p["mu_t"])):
+    for k, n1, mu_t in keep:
         wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
         truth = nominal.replace(waveguide=wg)
-        truths.append({"n1": n1, "mu_t_per_m": mu_t, "albedo": ALBEDO})
-        own = simulate(truth, p["frames"], seed=100 + k)
+        truths.append({"n1": n1, "mu_t_per_m": mu_t, "albedo": ALBEDO, "grid_index": k})
+        own = simulate(truth, p["frames"], seed=100 + k) if "own" in columns else None
         rig = IndepRig.from_scene(truth, seed=200 + k)
         ind = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=p["frames"], seed=300 + k)
-        for name, cap, c in (("own", own, cal), ("independent", ind, cal), ("independent_scene_without_ms", ind, cal_no_ms)):
+        todo = (("own", own, cal), ("independent", ind, cal), ("independent_scene_without_ms", ind, cal_no_ms))
+        for name, cap, c in (t for t in todo if t[0] in columns):
             t = time.perf_counter()
             res = c.fit(cap)
             rows[name].append(_row(res, n1, mu_t, time.perf_counter() - t))
@@ -180,9 +194,19 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
                     f"mu_t err {100 * r['mu_t_rel_error']:+7.1f}% chi2 {r['reduced_chi2']:7.2f} ({r['seconds']:.1f} s)",
                     flush=True,
                 )
-    wg = dataclasses.replace(nominal.waveguide, n1=1.45, mu_s_per_m=0.4, mu_a_per_m=0.1)
-    speed = batch_speed(cal, nominal.replace(waveguide=wg), p["frames"], p["batch"], seed=5000)
-    result = {
+        # written after every truth: a part stopped by the 10-minute limit keeps what it fitted
+        atomic_write_text(path, json.dumps(_result(config, p, truths, rows, columns, None), indent=2))
+    speed = None
+    if batch:
+        wg = dataclasses.replace(nominal.waveguide, n1=1.45, mu_s_per_m=0.4, mu_a_per_m=0.1)
+        speed = batch_speed(cal, nominal.replace(waveguide=wg), p["frames"], p["batch"], seed=5000)
+    result = _result(config, p, truths, rows, columns, speed)
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def _result(config, p, truths, rows, columns, speed) -> dict:
+    return {
         "study": "calibration on own and independent simulated data",
         "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
@@ -190,9 +214,36 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
         "scene": {k: p[k] for k in ("sensors", "zones", "bins", "frames")} | {"base": "optoskin", "albedo": ALBEDO},
         "fit_config": dataclasses.asdict(config),
         "truths": truths,
-        **{k: {"summary": _summary(rows[k]), "fits": rows[k]} for k in COLUMNS},
+        **{k: {"summary": _summary(rows[k]), "fits": rows[k]} for k in columns if rows[k]},
         "batch_speed": speed,
     }
+
+
+def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """One result from the JSONs of several parts of the grid: each column's fits in grid
+    order (a truth fitted twice keeps the later part's), summaries recomputed; the parts'
+    load averages and the first batch speed found are kept."""
+    path = check_output(out / "calib_independent.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    cols: dict = {}
+    for d in loaded:
+        for c in COLUMNS:
+            for t, r in zip(d["truths"], d.get(c, {}).get("fits", [])):
+                cols.setdefault(c, {})[t["grid_index"]] = (t, r)
+    truths = {}
+    for c in cols.values():
+        truths.update({i: t for i, (t, _) in c.items()})
+    first = loaded[0]
+    result = {k: first[k] for k in ("study", "data", "machine", "scene", "fit_config")}
+    result["load_average"] = [d["load_average"] for d in loaded]
+    result["parts"] = [str(q) for q in parts]
+    result["truths"] = [truths[i] for i in sorted(truths)]
+    for c in COLUMNS:
+        if c in cols:
+            idx = sorted(cols[c])
+            fits = [cols[c][i][1] for i in idx]
+            result[c] = {"summary": _summary(fits), "truth_index": idx, "fits": fits}
+    result["batch_speed"] = next((d["batch_speed"] for d in loaded if d.get("batch_speed")), None)
     atomic_write_text(path, json.dumps(result, indent=2))
     return result
 
@@ -203,11 +254,25 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="a tiny scene and one truth (what the test runs)")
     ap.add_argument("--model-error", type=float, default=FitConfig().model_error, help="FitConfig.model_error")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--columns", default=",".join(COLUMNS), help=f"comma-separated subset of {', '.join(COLUMNS)}")
+    ap.add_argument("--n1", type=float, nargs="+", help="only these true n1 of the grid")
+    ap.add_argument("--mu-t", type=float, nargs="+", help="only these true mu_t of the grid")
+    ap.add_argument("--no-batch", action="store_true", help="skip the batch speed-up measurement")
+    ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' JSONs into --out instead of fitting")
     args = ap.parse_args(argv)
-    tofjax.enable_x64()
-    r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error), overwrite=args.overwrite)
+    if args.merge:
+        r = merge(args.merge, Path(args.out), overwrite=args.overwrite)
+    else:
+        cols = tuple(c for c in args.columns.split(",") if c)
+        bad = [c for c in cols if c not in COLUMNS]
+        if bad:
+            raise SystemExit(f"--columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
+        tofjax.enable_x64()
+        r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error), overwrite=args.overwrite,
+                columns=cols, n1s=args.n1, mu_ts=args.mu_t, batch=not args.no_batch)
     for name in COLUMNS:
-        print(name, json.dumps(r[name]["summary"]))
+        if name in r:
+            print(name, json.dumps(r[name]["summary"]))
     print("batch", json.dumps(r["batch_speed"]))
     print(f"wrote {args.out}/calib_independent.json")
 

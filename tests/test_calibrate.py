@@ -417,3 +417,105 @@ def test_zone_end_profiles_a_reflectance_per_zone(small):
     ad = np.asarray(jax.jit(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), p, prior, data, sigma)))(flat))
     ours = np.asarray(eqx.filter_jit(type(problem).covariance_jacobian)(problem, p, lin, p, data, sigma))
     np.testing.assert_allclose(ours, ad, rtol=0, atol=1e-9 * np.abs(ad).max())
+
+
+# ---- the edge's angle law and the second basin --------------------------------------------
+
+
+def test_edge_incidence_cosine_of_a_rectangle():
+    """|cos| of the incidence on the edge a ray hits: 1 straight at an edge, cos 60 deg = 0.5
+    at 60 deg from its normal, and the edge hit first decides (vertical or horizontal)."""
+    from tofjax.model.components import edge_incidence_cos, edge_law
+
+    xy = np.array([[0.0, 0.1], [0.0, 0.1], [0.1, 0.0], [0.0, 0.1]])
+    ang = np.array([0.0, np.radians(60.0), np.radians(90.0), np.radians(80.0)])
+    c = edge_incidence_cos((0.2, 1.0), xy, ang)
+    # the 80 deg ray from (0, 0.1) reaches y = 1 (a horizontal edge) before x = 0.2: |sin 80|
+    np.testing.assert_allclose(c, [1.0, 0.5, 1.0, np.sin(np.radians(80.0))], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(edge_law(np.array([0.5, 1.0, 0.0]), 0.0)), 1.0)
+    law = np.asarray(edge_law(np.array([0.5, 0.0]), 2.0))
+    assert law[0] == pytest.approx(0.25) and 0 < law[1] < 1e-5  # grazing: floored, finite
+
+
+def test_edge_angle_law_in_the_model(small):
+    """p = 0 is the model without the law; with p = 1 each zone's edge return is scaled by
+    the mean cosine of its rays' incidence (between the smallest and largest of them)."""
+    import equinox as eqx
+
+    from tofjax.model import Params, build_model
+
+    scene = small.without_touches()
+    model = build_model(scene)
+    p = Params.from_scene(scene)
+    assert float(p.end_incidence_power) == 0.0
+    f = eqx.filter_jit(lambda m, q: m.breakdown(q)["end"])
+    no_law = eqx.tree_at(lambda m: m.edge_cos, model, None, is_leaf=lambda x: x is None)
+    e0 = np.asarray(f(model, p))
+    np.testing.assert_allclose(e0, np.asarray(f(no_law, p)), rtol=0, atol=1e-12)
+    e1 = np.asarray(f(model, p.replace(end_incidence_power=1.0)))
+    ratio = e1.sum(-1) / e0.sum(-1)  # (S, Z)
+    cos = np.asarray(model.edge_cos)
+    seen = np.asarray(model.geometry.ray_length) > 0
+    lo = np.where(seen, cos, np.inf).min(-1)
+    hi = np.where(seen, cos, -np.inf).max(-1)
+    ok = e0.sum(-1) > 0
+    assert ((ratio >= lo - 1e-9) & (ratio <= hi + 1e-9))[ok].all()
+    assert (ratio[ok] < 1.0 - 1e-6).any()  # some zone sees its edge obliquely
+
+
+def test_edge_angle_law_is_fitted_by_default_and_dropped_with_zone_end(small):
+    from tofjax.fit.calibrate import build_problem
+    from tofjax.model import Params
+    from tofjax.model.params import ParamsError
+
+    assert "end_incidence_power" in FitConfig().free
+    assert "end_incidence_power" in build_problem(small, FitConfig()).nonlinear
+    # a reflectance per zone takes any angle law: the power is then not a parameter
+    assert "end_incidence_power" not in build_problem(small, FitConfig(zone_end=True)).free
+    with pytest.raises(ParamsError, match="end_incidence_power"):
+        Params.from_scene(small.without_touches()).replace(end_incidence_power=25.0)
+    with pytest.raises(ConfigError, match="basin_check_chi2"):
+        FitConfig(basin_check_chi2=0.0)
+
+
+def test_own_baseline_fits_no_angle_law(fitted):
+    """tofjax's own simulator has one reflectance for every angle: the fitted power is 0
+    within its 95% interval."""
+    _, res, _ = fitted
+    lo, hi = res.interval95["end_incidence_power"]
+    assert lo <= 0.0 <= hi, (res.values["end_incidence_power"], lo, hi)
+
+
+def test_restarts_visit_other_basins_first():
+    """The envelope's restarts: the best point, then the other interior minima along mu_t (by
+    chi-square), then the rest; the grid's ends are no basin."""
+    from tofjax.fit._start import basin_order
+
+    mu = np.geomspace(0.01, 30, 19)
+    prof = np.minimum(np.log(mu / 0.1) ** 2, np.log(mu / 4.0) ** 2 + 0.5)  # minima at 0.1 and 4 /m
+    prof[-1] = -1.0  # falling at the grid's end: not a basin, but still the best single point
+    chi = np.stack([prof + 1.0, prof, prof + 2.0])  # the middle n1 offset is best everywhere
+    chi[0, 3] = np.nan
+    order, n_basins = basin_order(chi)
+    idx = [i for _, i in order]
+    assert n_basins == 3 and idx[0] == 18
+    assert mu[idx[1]] == pytest.approx(0.1, rel=0.3) and mu[idx[2]] == pytest.approx(4.0, rel=0.3)
+    assert all(j == 1 for j, _ in order) and len(idx) == 19 and len(set(idx)) == 19
+    assert basin_order(np.full((2, 5), np.nan)) == ([], 0)
+
+
+def test_basin_check_keeps_the_lowest_chi2_of_the_basins(fitted, small):
+    """With the basin check on every fit (threshold below any chi-square), every other basin
+    of the envelope is fitted after a success, only basins (no neighbour of a fit's end), and
+    the lowest chi-square among the successful fits is the result."""
+    cal, ref, cap = fitted
+    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6), scene=small, problem=cal.problem)
+    fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
+    assert res.converged and 1 <= len(fits) <= 1 + FitConfig().restarts
+    ok = [f for f in fits if f["result"] == "successful"]
+    assert res.reduced_chi2 == pytest.approx(min(f["reduced_chi2"] for f in ok))
+    assert res.reduced_chi2 <= ref.reduced_chi2 + 1e-9
+    ends = [f["mu_t_per_m"] for f in fits]
+    for i in range(1, len(ends)):  # each further start was in another basin than the ends before it
+        start = [s for s in res.stages if s.get("stage") == "envelope"][0]["starts"][int(fits[i]["stage"].split()[-1])]
+        assert all(abs(np.log(start["mu_t_per_m"] / e)) >= np.log(2.0) for e in ends[:i])

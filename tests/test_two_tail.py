@@ -73,3 +73,25 @@ def test_slow_weight_range_checked():
         p.replace(pulse_slow_weight=1.5)
     with pytest.raises(Exception, match="pulse_tails"):
         ModelOptions(pulse_tails=3)
+
+
+def test_guided_optics_take_the_edge_angle_law():
+    """The guided optics support Params.end_incidence_power: cos^p multiplies their Lambertian
+    edge (p = 0 leaves it as it was; p = 2 dims every zone, whose rays meet the edges obliquely)."""
+    import jax
+
+    from tofjax.model import ModelOptions
+    from tofjax.scene import scene_from_dict
+
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.2, 0.1], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.0, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": 5e-11, "n_bins": 96, "zones": 2, "fov_deg": 60.0, "emission_time_s": 5e-10},
+        "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}],
+        "touches": [],
+    })
+    model = build_model(sc, ModelOptions(optics="guided"), ("end",))
+    p = Params.from_scene(sc)
+    f = jax.jit(lambda q: model(q))
+    e0 = np.asarray(f(p)).sum(-1)
+    e2 = np.asarray(f(p.replace(end_incidence_power=2.0))).sum(-1)
+    assert (e2 < e0).all() and (e2 > 0).all()

@@ -98,6 +98,10 @@ class CalibrationProblem(eqx.Module):
         zone_end = bool(zone_end and zone_gain and "end_reflectance" in free and "end" in comps)
         if zone_end:
             linear = linear + ("end_reflectance",)
+            # a reflectance per zone already takes any angle law: its power is not identified
+            free = tuple(p for p in free if p != "end_incidence_power")
+        if "end" not in comps:
+            free = tuple(p for p in free if p != "end_incidence_power")
         nonlinear = tuple(p for p in free if p not in linear and p not in LINEAR)
         return cls(
             model=model,

@@ -22,7 +22,7 @@ from ..model import SPEED_OF_LIGHT_M_PER_S, Geometry, Params
 from ..scene import Scene
 from ._problem import CalibrationProblem
 
-__all__ = ["edge_estimates", "timing_start", "envelope_grid", "ENVELOPE_MU_T", "ENVELOPE_N1"]
+__all__ = ["edge_estimates", "timing_start", "envelope_grid", "envelope_candidates", "basin_order", "ENVELOPE_MU_T", "ENVELOPE_N1"]
 
 #: Extinction grid of the envelope stage, 1/m (log-spaced, 0.01 to 30 /m).
 ENVELOPE_MU_T = tuple(float(x) for x in np.geomspace(0.01, 30.0, 19))
@@ -134,9 +134,19 @@ def envelope_grid(problem: CalibrationProblem, start: Params, data, sigma, n1, m
     return jax.vmap(chi2)(n1, mu_t)
 
 
-def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma, count: int) -> list[Params]:
-    """The ``count`` best grid points of :func:`envelope_grid`, best first, as starts (with
-    distinct extinctions, so a restart is a different basin, not a neighbour)."""
+def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma, count: int, with_basins: bool = False):
+    """The ``count`` best starts of :func:`envelope_grid`, best first: the grid's best point,
+    then the best point of every other basin along mu_t (the local minima of the chi-square
+    profiled over n1, by chi-square), then the best remaining extinctions.
+
+    A restart from a neighbour of the first start ends in the same basin; a strongly
+    attenuating guide can have a second basin at low mu_t (the distributed backscatter's decay
+    read as a weak attenuation with other pulse and edge parameters) that the best grid
+    point falls into, so the restarts go to the other basins first. With ``with_basins``:
+    ``(starts, b)``, the first ``b`` starts being the best point of a basin each.
+
+    The two ends of the grid never count as a basin's minimum here (a profile still falling
+    at 30 /m is the light-entry peak alone, not a guide)."""
     n1_0 = float(start.n1)
     grid = [(n1_0 * (1 + dn), mt) for dn in ENVELOPE_N1 for mt in ENVELOPE_MU_T]
     n = np.asarray([g[0] for g in grid])
@@ -144,12 +154,29 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     dt = start.n1.dtype
     chi = np.asarray(envelope_grid(problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt)))
     albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
-    out, used = [], set()
-    for i in np.argsort(chi):
-        if not np.isfinite(chi[i]) or m[i] in used:
-            continue
-        used.add(m[i])
-        out.append(start.replace(n1=n[i], mu_s_per_m=m[i] * albedo, mu_a_per_m=m[i] * (1 - albedo)))
-        if len(out) == count:
-            break
+    order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
+    out = []
+    for j, i in order[:count]:
+        k = j * len(ENVELOPE_MU_T) + i
+        out.append(start.replace(n1=n[k], mu_s_per_m=m[k] * albedo, mu_a_per_m=m[k] * (1 - albedo)))
+    if with_basins:
+        return (out or [start]), max(min(n_basins, len(out)), 1)
     return out or [start]
+
+
+def basin_order(chi: np.ndarray) -> list[tuple[int, int]]:
+    """``(n1 index, mu_t index)`` of the starts in the order :func:`envelope_candidates` tries
+    them, from a chi-square grid (n1 offsets, mu_t), and how many of them are basins: one per
+    extinction (its best n1); the best point, then the other interior local minima along mu_t
+    (by chi-square), then the rest by chi-square; non-finite points are left out."""
+    chi = np.where(np.isfinite(chi), chi, np.inf)
+    j_best = np.argmin(chi, axis=0)  # best n1 offset per extinction
+    prof = chi[j_best, np.arange(chi.shape[1])]
+    M = len(prof)
+    best = int(np.argmin(prof))
+    minima = [i for i in range(1, M - 1) if np.isfinite(prof[i]) and prof[i] <= prof[i - 1] and prof[i] <= prof[i + 1]]
+    minima = [best] + sorted((i for i in minima if i != best), key=lambda i: prof[i])
+    rest = sorted((i for i in range(M) if np.isfinite(prof[i]) and i not in minima), key=lambda i: prof[i])
+    if not np.isfinite(prof[best]):
+        return [], 0
+    return [(int(j_best[i]), int(i)) for i in minima + rest], len(minima)

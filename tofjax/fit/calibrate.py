@@ -90,6 +90,7 @@ DEFAULT_FREE = (
     "emission_time_s",
     "interface_backscatter_per_m",
     "end_reflectance",
+    "end_incidence_power",
     "near_field_m",
     "pulse_slow_weight",
     "pulse_slow_tail_s",
@@ -171,8 +172,8 @@ class FitConfig:
       ``Params.end_reflectance`` is their mean.
     - ``envelope``: start from the best point of an (n1, mu_t) grid of profiled
       chi-squares around the timing estimate (default); False: the timing start alone.
-    - ``restarts``: further starts (the next best envelope points) when the fit fails or
-      ends on a bound.
+    - ``restarts``: further starts (the envelope's other basins first, then its next best
+      points) when the fit fails or ends on a bound.
     - ``pulse_tails``: 2 (default): the pulse has a second, slower tail whose share and time
       constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``): a real SPAD's
       response is not one exponentially modified Gaussian, and on data tofjax did not make a
@@ -197,6 +198,15 @@ class FitConfig:
       describe); 0 turns it off. Without a visible edge there is no anchor.
     - ``prior_width``: width of a weak Gaussian prior on each nonlinear parameter in the
       unconstrained space, centred on the scene's values; 0 turns it off.
+    - ``basin_check_chi2``: a successful fit whose reduced chi-square is above this is not
+      taken at once: the envelope's other basins (interior local minima of its chi-square
+      along mu_t, among the ``1 + restarts`` starts, with an extinction more than 2x from
+      every fit's end point so far) are fitted too, and the lowest chi-square wins. A
+      strongly attenuating guide (4 /m) has a second basin near 0.1 /m whose chi-square
+      (2.7-3.2 on the independent simulator) is under ``max_reduced_chi2`` but above the
+      true basin's (1.7-2.1). Default 1.5; ``inf`` turns the check off.
+    - ``free`` includes ``end_incidence_power`` by default: the edge's angle law
+      ``R(theta) = end_reflectance cos(theta)^p`` (docs/physics.md); a scene states ``p = 0``.
     """
 
     solver: str = "levenberg-marquardt"
@@ -217,6 +227,7 @@ class FitConfig:
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
     pulse_tails: int = 2
+    basin_check_chi2: float = 1.5
 
     def __post_init__(self):
         if self.pulse_tails not in (1, 2):
@@ -238,7 +249,7 @@ class FitConfig:
             raise ConfigError(f"timing_anchor: must be >= 0, got {self.timing_anchor!r}")
         if self.prior_width < 0:
             raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
-        for k in ("rtol", "atol", "max_reduced_chi2"):
+        for k in ("rtol", "atol", "max_reduced_chi2", "basin_check_chi2"):
             if getattr(self, k) <= 0:
                 raise ConfigError(f"{k}: must be > 0, got {getattr(self, k)!r}")
         if self.max_steps < 1:
@@ -532,10 +543,10 @@ def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fin
     h = np.asarray(sol.history)
     return CalibrationResult(
         params=params,
-        free=tuple(config.free),
-        values={k: physical[k] for k in config.free},
-        stderr={k: stderr[k] for k in config.free},
-        interval95={k: interval[k] for k in config.free},
+        free=tuple(problem.free),
+        values={k: physical[k] for k in problem.free},
+        stderr={k: stderr[k] for k in problem.free},
+        interval95={k: interval[k] for k in problem.free},
         covariance=cov,
         labels=labels,
         converged=code == "successful",
@@ -613,15 +624,21 @@ def calibrate(
     anchor = _anchor(start, found, config, dtype)
     stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
     if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
-        candidates = envelope_candidates(problem, start, data, sigma, 1 + config.restarts)
+        candidates, n_basins = envelope_candidates(problem, start, data, sigma, 1 + config.restarts, with_basins=True)
         stages.append(
             {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": float(c.mu_s_per_m + c.mu_a_per_m)} for c in candidates]}
         )
     else:
-        candidates = [start]
+        candidates, n_basins = [start], 1
     fingerprint = scene_fingerprint(scene)
     best = None
+    ends: list[float] = []  # mu_t at the end of every fit so far
     for k, s in enumerate(candidates):
+        if best is not None and best.result == "successful":
+            # the basin check: only the other basins' starts, away from every fit's end so far
+            mt = float(s.mu_s_per_m + s.mu_a_per_m)
+            if k >= n_basins or any(abs(np.log(mt / max(e, 1e-12))) < np.log(2.0) for e in ends):
+                continue
         sol = run_fit(
             problem, objective, solver, s, data, sigma, base, anchor,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
@@ -630,13 +647,16 @@ def calibrate(
         res = _assemble(problem, scene, config, sol, capture.n_frames, stages, fingerprint)
         stages.append(
             {"stage": f"fit from start {k}", "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
-             "n1": float(res.params.n1), "on_bound": res.on_bound}
+             "n1": float(res.params.n1), "mu_t_per_m": float(res.params.mu_s_per_m + res.params.mu_a_per_m),
+             "on_bound": res.on_bound}
         )
+        ends.append(float(res.params.mu_s_per_m + res.params.mu_a_per_m))
         if best is None or _rank(res) < _rank(best):
             best = res
-        if res.result == "successful":
+        if best.result == "successful" and best.reduced_chi2 <= config.basin_check_chi2:
             break
-        # a failure, a bound or a refused chi-square: the next start is another basin
+        # a failure, a bound, a refused chi-square or a chi-square above the basin check:
+        # the next start is another basin
     held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
     if held is not None:
         best = held
@@ -669,7 +689,7 @@ def _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, f
     stages.append({"stage": "n1 held at the timing estimate", "n1": n1_t, "result": res.result, "reduced_chi2": res.reduced_chi2})
     if res.result not in ("refused_reduced_chi2", "successful"):
         return None
-    res.free, res.solver_converged = tuple(cfg.free), res.solver_converged
+    res.free, res.solver_converged = tuple(p2.free), res.solver_converged
     return res
 
 
@@ -711,7 +731,10 @@ def calibrate_many(
     for i, c in enumerate(captures):
         sol = jax.tree_util.tree_map(lambda x: x[i], sols)
         res = _assemble(problem, scene, config, sol, c.n_frames, [{"stage": "batch"}], fingerprint)
-        if restart_failures and res.result not in ("successful", "refused_reduced_chi2"):
+        if restart_failures and (
+            res.result not in ("successful", "refused_reduced_chi2")
+            or (res.result == "successful" and res.reduced_chi2 > config.basin_check_chi2)
+        ):
             res = calibrate(c, config, scene=scene, problem=problem)
         out.append(res)
     return out

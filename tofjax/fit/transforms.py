@@ -84,6 +84,7 @@ FITTABLE = {
     "emission_time_s": "s",
     "interface_backscatter_per_m": "1/m",
     "end_reflectance": "",
+    "end_incidence_power": "",
     "multiple_scattering": "",
     "volume_backscatter_fraction": "",
     "near_field_m": "m",
@@ -109,6 +110,9 @@ def default_transforms(scene: Scene) -> dict[str, Transform]:
         "emission_time_s": Transform("sigmoid", lo=0.0, hi=window),
         "interface_backscatter_per_m": Transform("log", scale=1.0),
         "end_reflectance": Transform("sigmoid", lo=0.0, hi=1.0),
+        # the edge's angle law cos^p: from a return that grows toward grazing (-1) to a
+        # narrow lobe about the normal (8); 0 (one reflectance for all angles) is inside
+        "end_incidence_power": Transform("sigmoid", lo=-1.0, hi=8.0),
         "multiple_scattering": Transform("log", scale=1.0),
         "volume_backscatter_fraction": Transform("log", scale=0.01),
         "near_field_m": Transform("log", scale=max(scene.waveguide.near_field, 1e-6)),

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from .geometry import Geometry
 from .params import SPEED_OF_LIGHT_M_PER_S, Params
 
-__all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "make_nodes", "falloff", "transmittance"]
+__all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "make_nodes", "falloff", "transmittance", "edge_incidence_cos", "edge_law"]
 
 
 class Nodes(NamedTuple):
@@ -217,12 +217,46 @@ def multiple_scattering(ctx) -> jax.Array:
     return p.multiple_scattering * p.mu_s_per_m * build_up * ctx.falloff * transmittance(r, p.mu_a_per_m)
 
 
+#: Smallest cosine of incidence the edge law sees: a ray grazing an edge (cos -> 0) keeps a
+#: finite log, so cos^p and its derivative in p stay finite for every p the Params allow.
+EDGE_COS_FLOOR = 1e-3
+
+
+def edge_incidence_cos(size_m, xy, angle):
+    """|cos| of the angle between rays from ``xy`` (..., 2) along ``angle`` (...) and the normal
+    of the edge of the rectangular waveguide they hit (NumPy; the same edge choice as
+    :func:`tofjax.model.geometry.boundary_distance`: a vertical edge where the ray reaches
+    ``x = 0`` or ``x = lx`` first, else a horizontal one)."""
+    import numpy as np
+
+    lx, ly = size_m
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = xy[..., 0], xy[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(c > 1e-12, (lx - x) / c, np.where(c < -1e-12, -x / c, np.inf))
+        ty = np.where(s > 1e-12, (ly - y) / s, np.where(s < -1e-12, -y / s, np.inf))
+    return np.where(tx <= ty, np.abs(c), np.abs(s))
+
+
+def edge_law(cos_incidence, power):
+    """The edge's angle law relative to normal incidence, ``cos(theta)^p`` (1 for ``p = 0``);
+    ``cos_incidence`` floored at :data:`EDGE_COS_FLOOR`."""
+    return jnp.exp(power * jnp.log(jnp.maximum(cos_incidence, EDGE_COS_FLOOR)))
+
+
 def end(ctx) -> jax.Array:
-    """The far-edge reflection along each of a zone's rays, averaged over the zone."""
+    """The far-edge reflection along each of a zone's rays, averaged over the zone.
+
+    The edge returns ``R(theta) = end_reflectance * cos(theta)^end_incidence_power`` of the
+    light that reaches it, ``theta`` the angle of incidence of each ray on the edge it hits
+    (any of the guide's four edges: the "far" edge is wherever the ray leaves the guide)."""
     p, geom = ctx.params, ctx.geom
     length = geom.ray_length  # (S, Z, A)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
-    amp = p.end_reflectance * falloff(length, p.near_field_m) * transmittance(length, mu_t)
+    refl = p.end_reflectance
+    if ctx.edge_cos is not None:
+        refl = refl * edge_law(ctx.edge_cos, p.end_incidence_power)
+    amp = refl * falloff(length, p.near_field_m) * transmittance(length, mu_t)
     amp = jnp.where(length > 0, amp, 0.0) / length.shape[-1]  # rays pointing out see no edge
     if ctx.contacts is not None:
         amp = amp * shadow(length, ctx.contacts, p)

@@ -94,6 +94,7 @@ class _Context(NamedTuple):
     contacts: Any  # ContactGeometry or None
     shadowing: bool
     touch_samples: int
+    edge_cos: Any = None  # (S, Z, A) |cos| of each ray's incidence on the edge it hits (None: not known)
 
 
 def pile_up(expected, iterations):
@@ -123,6 +124,9 @@ class ForwardModel(eqx.Module):
     iterations: int = eqx.field(static=True)
     pile_up: bool = eqx.field(static=True)
     guided: Any = None  # GuidedGeometry with optics="guided" (tofjax.model.guided)
+    # (S, Z, A) |cos| of each ray's incidence on the edge it hits, for the edge's angle law
+    # (Params.end_incidence_power); None: the law is not applied (a model built without it)
+    edge_cos: Any = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -144,6 +148,7 @@ class ForwardModel(eqx.Module):
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
             shadowing="shadowing" in self.components,
             touch_samples=self.options.touch_samples,
+            edge_cos=self.edge_cos,
         )
 
     def _node_masses(self, params: Params, separate: bool = False) -> dict[str, jax.Array]:
@@ -254,9 +259,12 @@ def build_model(
         guided = GuidedGeometry.from_scene(scene, np.asarray(geometry.ray_angle), np.asarray(geometry.zone_lo),
                                            np.asarray(geometry.zone_hi), options.elevations, options.aperture_m,
                                            options.skin, dtype)
+    xy = np.array([s.position_m for s in scene.sensors], float)
+    edge_cos = C.edge_incidence_cos(scene.waveguide.size_m, xy[:, None, None, :], np.asarray(geometry.ray_angle, float))
     return ForwardModel(
         geometry=geometry,
         guided=guided,
+        edge_cos=jnp.asarray(edge_cos, dtype),
         components=tuple(c for c in COMPONENTS if c in comps),
         options=options,
         bin_width_s=float(scene.sensor.bin_width_s),

@@ -207,7 +207,10 @@ def _edge(ctx, gg, el, frus):
     L = geom.ray_length[..., None]  # (S, Z, A, 1)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     Lsafe = jnp.maximum(L, 1e-9)
-    amp = (p.end_reflectance * gg.cos_wall[..., None] * gg.cos_sensor[..., None] * gg.dphi[None, :, None, None]
+    # Params.end_incidence_power: cos^p on top of this optics' Lambertian edge (p = 0: as before)
+    from .components import edge_law
+
+    amp = (p.end_reflectance * edge_law(gg.cos_wall, p.end_incidence_power)[..., None] * gg.cos_wall[..., None] * gg.cos_sensor[..., None] * gg.dphi[None, :, None, None]
            / (math.pi * gg.fov * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
            * jnp.exp(-mu_t * L / el.c_out) * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
     amp = jnp.where(L > 0, amp, 0.0)

@@ -48,6 +48,7 @@ _RANGES = (
     ("ambient_counts", 0.0, np.inf, True),
     ("interface_backscatter_per_m", 0.0, np.inf, True),
     ("end_reflectance", 0.0, 1.0, True),
+    ("end_incidence_power", -1.0, 20.0, True),
     ("volume_backscatter_fraction", 0.0, 1.0, True),
     ("multiple_scattering", 0.0, np.inf, True),
     ("shadow_opacity", 0.0, 1.0, True),
@@ -86,6 +87,10 @@ class Params(eqx.Module):
     ambient_counts: Float[Array, "S Z"]
     interface_backscatter_per_m: Float[Array, ""]
     end_reflectance: Float[Array, ""]
+    # incidence-angle law of the edge's return: R(theta) = end_reflectance * cos(theta)^p
+    # (theta the angle between the ray and the edge's normal; 0: one value for every angle,
+    # 1: a diffuse (Lambertian) edge seen in the plane; see docs/physics.md)
+    end_incidence_power: Float[Array, ""]
     volume_backscatter_fraction: Float[Array, ""]
     multiple_scattering: Float[Array, ""]
     shadow_opacity: Float[Array, ""]
@@ -152,6 +157,8 @@ class Params(eqx.Module):
             ambient_counts=jnp.full((S, Z), sm.ambient_counts, dtype),
             interface_backscatter_per_m=f(wg.interface_backscatter_per_m),
             end_reflectance=f(wg.end_reflectance),
+            # a scene states one reflectance for every angle of incidence
+            end_incidence_power=f(0.0),
             volume_backscatter_fraction=f(wg.volume_backscatter_fraction),
             multiple_scattering=f(wg.multiple_scattering),
             shadow_opacity=f(wg.shadow_opacity),
