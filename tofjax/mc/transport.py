@@ -37,9 +37,17 @@ followed event by event, all packets of a batch at once (vectorised):
   (*late*), or by Russian roulette at low weight (unbiased; off with
   ``roulette_weight = 0``, which makes the weight ledger exact).
 
-Every packet draws its random numbers from its own key, ``fold_in(seed, global
-index)`` then ``fold_in(., event)``: the result depends on the seed and the photon
-count only, not on the batch size or how many devices share the work. Photons are
+Every packet draws its random numbers from a counter-based generator (Threefry-2x32, the one
+behind ``jax.random``, written out so that it fuses): its key is ``threefry(seed, (global
+index, 0))`` and the numbers of its event ``e`` are ``threefry(key, (e, j))``. The result
+depends on the seed and the photon count only, not on the batch size or how many devices
+share the work.
+
+Speed (issue 14): lanes step in lock-step with masks and take new packets as theirs end; the
+next-event scores of all aperture pieces and elevation nodes are computed at once with lanes
+as the contiguous axis and the per-node work shared; every deposit is one windowed scatter;
+the conditionals in :func:`_materialise` keep XLA from recomputing per-lane values in every
+score. Photons are
 sharded over a 1-D device mesh (axis ``"photons"``) with :func:`jax.shard_map`;
 each device tallies its packets and the tallies are summed across devices.
 
@@ -538,62 +546,61 @@ def _nee_scores(st, q, x, y, z, sensor, ux, uy, uz, wnx, wny, w_sc, w_edge, w_c,
     """Next-event scores of every lane (n,) for every aperture piece (P) and elevation node (M) at
     once: the same quantities as :func:`_nee` (the reference, per piece) times the phase function
     of the event, with the per-node work shared (one ``exp`` per element: Fresnel, attenuation and
-    contact frustration are summed as logarithms) and no (n, M, 3) direction arrays.
+    contact frustration are summed as logarithms) and no (n, M, 3) direction arrays. Lanes are
+    the last axis (contiguous: XLA vectorises over them; broadcasts over pieces and nodes are free).
 
     ``w_sc``, ``w_edge``, ``w_c``: weight scattered in the volume, diffusely at an edge (or None),
     diffusely back from a contact (or None), per lane; ``gate``: a traced True (see
-    :func:`_materialise`). Returns rows (n, P, M) of the tally, path
-    lengths (n, P, M) and scores (n, P, M)."""
-    sn = st.sensor_normal[sensor]
-    tgx, tgy = -sn[:, 1:2], sn[:, 0:1]  # (n, 1): along the edge
-    sp = st.sensor_xy[sensor]
-    dx = sp[:, 0:1] + q["offset"][None, :] * tgx - x[:, None]  # (n, P)
-    dy = sp[:, 1:2] + q["offset"][None, :] * tgy - y[:, None]
+    :func:`_materialise`). Returns rows, path lengths and scores, each (P, M, n)."""
+    snx, sny = st.sensor_normal[:, 0][sensor], st.sensor_normal[:, 1][sensor]  # (n,)
+    off = q["offset"][:, None]  # (P, 1); along the edge: (-sny, snx)
+    dx = st.sensor_xy[:, 0][sensor] - off * sny - x  # (P, n)
+    dy = st.sensor_xy[:, 1][sensor] + off * snx - y
     rho = jnp.sqrt(dx**2 + dy**2)
     ok = rho > 1e-9
     rho_ = jnp.where(ok, rho, 1.0)
     ex, ey = dx / rho_, dy / rho_
-    tx, ty = tgx * q["half"], tgy * q["half"]
+    tx, ty = -sny * q["half"], snx * q["half"]
     ax_, ay_, bx_, by_ = dx + tx, dy + ty, dx - tx, dy - ty
-    facing = (ex * sn[:, 0:1] + ey * sn[:, 1:2]) < 0
+    facing = (ex * snx + ey * sny) < 0
     dphi = jnp.where(facing, jnp.abs(jnp.arctan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
-    rel = _wrap(jnp.arctan2(-ey, -ex) - st.sensor_dir[sensor][:, None] + math.pi, 2.0 * math.pi) - math.pi
+    rel = _wrap(jnp.arctan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
     seen = ok & (jnp.abs(rel) < 0.5 * st.fov)
     zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
-    mu, c = q["mu"], q["c"]
     # materialise the per-lane and per-piece factors: otherwise XLA fuses their computation into
-    # every (lane, piece, node) element (P x M times the work, and scalar code)
-    sx = ex * ux[:, None] + ey * uy[:, None]
-    sw = ex * wnx[:, None] + ey * wny[:, None]
+    # every (piece, node, lane) element (P x M times the work)
+    sx = ex * ux + ey * uy
+    sw = ex * wnx + ey * wny
     dphi = jnp.where(seen, dphi, 0.0)
-    row = sensor[:, None] * st.Z + zone
+    row = sensor * st.Z + zone
     ws = [w for w in (w_sc, w_edge, w_c) if w is not None]
     rho_, ex, ey, sx, sw, dphi, row, uz, z, ws = _materialise(gate, (rho_, ex, ey, sx, sw, dphi, row, uz, z, ws))
     w_sc, w_edge, w_c = ws[0], (ws[1] if w_edge is not None else None), (ws[-1] if w_c is not None else None)
-    path = rho_[..., None] * q["inv_c"]  # (n, P, M)
-    k = jnp.abs(jnp.floor((z[:, None, None] + mu * path) / st.d))
-    expo = k * q["logR"] - (st.mu_s + st.mu_a) * path
+    col = lambda v: v[None, :, None]  # noqa: E731  per node: (1, M, 1)
+    mu, c = col(q["mu"]), col(q["c"])
+    path = rho_[:, None, :] * col(q["inv_c"])  # (P, M, n)
+    k = jnp.abs(jnp.floor((z + mu * path) / st.d))
+    expo = k * col(q["logR"]) - (st.mu_s + st.mu_a) * path
     if st.n_contacts:
         cxy, crad = st.contacts[:, :2], st.contacts[:, 2]
-        px, py = (x[:, None] - cxy[None, :, 0])[:, None, :], (y[:, None] - cxy[None, :, 1])[:, None, :]  # (n, 1, N)
-        b = px * ex[..., None] + py * ey[..., None]  # (n, P, N)
-        cc = px**2 + py**2 - crad**2
+        px, py = x - cxy[:, 0:1], y - cxy[:, 1:2]  # (N, n)
+        b = px[None] * ex[:, None] + py[None] * ey[:, None]  # (P, N, n)
+        cc = (px**2 + py**2 - crad[:, None] ** 2)[None]
         disc = jnp.maximum(b**2 - cc, 0.0)
-        t0 = jnp.clip(-b - jnp.sqrt(disc), 0.0, rho_[..., None])
-        t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[..., None])
+        t0 = jnp.clip(-b - jnp.sqrt(disc), 0.0, rho_[:, None, :])
+        t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None, :])
         chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # in-plane length under each contact
-        expo = expo + jnp.einsum("npk,km->npm", chord, q["G"])
-    base = (dphi[..., None] * q["dmu"]) * jnp.exp(expo)
+        expo = expo + jnp.einsum("pkn,km->pmn", chord, q["G"])
+    base = (dphi[:, None, :] * col(q["dmu"])) * jnp.exp(expo)
     # phase functions: Henyey-Greenstein about the incoming direction, Lambertian about the wall
-    cos_in = c * sx[..., None] + mu * uz[:, None, None]
+    cos_in = c * sx[:, None, :] + mu * uz
     t = jnp.maximum(1.0 + st.g**2 - 2.0 * st.g * cos_in, 1e-12)
-    w_ev = w_sc[:, None, None] * ((1.0 - st.g**2) / (4.0 * math.pi)) / (t * jnp.sqrt(t))
+    w_ev = w_sc * ((1.0 - st.g**2) / (4.0 * math.pi)) / (t * jnp.sqrt(t))
     if w_edge is not None:
-        ew = c * sw[..., None]
-        w_ev = w_ev + w_edge[:, None, None] * (jnp.maximum(ew, 0.0) / math.pi)
+        w_ev = w_ev + w_edge * (jnp.maximum(c * sw[:, None, :], 0.0) / math.pi)
     if w_c is not None:
-        w_ev = w_ev + w_c[:, None, None] * q["phase_c"]
-    return jnp.broadcast_to(row[..., None], path.shape), path, w_ev * base
+        w_ev = w_ev + w_c * col(q["phase_c"])
+    return jnp.broadcast_to(row[:, None, :], path.shape), path, w_ev * base
 
 
 # ---- counter-based random numbers ---------------------------------------------------------
@@ -831,7 +838,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             w_edge = jnp.where(refl, w_new * edge_R, 0.0) if st.edge_mode == "diffuse" else None
             w_c = jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0) if has_contacts else None
             row, npath, score_n = _nee_scores(st, nee_q, nx_, ny_, nz_, p["s"], ux, uy, nuz, wnx, wny, w_sc, w_edge, w_c, nxt >= 0)
-            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_new[:, None, None] + npath) / st.c1, score_n))
+            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_new + npath) / st.c1, score_n))
             tally = _deposit_rows(tally, st, row, tau_n, score_n)
         if st.nee:
             diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
