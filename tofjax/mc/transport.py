@@ -916,13 +916,23 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
 
 _COMPILED: dict = {}
 
+#: lanes per queue: (divisor, floor) -> max(queue // divisor, min(queue, floor)); (8, 512) was 1.25x faster
+#: than (4, 2048) at 2000 photons per sensor of optoskin (fewer idle lanes in the tail of the walk)
+_LANES = (8, 512)
+
+
+def _lanes(q: int) -> int:
+    """Lanes for a queue of ``q`` packets (the result does not depend on it, only the speed)."""
+    div, floor = _LANES
+    return max(q // div, min(q, floor))
+
 
 def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):
     """Compiled ``shard_map``: (per_call, n_batch) global indices + validity -> summed tallies.
 
     Cached by the program's shapes, so runs that differ only in physics reuse it.
     Returns (executable, compile seconds: 0 when cached)."""
-    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name)
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES)
     if cache_key in _COMPILED:
         return _COMPILED[cache_key], 0.0
 
@@ -932,7 +942,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
 
         # one queue per call: every batch of the call, followed `lanes` at a time
         q = idx.size
-        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 4, min(q, 2048)))
+        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, _lanes(q))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
