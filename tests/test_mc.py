@@ -296,6 +296,7 @@ def test_vectorised_next_event_scores_equal_the_reference():
 def test_counter_based_random_numbers():
     """The written-out Threefry-2x32 is jax.random's (Random123 known-answer via jax), and the
     per-event uniforms are in [0, 1) with the right mean and no correlation between decisions."""
+    import jax
     import jax.numpy as jnp
     from jax.extend.random import threefry_2x32
 
@@ -303,11 +304,34 @@ def test_counter_based_random_numbers():
 
     key = jnp.array([0x13198A2E, 0x03707344], jnp.uint32)
     cnt = jnp.arange(64, dtype=jnp.uint32)
-    a, b = T._threefry2x32(key[0], key[1], cnt[:32], cnt[32:])
+    a, b = jax.jit(T._threefry2x32)(key[0], key[1], cnt[:32], cnt[32:])
     np.testing.assert_array_equal(np.concatenate([a, b]), np.asarray(threefry_2x32(key, cnt)))
-    k0, k1 = T._threefry2x32(0, 7, jnp.arange(20000, dtype=jnp.uint32), 0)
-    for dtype in (jnp.float32, jnp.float64):
-        u = np.asarray(T._uniforms(k0, k1, jnp.full(20000, 3, jnp.uint32), 7, dtype))
+
+    @jax.jit
+    def draws(idx):  # one compiled call per dtype, not many eager ones
+        k0, k1 = T._threefry2x32(0, 7, idx, 0)
+        return [T._uniforms(k0, k1, jnp.full(idx.shape, 3, jnp.uint32), 7, dt) for dt in (jnp.float32, jnp.float64)]
+
+    for dtype, u in zip((np.float32, np.float64), draws(jnp.arange(20000, dtype=jnp.uint32))):
+        u = np.asarray(u)
         assert u.dtype == dtype and u.min() >= 0 and u.max() < 1
         np.testing.assert_allclose(u.mean(0), 0.5, atol=0.01)
         assert np.abs(np.corrcoef(u.T) - np.eye(7)).max() < 0.04
+
+
+def test_vectorised_atan2_is_float32_accurate():
+    """The kernel's float32 atan2 (XLA vectorises it; jnp.arctan2 is a scalar call on the CPU) is as
+    accurate as jnp.arctan2 in float32, all quadrants, signed zeros and axes included."""
+    import jax
+    import jax.numpy as jnp
+
+    from tofjax.mc.transport import _atan2
+
+    r = np.random.default_rng(0)
+    y = (r.normal(size=200_000) * 10.0 ** r.uniform(-5, 5, 200_000)).astype(np.float32)
+    x = r.normal(size=200_000).astype(np.float32)
+    x[:20], y[10:30] = 0.0, 0.0
+    exact = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    got = np.asarray(jax.jit(_atan2)(jnp.asarray(y), jnp.asarray(x)))  # one compiled call, not 15 eager ones
+    assert got.dtype == np.float32
+    assert np.abs(got - exact).max() < 4e-7

@@ -505,6 +505,31 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
     return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
 
 
+#: use the vectorised float32 ``atan2`` below (False: ``jnp.arctan2`` everywhere)
+_FAST_ATAN2 = True
+
+
+def _atan2(y, x):
+    """``atan2`` that XLA vectorises: in float32 Cephes' ``atanf`` (range reduction to
+    ``|t| <= tan(pi/8)`` and a degree-9 odd polynomial; error ~1e-7, float32 rounding), since
+    ``jnp.arctan2`` is a scalar library call per element on the CPU (~24 ns); float64 keeps
+    ``jnp.arctan2``."""
+    if y.dtype != jnp.float32 or not _FAST_ATAN2:
+        return jnp.arctan2(y, x)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    swap = ay > ax
+    num, den = jnp.where(swap, ax, ay), jnp.where(swap, ay, ax)
+    t = num / jnp.where(den > 0, den, 1.0)  # in [0, 1]
+    big = t > 0.41421356237309503
+    u = jnp.where(big, (t - 1.0) / (t + 1.0), t)
+    z = u * u
+    r = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * u + u
+    r = jnp.where(big, math.pi / 4 + r, r)
+    r = jnp.where(swap, math.pi / 2 - r, r)
+    r = jnp.where(x < 0, math.pi - r, r)
+    return jnp.where(y < 0, -r, r)
+
+
 def _wrap(x, period):
     """``x mod period`` in [0, period] as ``x - period floor(x / period)``: ``jnp.mod`` is a scalar
     ``fmod`` call per element on the CPU (~70 ns), this vectorises."""
@@ -563,8 +588,8 @@ def _nee_scores(st, q, x, y, z, sensor, ux, uy, uz, wnx, wny, w_sc, w_edge, w_c,
     tx, ty = -sny * q["half"], snx * q["half"]
     ax_, ay_, bx_, by_ = dx + tx, dy + ty, dx - tx, dy - ty
     facing = (ex * snx + ey * sny) < 0
-    dphi = jnp.where(facing, jnp.abs(jnp.arctan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
-    rel = _wrap(jnp.arctan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
+    dphi = jnp.where(facing, jnp.abs(_atan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
+    rel = _wrap(_atan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
     seen = ok & (jnp.abs(rel) < 0.5 * st.fov)
     zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
     # materialise the per-lane and per-piece factors: otherwise XLA fuses their computation into
@@ -784,7 +809,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         eg = alive & (kind == 2)
         sp = sxy[p["s"]]
         dist_sensor = jnp.sqrt((nx_ - sp[:, 0]) ** 2 + (ny_ - sp[:, 1]) ** 2)
-        back = jnp.arctan2(-uy, -ux) - sdir[p["s"]]
+        back = _atan2(-uy, -ux) - sdir[p["s"]]
         rel = _wrap(back + math.pi, 2.0 * math.pi) - math.pi
         in_fov = jnp.abs(rel) < 0.5 * st.fov
         det = eg & (dist_sensor <= st.half_ap) & in_fov
@@ -932,7 +957,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
 
     Cached by the program's shapes, so runs that differ only in physics reuse it.
     Returns (executable, compile seconds: 0 when cached)."""
-    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES)
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES, _FAST_ATAN2)
     if cache_key in _COMPILED:
         return _COMPILED[cache_key], 0.0
 
