@@ -14,7 +14,6 @@ import itertools
 import json
 import platform
 import time
-from pathlib import Path
 
 #: van de Hulst (1980), as quoted by Wang, Jacques & Zheng (1995), MCML Table 2.
 VAN_DE_HULST = {"n": 1.0, "mu_a_per_m": 1000.0, "mu_s_per_m": 9000.0, "g": 0.75, "thickness_m": 2e-4,
