@@ -1,11 +1,22 @@
-"""Monte Carlo speed: packet-events per second, against the old implementation side by side.
+"""Monte Carlo speed: packet-events per second, the current kernel against the old one side by side.
 
-The machine is shared, so absolute rates move with the load: each case runs the current
-kernel and the reference implementation (``--old``: a copy of an older ``transport.py``,
-default the one before the vectorised queue, saved by git) alternately, ``--repeats`` times,
-and reports medians and the median of the per-repeat ratios.
+A **packet-event** is one scattering, edge, contact or boundary event of one packet: one
+iteration of one live lane of the transport loop (``MCResult.events``: the sum over steps of
+the live lanes). Face bounces folded into a free flight are not events; next-event scores are
+work done *per* event (4 aperture pieces x 8 elevation nodes by default), not events. The
+definition is the same in the old and the new kernel (the same counter), so the rates compare.
 
-    python experiments/bench_mc.py --out out/bench_mc.json [--old /tmp/old_transport.py]
+The machine is shared, so absolute rates move with the load: each case runs the current kernel
+and the old one (``tofjax/mc/transport.py`` and ``slab.py`` of ``--old-commit``, default main at
+71e0f30, before the speed work; read with ``git show`` and imported in this process) alternately,
+``--repeats`` times, and reports medians and the median of the per-repeat ratios. Compilation
+is excluded (``MCResult.seconds``); the first run of each program is discarded.
+
+Also written: how far float32 is from float64 (same seed) against the seed-to-seed noise, and
+whether old and new agree statistically (different random streams: the difference of their
+means against the seed-to-seed spread). All data simulated.
+
+    python experiments/bench_mc.py --out docs/mc-bench.json --overwrite
 """
 
 from __future__ import annotations
@@ -18,40 +29,47 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).parents[1]
-#: the commit before the fixes and the queue (issue 14): the old kernel, 5.8e4 events/s quoted there
-OLD_COMMIT = "3b0b73c"
+#: main before the speed work (issue 14, item 5): the validated kernel at 5.8e4 events/s (NEE)
+OLD_COMMIT = "71e0f30"
 
 
-def _load_old(path: str | None):
-    """The old ``transport`` module, imported as ``tofjax.mc._old_transport`` (same package, relative imports)."""
-    if path is None:
-        src = subprocess.run(["git", "show", f"{OLD_COMMIT}:tofjax/mc/transport.py"], cwd=ROOT, check=True,
+def _load_old(commit: str):
+    """The old ``transport`` and ``slab`` modules, imported as ``tofjax.mc._old_transport`` and
+    ``tofjax.mc._old_slab`` (same package, so their relative imports resolve)."""
+    tmp = Path(tempfile.mkdtemp(prefix="tofjax_old_mc_"))
+    mods = []
+    for name in ("transport", "slab"):
+        src = subprocess.run(["git", "show", f"{commit}:tofjax/mc/{name}.py"], cwd=ROOT, check=True,
                              capture_output=True, text=True).stdout
-        path = str(Path(os.environ.get("TMPDIR", "/tmp")) / "tofjax_old_transport.py")
-        Path(path).write_text(src)
-    spec = importlib.util.spec_from_file_location("tofjax.mc._old_transport", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+        src = src.replace("from .transport import", "from ._old_transport import")
+        path = tmp / f"_old_{name}.py"
+        path.write_text(src)
+        spec = importlib.util.spec_from_file_location(f"tofjax.mc._old_{name}", path)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod
+        spec.loader.exec_module(mod)
+        mods.append(mod)
+    return mods
 
 
-def _scene_cases():
-    from tofjax.scene import load_scene
+def _l2(a, b):
+    import numpy as np
 
-    return {"optoskin (nee)": (load_scene("optoskin"), {}), "optoskin (analog)": (load_scene("optoskin"), {"nee": False})}
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--photons", type=int, default=2_000, help="photons per sensor of the scenes")
-    ap.add_argument("--slab-photons", type=int, default=100_000, help="photons per slab run")
+    ap.add_argument("--slab-photons", type=int, default=20_000, help="photons per slab run")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--old", help="path of the old transport.py (default: git show OLD_COMMIT)")
-    ap.add_argument("--out", default="out/bench_mc.json")
+    ap.add_argument("--old-commit", default=OLD_COMMIT, help="git commit of the old kernel")
+    ap.add_argument("--out", default="docs/mc-bench.json")
+    ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--cpu-devices", type=int, default=os.cpu_count(),
                     help="host CPU devices (one per core; the photons are sharded over them; default: all cores)")
     a = ap.parse_args(argv)
@@ -60,52 +78,87 @@ def main(argv=None) -> int:
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={a.cpu_devices}").strip()
     import jax
 
+    from tofjax import enable_x64
+    from tofjax.outputs import atomic_write_text, check_output
+
+    out_path = check_output(a.out, overwrite=a.overwrite)
+    enable_x64()  # for the float64 cases (every case names its dtype)
     from tofjax.mc import MCOptions, run_mc
     from tofjax.mc.slab import SlabOptions, run_slab
+    from tofjax.scene import load_scene
 
-    old = _load_old(a.old)
+    old, old_slab = _load_old(a.old_commit)
+    scene = load_scene("optoskin")
+    cases = {
+        "optoskin, next-event estimation (default), float32": dict(),
+        "optoskin, next-event estimation, float64": dict(dtype="float64"),
+        "optoskin, analog (nee = False), float32": dict(nee=False),
+    }
     rows = []
-    for name, (scene, kw) in _scene_cases().items():
+    for name, kw in cases.items():
+        run_mc(scene, MCOptions(photons=a.photons, **kw))  # compile (and warm) both
+        old.run_mc(scene, old.MCOptions(photons=a.photons, **kw))
         new_r, old_r = [], []
         for _ in range(a.repeats):
-            r = run_mc(scene, MCOptions(photons=a.photons, **kw))
-            new_r.append(r.events_per_second)
-            r = old.run_mc(scene, old.MCOptions(photons=a.photons, **kw))
-            old_r.append(r.events_per_second)
-        rows.append(_row(name, new_r, old_r))
+            new_r.append(run_mc(scene, MCOptions(photons=a.photons, **kw)).events_per_second)
+            old_r.append(old.run_mc(scene, old.MCOptions(photons=a.photons, **kw)).events_per_second)
+        rows.append(_row(name, new_r, old_r, photons_per_sensor=a.photons))
         print(rows[-1], flush=True)
-    # the slab (van de Hulst's): the old kernel has no slab mode; no ratio
-    for name, o in {"slab, van de Hulst": SlabOptions(n=1.0, thickness_m=2e-4, mu_s_per_m=9000, mu_a_per_m=1000, g=0.75),
-                    "slab, n=1.4 g=0.9 a=0.99 tau=10": SlabOptions(n=1.4, thickness_m=1e-3, mu_s_per_m=9900, mu_a_per_m=100, g=0.9)}.items():
-        run_slab(SlabOptions(**{**o.__dict__, "photons": a.slab_photons}))  # compile
-        rates = [run_slab(SlabOptions(**{**o.__dict__, "photons": a.slab_photons})).events_per_second for _ in range(a.repeats)]
-        rows.append(_row(name, rates, None))
+    slabs = {"slab, van de Hulst (3.7 events per photon)": dict(n=1.0, thickness_m=2e-4, mu_s_per_m=9000, mu_a_per_m=1000, g=0.75),
+             "slab, n=1.4 g=0.9 albedo 0.99 tau=10": dict(n=1.4, thickness_m=1e-3, mu_s_per_m=9900, mu_a_per_m=100, g=0.9)}
+    for name, kw in slabs.items():
+        run_slab(SlabOptions(photons=a.slab_photons, **kw))
+        old_slab.run_slab(old_slab.SlabOptions(photons=a.slab_photons, **kw))
+        new_r, old_r = [], []
+        for _ in range(a.repeats):
+            new_r.append(run_slab(SlabOptions(photons=a.slab_photons, **kw)).events_per_second)
+            old_r.append(old_slab.run_slab(old_slab.SlabOptions(photons=a.slab_photons, **kw)).events_per_second)
+        rows.append(_row(name + ", float32", new_r, old_r, photons=a.slab_photons))
         print(rows[-1], flush=True)
-    out = {
-        "benchmark": "monte carlo packet-events per second",
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "jax": jax.__version__, "backend": jax.default_backend(),
-                    "devices": jax.device_count(),
-                    "load_average_at_end": os.getloadavg()},
-        "note": "shared machine: absolute rates depend on the load; ratios are measured side by side",
-        "old": f"tofjax/mc/transport.py at {OLD_COMMIT}" if a.old is None else a.old,
-        "photons": a.photons, "slab_photons": a.slab_photons, "repeats": a.repeats, "rows": rows,
+
+    # accuracy: float32 against float64 (same seed, same random numbers) and old against new
+    f = {(impl, dt, seed): m.run_mc(scene, m.MCOptions(photons=a.photons, seed=seed, dtype=dt))
+         for impl, m in (("new", sys.modules["tofjax.mc.transport"]), ("old", old))
+         for dt in ("float32", "float64") for seed in (0, 1) if not (impl == "old" and dt == "float32")}
+    accuracy = {
+        "note": "relative L2 over all (sensor, zone, bin) of the detected fraction, optoskin, "
+                f"{a.photons} photons per sensor, next-event estimation",
+        "new_float32_vs_float64_same_seed": _l2(f["new", "float32", 0].fraction, f["new", "float64", 0].fraction),
+        "new_seed0_vs_seed1_float64": _l2(f["new", "float64", 1].fraction, f["new", "float64", 0].fraction),
+        "old_seed0_vs_seed1_float64": _l2(f["old", "float64", 1].fraction, f["old", "float64", 0].fraction),
+        "old_vs_new_mean_of_two_seeds_float64": _l2(
+            (f["new", "float64", 0].fraction + f["new", "float64", 1].fraction) / 2,
+            (f["old", "float64", 0].fraction + f["old", "float64", 1].fraction) / 2),
+        "ledger_new_float64_seed0": f["new", "float64", 0].ledger,
+        "ledger_old_float64_seed0": f["old", "float64", 0].ledger,
     }
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(out, indent=1))
-    print(f"wrote {a.out}")
+    print(accuracy, flush=True)
+    out = {
+        "benchmark": "monte carlo packet-events per second, current kernel and the old one side by side",
+        "packet_event": "one scattering, edge, contact or boundary event of one packet (one loop iteration of "
+                        "one live lane; MCResult.events); identical definition and counter in old and new",
+        "machine": {"description": "the project's 2-core shared x86-64 VM, CPU backend, loaded by other "
+                                   "sessions' jobs while measured (absolute rates depend on the load; ratios "
+                                   "are measured side by side in one process)",
+                    "platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpu_count": os.cpu_count(), "jax": jax.__version__, "backend": jax.default_backend(),
+                    "devices": jax.device_count(), "load_average_at_end": os.getloadavg()},
+        "old": f"tofjax/mc/transport.py and slab.py at {a.old_commit} (main before the speed work), "
+               "read with git show and run alternately with the new kernel in this process",
+        "data": "simulated",
+        "photons_per_sensor": a.photons, "slab_photons": a.slab_photons, "repeats": a.repeats,
+        "rows": rows, "accuracy": accuracy,
+    }
+    atomic_write_text(out_path, json.dumps(out, indent=1) + "\n", overwrite=a.overwrite)
+    print(f"wrote {out_path}")
     return 0
 
 
-def _row(name, new_rates, old_rates):
-    row = {"case": name, "events_per_s": statistics.median(new_rates), "events_per_s_best": max(new_rates),
-           "events_per_s_all": new_rates}
-    if old_rates:
-        row["old_events_per_s"] = statistics.median(old_rates)
-        row["old_events_per_s_best"] = max(old_rates)
-        row["old_events_per_s_all"] = old_rates
-        row["speedup"] = statistics.median([n / o for n, o in zip(new_rates, old_rates)])
-    return row
+def _row(name, new_rates, old_rates, **extra):
+    return {"case": name, **extra,
+            "events_per_s": statistics.median(new_rates), "events_per_s_all": new_rates,
+            "old_events_per_s": statistics.median(old_rates), "old_events_per_s_all": old_rates,
+            "speedup_median_of_pairs": statistics.median([n / o for n, o in zip(new_rates, old_rates)])}
 
 
 if __name__ == "__main__":

@@ -106,10 +106,12 @@ def test_next_event_estimation_agrees_with_analog_detection():
     assert b.sum() == pytest.approx(a.sum(), rel=0.08)
     mean_t = lambda f: np.sum(f * np.arange(f.size)) / np.sum(f)  # noqa: E731
     assert mean_t(b) == pytest.approx(mean_t(a), abs=0.5)  # bins
-    # and NEE is far less noisy per packet: compare two seeds
+    # and two seeds agree: next-event scores near the aperture are heavy-tailed, so the spread of a
+    # pair of 4096-packet runs varies by seed (four pairs: 0.03-0.15 with the kernel at 71e0f30,
+    # 0.01-0.16 with the counter-based random numbers; it was < 0.1 for seeds 0 and 1 by luck)
     nee2 = run_mc(sc, MCOptions(photons=4096, batch=2048, seed=1, edges="absorb", aperture_m=4e-3, dtype="float64"))
     spread = np.linalg.norm(nee2.fraction - nee.fraction) / np.linalg.norm(nee.fraction)
-    assert spread < 0.1
+    assert spread < 0.2
 
 
 def test_reproducible_and_batch_independent():
@@ -242,3 +244,94 @@ def test_next_event_flight_under_a_contact():
     ratio = full[:, guided] / free[:, guided]
     assert np.all(ratio < 1) and np.all(ratio > 0)  # frustrated, not cut off
     assert np.all(full[:, ~guided] <= free[:, ~guided] * (1 + 1e-12))
+
+
+def test_vectorised_next_event_scores_equal_the_reference():
+    """The kernel's next-event scores (all aperture pieces and nodes at once, lanes last, logs summed,
+    one windowed scatter) equal the per-piece reference ``_nee`` + phase functions + ``_deposit``
+    to rounding, with and without a contact, for g != 0."""
+    import jax
+    import jax.numpy as jnp
+
+    import tofjax.mc.transport as T
+
+    touch = {"position_m": [0.05, 0.05], "radius_m": 0.01, "strength": 1.0}
+    r = np.random.default_rng(0)
+    n = 48
+    x, y = jnp.array(r.uniform(0, 0.1, n)), jnp.array(r.uniform(0, 0.1, n))
+    z = jnp.array(r.uniform(0, 0.004, n))
+    u = r.normal(size=(n, 3))
+    ux, uy, uz = (jnp.array(c) for c in (u / np.linalg.norm(u, axis=1, keepdims=True)).T)
+    s = jnp.zeros(n, jnp.int32)
+    w_sc, w_edge, w_c, L = (jnp.array(r.uniform(0, v, n)) for v in (1.0, 1.0, 1.0, 0.3))
+    wnx = jnp.array(r.choice([-1.0, 1.0, 0.0], n))
+    wny = jnp.where(wnx == 0, 1.0, 0.0)
+    for touches, opts in (((), MCOptions(dtype="float64", g=0.7, aperture_m=4e-3)),
+                          ((touch,), MCOptions(dtype="float64", g=-0.3, aperture_m=4e-3, contact_n=1.42))):
+        st = T._Static(strip_scene(length=0.1, mu_s=10.0, mu_a=1.0, fov=170.0, touches=touches), opts)
+
+        @jax.jit
+        def both(ph):
+            v = T._View(st, ph)
+            mu, dmu = T._nee_nodes(v, v.nee_points, jnp.float64)
+            ref = jnp.zeros(st.S * st.Z * st.K)
+            for piece in range(v.nee_aperture):
+                half = v.half_ap / v.nee_aperture
+                omega, nw, npath, nzone = T._nee(v, x, y, z, s, mu, dmu, jnp.float64, -v.half_ap + (2 * piece + 1) * half, half)
+                w_ev = w_sc[:, None] * T._hg_pdf(v.g, omega[..., 0] * ux[:, None] + omega[..., 1] * uy[:, None] + omega[..., 2] * uz[:, None])
+                w_ev = w_ev + w_edge[:, None] * jnp.maximum(omega[..., 0] * wnx[:, None] + omega[..., 1] * wny[:, None], 0) / math.pi
+                if st.n_contacts:
+                    w_ev = w_ev + w_c[:, None] * jnp.maximum(-omega[..., 2], 0) / math.pi
+                ref = T._deposit(ref, v, ((s * v.Z + nzone) * v.K)[:, None], v.t_e + (L[:, None] + npath) / v.c1, w_ev * nw)
+            row, path, score = T._nee_scores(v, T._nee_setup(v, jnp.float64), x, y, z, s, ux, uy, uz, wnx, wny,
+                                             w_sc, w_edge, w_c if st.n_contacts else None, jnp.bool_(True))
+            new = T._deposit_rows(jnp.zeros(st.S * st.Z * (st.K + 2 * T._PAD)), v, row, v.t_e + (L + path) / v.c1, score)
+            return ref, new.reshape(-1, st.K + 2 * T._PAD)[:, T._PAD:T._PAD + st.K].reshape(-1)
+
+        ref, new = (np.asarray(a) for a in both(st.arrays(jnp.float64)))
+        assert ref.sum() > 0
+        np.testing.assert_allclose(new, ref, rtol=1e-9, atol=1e-12 * ref.max())
+
+
+def test_counter_based_random_numbers():
+    """The written-out Threefry-2x32 is jax.random's (Random123 known-answer via jax), and the
+    per-event uniforms are in [0, 1) with the right mean and no correlation between decisions."""
+    import jax
+    import jax.numpy as jnp
+    from jax.extend.random import threefry_2x32
+
+    import tofjax.mc.transport as T
+
+    key = jnp.array([0x13198A2E, 0x03707344], jnp.uint32)
+    cnt = jnp.arange(64, dtype=jnp.uint32)
+    a, b = jax.jit(T._threefry2x32)(key[0], key[1], cnt[:32], cnt[32:])
+    np.testing.assert_array_equal(np.concatenate([a, b]), np.asarray(threefry_2x32(key, cnt)))
+
+    @jax.jit
+    def draws(idx):  # one compiled call per dtype, not many eager ones
+        k0, k1 = T._threefry2x32(0, 7, idx, 0)
+        return [T._uniforms(k0, k1, jnp.full(idx.shape, 3, jnp.uint32), 7, dt) for dt in (jnp.float32, jnp.float64)]
+
+    for dtype, u in zip((np.float32, np.float64), draws(jnp.arange(20000, dtype=jnp.uint32))):
+        u = np.asarray(u)
+        assert u.dtype == dtype and u.min() >= 0 and u.max() < 1
+        np.testing.assert_allclose(u.mean(0), 0.5, atol=0.01)
+        assert np.abs(np.corrcoef(u.T) - np.eye(7)).max() < 0.04
+
+
+def test_vectorised_atan2_is_float32_accurate():
+    """The kernel's float32 atan2 (XLA vectorises it; jnp.arctan2 is a scalar call on the CPU) is as
+    accurate as jnp.arctan2 in float32, all quadrants, signed zeros and axes included."""
+    import jax
+    import jax.numpy as jnp
+
+    from tofjax.mc.transport import _atan2
+
+    r = np.random.default_rng(0)
+    y = (r.normal(size=200_000) * 10.0 ** r.uniform(-5, 5, 200_000)).astype(np.float32)
+    x = r.normal(size=200_000).astype(np.float32)
+    x[:20], y[10:30] = 0.0, 0.0
+    exact = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    got = np.asarray(jax.jit(_atan2)(jnp.asarray(y), jnp.asarray(x)))  # one compiled call, not 15 eager ones
+    assert got.dtype == np.float32
+    assert np.abs(got - exact).max() < 4e-7

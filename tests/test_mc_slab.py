@@ -106,8 +106,12 @@ def test_time_resolved_reflectance_matches_diffusion_theory():
     ref = np.array([np.trapezoid(_diffusion_reflectance(fine[(fine > a) & (fine <= b)], mu_s, mu_a), dx=dt / 20)
                     for a, b in zip(edges[:-1], edges[1:])])
     early, late = slice(3, 8), slice(8, 20)  # 150-400 ps and 400-1000 ps (1 / (mu_s' c) = 6.7 ps)
-    assert R[early].sum() == pytest.approx(ref[early].sum(), rel=0.05)
-    assert R[late].sum() == pytest.approx(ref[late].sum(), rel=0.08)
+    # the Monte Carlo sits above diffusion theory by +4.3% early and +5.0-6.2% late (means of 16
+    # seeds, the same for the kernel at 71e0f30 and the faster one: 0.0597 / 0.0596 early, 0.01277 /
+    # 0.01264 late), and one run of 16384 photons scatters by 2.5% (early) and 2.2% (late): the
+    # margins are that offset plus 3 standard deviations (5% and 8% passed at 71e0f30's seed 0 by luck)
+    assert R[early].sum() == pytest.approx(ref[early].sum(), rel=0.12)
+    assert R[late].sum() == pytest.approx(ref[late].sum(), rel=0.13)
     assert r.lost > 0  # the window ends the walk; packets are stopped, not lost from the ledger
 
 

@@ -37,9 +37,17 @@ followed event by event, all packets of a batch at once (vectorised):
   (*late*), or by Russian roulette at low weight (unbiased; off with
   ``roulette_weight = 0``, which makes the weight ledger exact).
 
-Every packet draws its random numbers from its own key, ``fold_in(seed, global
-index)`` then ``fold_in(., event)``: the result depends on the seed and the photon
-count only, not on the batch size or how many devices share the work. Photons are
+Every packet draws its random numbers from a counter-based generator (Threefry-2x32, the one
+behind ``jax.random``, written out so that it fuses): its key is ``threefry(seed, (global
+index, 0))`` and the numbers of its event ``e`` are ``threefry(key, (e, j))``. The result
+depends on the seed and the photon count only, not on the batch size or how many devices
+share the work.
+
+Speed (issue 14): lanes step in lock-step with masks and take new packets as theirs end; the
+next-event scores of all aperture pieces and elevation nodes are computed at once with lanes
+as the contiguous axis and the per-node work shared; every deposit is one windowed scatter;
+the conditionals in :func:`_materialise` keep XLA from recomputing per-lane values in every
+score. Photons are
 sharded over a 1-D device mesh (axis ``"photons"``) with :func:`jax.shard_map`;
 each device tallies its packets and the tallies are summed across devices.
 
@@ -363,8 +371,9 @@ class _View:
         self.__dict__.update(ph)
 
 
-def _emit(st: _View, idx, keys, dtype):
-    """Initial packets for global photon indices ``idx`` (sensor = idx mod S)."""
+def _emit(st: _View, idx, u, dtype):
+    """Initial packets for global photon indices ``idx`` (sensor = idx mod S), from three uniform
+    numbers per packet ``u`` (n, 3)."""
     s = idx % st.S
     if st.slab:
         # pencil beam at normal incidence on the top face; the specular reflection at entry is not
@@ -372,7 +381,6 @@ def _emit(st: _View, idx, keys, dtype):
         zero = jnp.zeros(idx.shape, dtype)
         return dict(x=zero, y=zero, z=zero + st.d, ux=zero, uy=zero, uz=zero - 1.0, L=zero,
                     w=zero + (1.0 - st.R_entry), s=s, diffuse=jnp.zeros(idx.shape, bool))
-    u = jax.vmap(lambda k: jax.random.uniform(k, (3,), dtype))(keys)
     xy = jnp.asarray(st.sensor_xy, dtype)[s]
     az = jnp.asarray(st.sensor_dir, dtype)[s] + (u[:, 0] - 0.5) * st.fov
     uz = (2.0 * u[:, 1] - 1.0) * st.launch_uz
@@ -385,7 +393,9 @@ def _emit(st: _View, idx, keys, dtype):
 
 
 def _deposit(tally, st, base, tau, w):
-    """Add weights ``w`` at times ``tau`` (same shape) to rows ``base`` of the node grid (quadratic B-spline)."""
+    """Add weights ``w`` at times ``tau`` (same shape) to rows ``base`` of the node grid (quadratic B-spline).
+
+    The reference form (one scatter per B-spline node); the kernel uses :func:`_deposit_rows`."""
     base, tau, w = (jnp.ravel(jnp.broadcast_to(v, jnp.broadcast_shapes(base.shape, tau.shape, w.shape))) for v in (base, tau, w))
     uu = tau / st.h - 0.5
     uu = jnp.where((w != 0) & jnp.isfinite(uu), jnp.clip(uu, -10.0, st.K + 10.0), -10.0)
@@ -397,6 +407,36 @@ def _deposit(tally, st, base, tau, w):
         inside = (node >= 0) & (node < st.K)
         tally = tally.at[jnp.where(inside, base + node, 0)].add(jnp.where(inside, w * wt, 0.0))
     return tally
+
+
+#: columns of padding on each side of a row of the kernel's tally (nodes -2, -1 and K, K + 1: dropped)
+_PAD = 2
+
+#: the B-spline weights 0.5 (0.5 - dd)^2, 0.75 - dd^2, 0.5 (0.5 + dd)^2 as polynomials in dd
+_BSPLINE = np.array([[0.125, 0.75, 0.125], [-0.5, 0.0, 0.5], [0.5, -1.0, 0.5]])
+
+
+def _deposit_rows(tally, st, row, tau, w):
+    """:func:`_deposit` into the padded tally (flat, rows of K + 2 * _PAD): the same quadratic B-spline,
+    its three weights added as one window per deposit (one scatter of ``w.size`` windows, not three
+    scatters of ``w.size`` numbers); nodes outside ``[0, K)`` land in the padding. ``row``, ``tau``
+    and ``w`` have one shape; no concatenation (it would stop XLA vectorising the fused producer)."""
+    row, tau = (jnp.broadcast_to(v, w.shape) for v in (row, tau))
+    r = w.ndim  # deposits keep their shape (flattening them costs XLA index arithmetic per element)
+    uu = tau / st.h - 0.5
+    uu = jnp.where((w != 0) & jnp.isfinite(uu), jnp.clip(uu, -10.0, st.K + 10.0), -10.0)
+    centre = jnp.round(uu)
+    dd = uu - centre
+    ic = centre.astype(jnp.int32)
+    in_range = (ic >= 1 - _PAD) & (ic <= st.K + _PAD - 2)
+    col = jnp.where(in_range, ic - 1 + _PAD, 0)  # the window holds nodes ic - 1 .. ic + 1
+    ww = jnp.where(in_range, w, 0.0)
+    cf = jnp.asarray(_BSPLINE, tau.dtype)
+    dd = dd[..., None]
+    upd = (cf[0] + dd * cf[1] + dd**2 * cf[2]) * ww[..., None]
+    idx = (row.astype(jnp.int32) * (st.K + 2 * _PAD) + col)[..., None]
+    dn = jax.lax.ScatterDimensionNumbers(update_window_dims=(r,), inserted_window_dims=(), scatter_dims_to_operand_dims=(0,))
+    return jax.lax.scatter_add(tally, idx, upd, dn, mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
 def _nee_nodes(st, M: int, dtype):
@@ -465,6 +505,167 @@ def _nee(st, x, y, z, sensor, mu, dmu, dtype, offset=0.0, half=None):
     return omega, jnp.where(seen[:, None], weight, 0.0), path, zone
 
 
+#: use the vectorised float32 ``atan2`` below (False: ``jnp.arctan2`` everywhere)
+_FAST_ATAN2 = True
+
+
+def _atan2(y, x):
+    """``atan2`` that XLA vectorises: in float32 Cephes' ``atanf`` (range reduction to
+    ``|t| <= tan(pi/8)`` and a degree-9 odd polynomial; error ~1e-7, float32 rounding), since
+    ``jnp.arctan2`` is a scalar library call per element on the CPU (~24 ns); float64 keeps
+    ``jnp.arctan2``."""
+    if y.dtype != jnp.float32 or not _FAST_ATAN2:
+        return jnp.arctan2(y, x)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    swap = ay > ax
+    num, den = jnp.where(swap, ax, ay), jnp.where(swap, ay, ax)
+    t = num / jnp.where(den > 0, den, 1.0)  # in [0, 1]
+    big = t > 0.41421356237309503
+    u = jnp.where(big, (t - 1.0) / (t + 1.0), t)
+    z = u * u
+    r = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * u + u
+    r = jnp.where(big, math.pi / 4 + r, r)
+    r = jnp.where(swap, math.pi / 2 - r, r)
+    r = jnp.where(x < 0, math.pi - r, r)
+    return jnp.where(y < 0, -r, r)
+
+
+def _wrap(x, period):
+    """``x mod period`` in [0, period] as ``x - period floor(x / period)``: ``jnp.mod`` is a scalar
+    ``fmod`` call per element on the CPU (~70 ns), this vectorises."""
+    return x - period * jnp.floor(x / period)
+
+
+def _materialise(gate, tree):
+    """``tree`` unchanged, computed into buffers before its consumers. ``gate`` is a traced boolean
+    that is always True: the conditional is a fusion boundary, so XLA neither recomputes per-lane
+    values in every (lane, piece, node) element nor duplicates a long elementwise chain into each
+    of its consumers (``optimization_barrier`` does not stop fusion on the CPU)."""
+    return jax.lax.cond(gate, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
+
+
+def _nee_setup(st, dtype):
+    """What next-event estimation needs per elevation node and aperture piece, computed once per
+    call (not per event): nodes, ``1 / cos``, log Fresnel reflectance at the faces, the log
+    frustration per unit chord under each contact, the aperture pieces' offsets."""
+    mu, dmu = _nee_nodes(st, st.nee_points, dtype)
+    c = jnp.sqrt(jnp.clip(1.0 - mu**2, 1e-12, 1.0))
+    R = fresnel_reflectance(st.n1, jnp.asarray(1.0, dtype), mu)
+    q = dict(mu=mu, dmu=dmu, c=c, inv_c=1.0 / c, logR=jnp.where(R >= 1.0, 0.0, jnp.log(jnp.maximum(R, 1e-30))),
+             phase_c=jnp.maximum(-mu, 0.0) / math.pi)
+    if st.n_contacts:
+        # a top-face hit under a contact reflects fc Rs + (1 - fc) R_air instead of R_air: the
+        # factor Rc per hit, and hits = chord |mu| / (2 d cos) per unit in-plane chord
+        Rs = fresnel_reflectance(st.n1, st.contact_n, mu)[None, :]
+        fc = st.coupling[:, None]
+        Rc = jnp.where(R > 0, (fc * Rs + (1.0 - fc) * R) / jnp.where(R > 0, R, 1.0), 1.0)
+        logRc = jnp.where(Rc >= 1.0, 0.0, jnp.log(jnp.maximum(Rc, 1e-30)))
+        q["G"] = logRc * (jnp.abs(mu) / (2.0 * st.d * c))[None, :]  # (contacts, M)
+    half = st.half_ap / st.nee_aperture
+    q["half"] = half
+    q["offset"] = -st.half_ap + (2.0 * jnp.arange(st.nee_aperture, dtype=dtype) + 1.0) * half
+    return q
+
+
+def _nee_scores(st, q, x, y, z, sensor, ux, uy, uz, wnx, wny, w_sc, w_edge, w_c, gate):
+    """Next-event scores of every lane (n,) for every aperture piece (P) and elevation node (M) at
+    once: the same quantities as :func:`_nee` (the reference, per piece) times the phase function
+    of the event, with the per-node work shared (one ``exp`` per element: Fresnel, attenuation and
+    contact frustration are summed as logarithms) and no (n, M, 3) direction arrays. Lanes are
+    the last axis (contiguous: XLA vectorises over them; broadcasts over pieces and nodes are free).
+
+    ``w_sc``, ``w_edge``, ``w_c``: weight scattered in the volume, diffusely at an edge (or None),
+    diffusely back from a contact (or None), per lane; ``gate``: a traced True (see
+    :func:`_materialise`). Returns rows, path lengths and scores, each (P, M, n)."""
+    snx, sny = st.sensor_normal[:, 0][sensor], st.sensor_normal[:, 1][sensor]  # (n,)
+    off = q["offset"][:, None]  # (P, 1); along the edge: (-sny, snx)
+    dx = st.sensor_xy[:, 0][sensor] - off * sny - x  # (P, n)
+    dy = st.sensor_xy[:, 1][sensor] + off * snx - y
+    rho = jnp.sqrt(dx**2 + dy**2)
+    ok = rho > 1e-9
+    rho_ = jnp.where(ok, rho, 1.0)
+    ex, ey = dx / rho_, dy / rho_
+    tx, ty = -sny * q["half"], snx * q["half"]
+    ax_, ay_, bx_, by_ = dx + tx, dy + ty, dx - tx, dy - ty
+    facing = (ex * snx + ey * sny) < 0
+    dphi = jnp.where(facing, jnp.abs(_atan2(ax_ * by_ - ay_ * bx_, ax_ * bx_ + ay_ * by_)), 0.0)
+    rel = _wrap(_atan2(-ey, -ex) - st.sensor_dir[sensor] + math.pi, 2.0 * math.pi) - math.pi
+    seen = ok & (jnp.abs(rel) < 0.5 * st.fov)
+    zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
+    # materialise the per-lane and per-piece factors: otherwise XLA fuses their computation into
+    # every (piece, node, lane) element (P x M times the work)
+    sx = ex * ux + ey * uy
+    sw = ex * wnx + ey * wny
+    dphi = jnp.where(seen, dphi, 0.0)
+    row = sensor * st.Z + zone
+    ws = [w for w in (w_sc, w_edge, w_c) if w is not None]
+    rho_, ex, ey, sx, sw, dphi, row, uz, z, ws = _materialise(gate, (rho_, ex, ey, sx, sw, dphi, row, uz, z, ws))
+    w_sc, w_edge, w_c = ws[0], (ws[1] if w_edge is not None else None), (ws[-1] if w_c is not None else None)
+    col = lambda v: v[None, :, None]  # noqa: E731  per node: (1, M, 1)
+    mu, c = col(q["mu"]), col(q["c"])
+    path = rho_[:, None, :] * col(q["inv_c"])  # (P, M, n)
+    k = jnp.abs(jnp.floor((z + mu * path) / st.d))
+    expo = k * col(q["logR"]) - (st.mu_s + st.mu_a) * path
+    if st.n_contacts:
+        cxy, crad = st.contacts[:, :2], st.contacts[:, 2]
+        px, py = x - cxy[:, 0:1], y - cxy[:, 1:2]  # (N, n)
+        b = px[None] * ex[:, None] + py[None] * ey[:, None]  # (P, N, n)
+        cc = (px**2 + py**2 - crad[:, None] ** 2)[None]
+        disc = jnp.maximum(b**2 - cc, 0.0)
+        t0 = jnp.clip(-b - jnp.sqrt(disc), 0.0, rho_[:, None, :])
+        t1 = jnp.clip(-b + jnp.sqrt(disc), 0.0, rho_[:, None, :])
+        chord = jnp.where(b**2 - cc > 0, t1 - t0, 0.0)  # in-plane length under each contact
+        expo = expo + jnp.einsum("pkn,km->pmn", chord, q["G"])
+    base = (dphi[:, None, :] * col(q["dmu"])) * jnp.exp(expo)
+    # phase functions: Henyey-Greenstein about the incoming direction, Lambertian about the wall
+    cos_in = c * sx[:, None, :] + mu * uz
+    t = jnp.maximum(1.0 + st.g**2 - 2.0 * st.g * cos_in, 1e-12)
+    w_ev = w_sc * ((1.0 - st.g**2) / (4.0 * math.pi)) / (t * jnp.sqrt(t))
+    if w_edge is not None:
+        w_ev = w_ev + w_edge * (jnp.maximum(c * sw[:, None, :], 0.0) / math.pi)
+    if w_c is not None:
+        w_ev = w_ev + w_c * col(q["phase_c"])
+    return jnp.broadcast_to(row[:, None, :], path.shape), path, w_ev * base
+
+
+# ---- counter-based random numbers ---------------------------------------------------------
+
+_THREEFRY_ROT = ((13, 15, 26, 6), (17, 29, 16, 24))
+
+
+def _threefry2x32(k0, k1, x0, x1):
+    """Threefry-2x32 with 20 rounds (Salmon et al. 2011, Random123; the generator behind
+    ``jax.random``), written out so that XLA fuses it into one elementwise kernel (``jax.random``
+    runs it as a rolled loop on the CPU, five launches per call). Key ``(k0, k1)``, counter
+    ``(x0, x1)``: uint32 arrays that broadcast. Returns two uint32 words."""
+    k0, k1, x0, x1 = (jnp.asarray(v, jnp.uint32) for v in (k0, k1, x0, x1))
+    ks = (k0, k1, k0 ^ k1 ^ jnp.uint32(0x1BD11BDA))
+    x0, x1 = x0 + ks[0], x1 + ks[1]
+    for i in range(5):
+        for r in _THREEFRY_ROT[i % 2]:
+            x0 = x0 + x1
+            x1 = (x1 << jnp.uint32(r)) | (x1 >> jnp.uint32(32 - r))
+            x1 = x1 ^ x0
+        x0 = x0 + ks[(i + 1) % 3]
+        x1 = x1 + ks[(i + 2) % 3] + jnp.uint32(i + 1)
+    return x0, x1
+
+
+def _uniforms(k0, k1, counter, n_words: int, dtype):
+    """``n_words`` uniform numbers in [0, 1) per packet from its key ``(k0, k1)`` (n,) and a counter
+    (n,): Threefry of ``(counter, j)``, j = 0, 1, ... Returns (n, n_words)."""
+    j = jnp.arange((n_words + 1) // 2, dtype=jnp.uint32)[None, :]
+    a, b = _threefry2x32(k0[:, None], k1[:, None], counter[:, None], j)
+    bits = jnp.concatenate([a, b], axis=1)[:, :n_words]
+    if jnp.dtype(dtype) == jnp.float64:
+        return bits.astype(jnp.float64) * (2.0**-32)
+    return (bits >> jnp.uint32(8)).astype(jnp.float32) * jnp.float32(2.0**-24)
+
+
+#: counter of a packet's emission numbers (its events count from 1)
+_EMIT_COUNTER = 0xFFFFFFFF
+
+
 def _geometric(n, log_r):
     """``sum_{j<n} r^j`` from ``log r <= 0`` (``n`` terms, 0 for ``n = 0``), stable as ``r -> 1``."""
     near_one = log_r > -1e-6
@@ -484,8 +685,9 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     Lock-step over lanes with masks (one ``while_loop``); a lane whose packet ends takes the
     next packet of the queue in the same step, so no lane idles while packets are waiting
     (a batch's long tail of few live packets costs once per queue, not once per batch).
-    Packet ``i`` draws its numbers from ``fold_in(fold_in(seed, i), event)``: the tallies do
-    not depend on the lanes, the queue or the batch. ``max_events`` is per packet.
+    Packet ``i`` has the key ``threefry(seed, (i, 0))`` and draws the numbers of its event ``e``
+    from ``threefry(key, (e, j))``: the tallies do not depend on the lanes, the queue or the
+    batch. ``max_events`` is per packet. ``seed_key``: the seed's two uint32 words.
 
     Returns (tally (S*Z*K,), ledger (LEDGER + _EXTRA,), events).
     """
@@ -493,9 +695,9 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     lanes = min(lanes, n_q)
 
     def emit(g):
-        keys = jax.vmap(lambda i: jax.random.fold_in(seed_key, i))(g)
-        q = _emit(st, g, jax.vmap(lambda k: jax.random.fold_in(k, 0x7FFFFFFF))(keys), dtype)
-        q.update(key=jax.random.key_data(keys), ev=jnp.ones(g.shape, jnp.int32))
+        k0, k1 = _threefry2x32(seed_key[0], seed_key[1], g.astype(jnp.uint32), 0)
+        q = _emit(st, g, _uniforms(k0, k1, jnp.full(g.shape, _EMIT_COUNTER, jnp.uint32), 3, dtype), dtype)
+        q.update(key=jnp.stack([k0, k1], -1), ev=jnp.ones(g.shape, jnp.int32))
         return q
 
     p = emit(idx[:lanes])
@@ -512,16 +714,16 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         calb = st.albedo
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
     if st.nee:
-        mu_q, dmu_q = _nee_nodes(st, st.nee_points, dtype)
+        nee_q = _nee_setup(st, dtype)
     ledger0 = jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype)
-    tally0 = jnp.zeros((st.S * st.Z * st.K,), dtype)
+    tally0 = jnp.zeros((st.S * st.Z * (st.K + 2 * _PAD),), dtype)  # padded rows (see _deposit_rows)
     acc0 = jnp.zeros((lanes, 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
 
     def body(carry):
         nxt, p, alive, tally, ledger, events, acc = carry
         # one random number per decision: 0 free path, 1-2 scattering, 3-4 diffuse direction,
         # 5 contact mirror or not, 6 roulette (never share one between two decisions)
-        u = jax.vmap(lambda k, e: jax.random.uniform(jax.random.fold_in(jax.random.wrap_key_data(k), e), (7,), dtype))(p["key"], p["ev"])
+        u = _uniforms(p["key"][:, 0], p["key"][:, 1], p["ev"].astype(jnp.uint32), 7, dtype)
         x, y, z, ux, uy, uz, L, w = (p[k] for k in ("x", "y", "z", "ux", "uy", "uz", "L", "w"))
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
@@ -568,7 +770,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             nx_, ny_ = jnp.clip(nx_, 0.0, st.lx), jnp.clip(ny_, 0.0, st.ly)
         zu = z + uz * s
         k_faces = jnp.abs(jnp.floor(zu / d))
-        m = jnp.mod(zu, 2.0 * d)
+        m = _wrap(zu, 2.0 * d)
         flip = m > d
         nz_ = jnp.clip(jnp.where(flip, 2.0 * d - m, m), 0.0, d)
         nuz = jnp.where(flip, -uz, uz)  # an odd number of face hits reverses u_z
@@ -607,8 +809,8 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         eg = alive & (kind == 2)
         sp = sxy[p["s"]]
         dist_sensor = jnp.sqrt((nx_ - sp[:, 0]) ** 2 + (ny_ - sp[:, 1]) ** 2)
-        back = jnp.arctan2(-uy, -ux) - sdir[p["s"]]
-        rel = jnp.mod(back + math.pi, 2.0 * math.pi) - math.pi
+        back = _atan2(-uy, -ux) - sdir[p["s"]]
+        rel = _wrap(back + math.pi, 2.0 * math.pi) - math.pi
         in_fov = jnp.abs(rel) < 0.5 * st.fov
         det = eg & (dist_sensor <= st.half_ap) & in_fov
         refl = eg & ~det
@@ -629,7 +831,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         zone = jnp.clip(jnp.floor((rel + 0.5 * st.fov) / (st.fov / st.Z)), 0, st.Z - 1).astype(jnp.int32)
         wd = jnp.where(det, w_new, 0.0)
         score = wd if not st.nee else jnp.where(p["diffuse"], 0.0, wd)
-        tally = _deposit(tally, st, (p["s"] * st.Z + zone) * st.K, st.t_e + L_new / st.c1, score)
+        tally = _deposit_rows(tally, st, p["s"] * st.Z + zone, st.t_e + L_new / st.c1, score)
         # contact: Fresnel into the finger, diffuse return with its albedo
         if has_contacts:
             cn = alive & is_cont
@@ -655,21 +857,14 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             cn = jnp.zeros_like(alive)
             c_ux, c_uy, c_uz, c_w, contact_loss = ux, uy, nuz, w_new, jnp.zeros_like(w)
         # --- next-event estimation: expected direct flight to the aperture after each diffuse event ---
-        for piece in range(st.nee_aperture if st.nee else 0):
-            half = st.half_ap / st.nee_aperture
-            offset = -st.half_ap + (2 * piece + 1) * half
-            omega, nw, npath, nzone = _nee(st, nx_, ny_, nz_, p["s"], mu_q, dmu_q, dtype, offset, half)
-            in_dir = jnp.stack([ux, uy, nuz], -1)[:, None, :]
-            phase_sc = _hg_pdf(st.g, jnp.sum(omega * in_dir, -1))
-            nwall = jnp.stack([wnx, wny, 0.0 * wnx], -1)[:, None, :]
-            phase_edge = jnp.maximum(jnp.sum(omega * nwall, -1), 0.0) / math.pi
-            w_ev = jnp.where(sc, w_new, 0.0)[:, None] * phase_sc
-            if st.edge_mode == "diffuse":
-                w_ev = w_ev + jnp.where(refl, w_new * edge_R, 0.0)[:, None] * phase_edge
-            if has_contacts:
-                phase_c = jnp.maximum(-omega[..., 2], 0.0) / math.pi
-                w_ev = w_ev + jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0)[:, None] * phase_c
-            tally = _deposit(tally, st, ((p["s"] * st.Z + nzone) * st.K)[:, None], st.t_e + (L_new[:, None] + npath) / st.c1, w_ev * nw)
+        if st.nee:
+            # every aperture piece x elevation node of every lane at once (see _nee_scores)
+            w_sc = jnp.where(sc, w_new, 0.0)
+            w_edge = jnp.where(refl, w_new * edge_R, 0.0) if st.edge_mode == "diffuse" else None
+            w_c = jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0) if has_contacts else None
+            row, npath, score_n = _nee_scores(st, nee_q, nx_, ny_, nz_, p["s"], ux, uy, nuz, wnx, wny, w_sc, w_edge, w_c, nxt >= 0)
+            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_new + npath) / st.c1, score_n))
+            tally = _deposit_rows(tally, st, row, tau_n, score_n)
         if st.nee:
             diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
             if has_contacts:
@@ -707,7 +902,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             ir = jnp.floor(rho / st.rho_bin_m).astype(jnp.int32)
             it = jnp.floor((L + s_t) / st.c1 / st.time_bin_s).astype(jnp.int32)
             inside = alive & (e_top > 0) & (ir < st.Z) & (it < st.K) & (it >= 0)
-            tally = tally.at[jnp.where(inside, ir * st.K + it, 0)].add(jnp.where(inside, e_top, 0.0))
+            tally = tally.at[jnp.where(inside, ir * (st.K + 2 * _PAD) + it + _PAD, 0)].add(jnp.where(inside, e_top, 0.0))
         # a packet at its last allowed event stops; its weight is tallied as remaining
         stop = still & (p["ev"] >= st.max_events)
         ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(stop, wn, 0.0)))
@@ -741,10 +936,20 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     nxt, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
         cond, body, (jnp.int32(lanes), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
     )
-    return tally, ledger, events
+    return tally.reshape(-1, st.K + 2 * _PAD)[:, _PAD:_PAD + st.K].reshape(-1), ledger, events
 
 
 _COMPILED: dict = {}
+
+#: lanes per queue: (divisor, floor) -> max(queue // divisor, min(queue, floor)); (8, 512) was 1.25x faster
+#: than (4, 2048) at 2000 photons per sensor of optoskin (fewer idle lanes in the tail of the walk)
+_LANES = (8, 512)
+
+
+def _lanes(q: int) -> int:
+    """Lanes for a queue of ``q`` packets (the result does not depend on it, only the speed)."""
+    div, floor = _LANES
+    return max(q // div, min(q, floor))
 
 
 def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):
@@ -752,17 +957,17 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
 
     Cached by the program's shapes, so runs that differ only in physics reuse it.
     Returns (executable, compile seconds: 0 when cached)."""
-    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name)
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES, _FAST_ATAN2)
     if cache_key in _COMPILED:
         return _COMPILED[cache_key], 0.0
 
     def local(idx, valid, seed, ph):
-        key = jax.random.wrap_key_data(seed)
+        key = seed  # the seed key's two uint32 words
         view = _View(st, ph)
 
         # one queue per call: every batch of the call, followed `lanes` at a time
         q = idx.size
-        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, max(q // 4, min(q, 2048)))
+        t, l, e = _transport(view, idx.reshape(-1), valid.reshape(-1), key, dtype, _lanes(q))
         return jax.lax.psum(t, "photons"), jax.lax.psum(l, "photons"), jax.lax.psum(e, "photons")
 
     sm = jax.shard_map(
