@@ -201,9 +201,79 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     return out
 
 
+def first_order_touch(photons: int = 10_000, distances=(0.05, 0.2)) -> dict:
+    """One skin contact on sensor S0's axis, absorbing edges, scattering 0.01 /m: the first-order touch
+    return alone, Monte Carlo against the guided optics (the test of the skin's one-sided return)."""
+    from tofjax.mc import MCOptions, run_mc
+    from tofjax.model import ModelOptions, Params, build_model
+    from tofjax.model.contact import SkinContact
+    from tofjax.scene import Touch, load_scene
+
+    sc = load_scene("optoskin").without_touches()
+    sc = sc.replace(waveguide=dataclasses.replace(sc.waveguide, mu_s_per_m=0.01, end_reflectance=0.0))
+    s0 = sc.sensors[0]
+    ang = np.radians(s0.direction_deg)
+    opts = MCOptions(photons=photons, seed=0, edges="absorb", contact=SkinContact(), nee_points=24, nee_aperture=4)
+    bare = run_mc(sc, opts).counts
+    out = {"what": "one contact on S0's axis, absorbing edges, mu_s 0.01 /m: touch counts of S0",
+           "photons_per_sensor": photons, "rows": []}
+    for D in distances:
+        t = sc.replace(touches=(Touch((s0.position_m[0] + D * np.cos(ang), s0.position_m[1] + D * np.sin(ang)), 0.006, 1.0),))
+        mc = float((run_mc(t, opts).counts - bare)[0].sum())
+        g = float(np.asarray(build_model(t, ModelOptions(optics="guided", skin=SkinContact()), ("touch",))(
+            Params.from_scene(t)))[0].sum())
+        out["rows"].append({"distance_m": D, "monte_carlo": mc, "guided": g, "guided_over_mc": g / mc})
+    return out
+
+
+def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) -> dict:
+    """Guided optics against the Monte Carlo on the six-contact scenes, transported light only (relative L2,
+    gain profiled per sensor), split into the Monte Carlo's noise and the model's error two ways:
+    (a) subtracting the reference's estimated noise in quadrature, (b) from the L2 at two photon counts
+    (each seed alone and their mean), extrapolating ``L2^2 = m^2 + c / photons`` to infinitely many."""
+    from tofjax.mc.bench import NOT_TRANSPORTED, profiled_relative_l2
+    from tofjax.mc.capture import ANALYTIC_EXTRAS
+    from tofjax.model import ModelOptions, Params, build_model
+    from tofjax.model.contact import SkinContact
+
+    def extras(s):
+        o = ModelOptions(quadrature=4, dtype="float32")  # as mc_expected_counts adds them
+        return np.asarray(build_model(s, o, ANALYTIC_EXTRAS)(Params.from_scene(s, o.jnp_dtype)), np.float64)
+
+    def guided(s):
+        o = ModelOptions(optics="guided", skin=SkinContact() if s.touches else None)
+        comps = tuple(c for c in s.components() if c not in NOT_TRANSPORTED)
+        return np.asarray(build_model(s, o, comps)(Params.from_scene(s, o.jnp_dtype)), np.float64)
+
+    rows = []
+    for c in contacts:
+        ts = touch_scene(scene, c)
+        x = extras(ts)
+        t = [mc_expected(ts, photons, k)[0] - x for k in range(seeds)]
+        ref = np.mean(t, 0)
+        g = guided(ts)
+        err, _ = profiled_relative_l2(ref, g)
+        noise = float(np.linalg.norm(t[0] - t[1]) / np.linalg.norm(ref) / 2.0)
+        single = float(np.mean([profiled_relative_l2(tk, g)[0] ** 2 for tk in t]))  # at photons / seeds
+        m2 = (seeds * err**2 - single) / (seeds - 1)  # L2^2(N) = m^2 + c / N at N/seeds and N
+        rows.append({"relative_l2": err, "reference_noise": noise,
+                     "model_error_noise_subtracted": float(np.sqrt(max(err**2 - noise**2, 0.0))),
+                     "relative_l2_single_seed_rms": float(np.sqrt(single)),
+                     "model_error_extrapolated": float(np.sqrt(max(m2, 0.0)))})
+    xb = extras(scene)
+    b = base_seeds - xb[None]
+    eb, _ = profiled_relative_l2(b.mean(0), guided(scene))
+    nb = float(np.sqrt(b.var(0, ddof=1).sum() / len(b)) / np.linalg.norm(b.mean(0)))
+    keys = rows[0].keys()
+    return {"photons_per_sensor": photons * seeds, "touch_configs": rows,
+            "touch_median": {k: float(np.median([r[k] for r in rows])) for k in keys},
+            "baseline": {"relative_l2": eb, "reference_noise": nb, "photons_per_sensor": photons * len(b),
+                         "model_error_noise_subtracted": float(np.sqrt(max(eb**2 - nb**2, 0.0)))}}
+
+
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
-        progress: bool = True, overwrite: bool = False) -> dict:
+        progress: bool = True, overwrite: bool = False, with_default: bool = False) -> dict:
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
 
@@ -244,7 +314,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     }
     cal = {}
     for col, exp, var in (("own", own_base, None), ("monte_carlo", mc_base, mc_var)):
-        for optics in ("guided", "default") if col == "monte_carlo" else ("guided",):
+        for optics in ("guided", "default") if (col == "monte_carlo" and with_default) else ("guided",):
             if progress:
                 print(f"calibrating {col} with {optics} optics ...", flush=True)
             cached = out / f"calibration_{col}_{optics}_{calib_frames}f_{photons}x{seeds_baseline}.json"
@@ -266,6 +336,13 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
                                                  baseline_frames, seed, progress)
+    if progress:
+        print("touch L2: noise and model error ...", flush=True)
+    result["guided_vs_mc_relative_l2"] = touch_l2(scene, contacts, photons, seeds_touch, seeds)
+    if progress:
+        print("  ", json.dumps(result["guided_vs_mc_relative_l2"]["touch_median"]), flush=True)
+        print("first-order touch, one contact ...", flush=True)
+    result["first_order_touch"] = first_order_touch()
     targets = {}
     for col in ("own", "monte_carlo"):
         c = result["calibration"][col]["guided"]
@@ -297,6 +374,7 @@ def main(argv=None):
     ap.add_argument("--configs", type=int, default=12)
     ap.add_argument("--calib-frames", type=int, default=10)
     ap.add_argument("--frames-per-config", type=int, default=2)
+    ap.add_argument("--with-default", action="store_true", help="also calibrate the Monte Carlo data with the default optics")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     tofjax.enable_x64()
@@ -304,7 +382,7 @@ def main(argv=None):
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
-            overwrite=a.overwrite)
+            overwrite=a.overwrite, with_default=a.with_default)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 

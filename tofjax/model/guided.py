@@ -257,7 +257,7 @@ def _touch(ctx, gg, el):
     # Lambertian return enters the guide going down only, one sign of the band (``dmu`` weighs both
     # signs, as for the far edge, a wall that sends light up and down): half of ``dmu``. With both
     # signs the first-order return was 2.2x the Monte Carlo's (one contact, absorbing edges, 0.01 /m
-    # scattering: experiments/study_mc_guided.py); now 1.1x.
+    # scattering: experiments/eval_mc_data.py, first_order_touch); now 0.9-1.0x.
     amp = base[..., None] * (0.5 * el.dmu) * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
     amp = amp * (1.0 - 0.5 * P_ret[None, :, None, :])
     t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
