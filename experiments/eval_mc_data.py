@@ -12,7 +12,7 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    seeds is the Monte Carlo's own variance, reported next to the photon noise.
 2. Calibration: ``FitConfig(optics="guided")`` from the nominal scene stating the guided optics'
    physical volume backscatter (``volume_backscatter_fraction`` = 0.5, isotropic scattering);
-   ``calib_frames`` frames. The reduced chi-square is reported as the fit computes it (photon
+   ``calib_frames`` frames (10). The reduced chi-square is reported as the fit computes it (photon
    noise only) and with the Monte Carlo's own variance added (the data's other noise).
 3. Detection: ``configs`` random six-contact configurations (4 cm apart, strengths 0.7-1.0 of the
    skin coupling), each one Monte Carlo run per seed of the first ``seeds_touch`` seeds (the same
@@ -21,6 +21,11 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    ``frames_per_config`` photon-noise frames each; inverted with the calibrated optics by the
    ``full`` (back-projection) and ``model`` methods; scored as experiments/eval_touch.py scores
    (2 cm match radius).
+
+4. The touch relative L2 of the guided optics against the Monte Carlo on those scenes, split into the
+   reference's noise and the model's error (noise removed in quadrature; extrapolated from two photon
+   counts), with the touch signal (touch minus baseline) of both; and the first-order contact return
+   alone (one contact, absorbing edges), Monte Carlo against the guided optics.
 
 Monte Carlo runs are cached under ``out/mc_cache/`` (keyed by scene and options). Writes
 ``eval_mc_data.json`` (copy it to docs/results/). All data **simulated**.
@@ -246,12 +251,22 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
         return np.asarray(build_model(s, o, comps)(Params.from_scene(s, o.jnp_dtype)), np.float64)
 
     rows = []
+    xb = extras(scene)
+    b = base_seeds - xb[None]
+    gb = guided(scene)
     for c in contacts:
         ts = touch_scene(scene, c)
         x = extras(ts)
         t = [mc_expected(ts, photons, k)[0] - x for k in range(seeds)]
         ref = np.mean(t, 0)
         g = guided(ts)
+        # the touch signal: touch minus baseline of the same seeds (common random numbers)
+        d = [t[k] - b[k] for k in range(seeds)]
+        dm, dg = np.mean(d, 0), g - gb
+        signal = {"mc_added": float(dm.clip(0).sum()), "mc_removed": float(dm.clip(None, 0).sum()),
+                  "guided_added": float(dg.clip(0).sum()), "guided_removed": float(dg.clip(None, 0).sum()),
+                  "mc_added_per_sensor_per_seed": [np.round(dk.clip(0).sum((1, 2))).tolist() for dk in d],
+                  "mc_largest_bin_per_seed": [float(dk.max()) for dk in d]}
         err, _ = profiled_relative_l2(ref, g)
         noise = float(np.linalg.norm(t[0] - t[1]) / np.linalg.norm(ref) / 2.0)
         single = float(np.mean([profiled_relative_l2(tk, g)[0] ** 2 for tk in t]))  # at photons / seeds
@@ -259,12 +274,10 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
         rows.append({"relative_l2": err, "reference_noise": noise,
                      "model_error_noise_subtracted": float(np.sqrt(max(err**2 - noise**2, 0.0))),
                      "relative_l2_single_seed_rms": float(np.sqrt(single)),
-                     "model_error_extrapolated": float(np.sqrt(max(m2, 0.0)))})
-    xb = extras(scene)
-    b = base_seeds - xb[None]
+                     "model_error_extrapolated": float(np.sqrt(max(m2, 0.0))), "touch_signal": signal})
     eb, _ = profiled_relative_l2(b.mean(0), guided(scene))
     nb = float(np.sqrt(b.var(0, ddof=1).sum() / len(b)) / np.linalg.norm(b.mean(0)))
-    keys = rows[0].keys()
+    keys = [k for k in rows[0] if k != "touch_signal"]
     return {"photons_per_sensor": photons * seeds, "touch_configs": rows,
             "touch_median": {k: float(np.median([r[k] for r in rows])) for k in keys},
             "baseline": {"relative_l2": eb, "reference_noise": nb, "photons_per_sensor": photons * len(b),
