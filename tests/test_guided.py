@@ -206,3 +206,97 @@ def test_study_mc_guided_runs(tmp_path):
     r = load("study_mc_guided").run(500)
     assert set(r["nee_points"]) == {"6", "24"} and len(r["contacts_per_sensor"]) == 6
     assert all(np.isfinite(v) for v in r["near_field_per_thickness"].values())
+
+
+# ---- calibration and inversion with the guided optics (FitConfig.optics) --------------------------
+
+
+def _calibration_json(scene, optics=None):
+    from tofjax.fit._result import scene_fingerprint
+
+    values = {"n1": 1.41, "mu_s_per_m": 0.5, "mu_a_per_m": 0.1, "gain": [1.0e4], "emission_time_s": T_E,
+              "pulse_sigma_s": 3e-11, "pulse_tail_s": 8e-11}
+    data = {"parameters": {k: {"value": v} for k, v in values.items()}, "converged": True, "result": "successful",
+            "scene_fingerprint": scene_fingerprint(scene)}
+    if optics is not None:
+        data["optics"] = optics
+    return data
+
+
+def test_fit_config_optics(tmp_path):
+    """FitConfig(optics=...) is validated, read from TOML, builds the model's optics and goes into the JSON."""
+    from tofjax.fit.calibrate import FitConfig, build_problem, load_fit_config
+
+    assert FitConfig().optics == "default"
+    with pytest.raises(ConfigError, match="optics"):
+        FitConfig(optics="bulk")
+    (tmp_path / "fit.toml").write_text('optics = "guided"\n')
+    cfg = load_fit_config(tmp_path / "fit.toml")
+    assert cfg.optics == "guided"
+    assert build_problem(strip(), cfg).model.options.optics == "guided"
+    assert build_problem(strip(), FitConfig()).model.options.optics == "default"
+
+
+def test_calibration_optics_are_honoured_or_refused():
+    """A guided calibration: the default-optics readers (force) refuse it in one line, tofjax.invert
+    builds the guided optics; a JSON without the field is the default optics; unknown optics refused."""
+    from tofjax.fit._result import CalibrationRefused, calibration_optics, load_calibration
+    from tofjax.invert.correction import InversionError, OpticalParams
+    from tofjax.model.params import speed_in_guide
+
+    sc = strip()
+    guided = _calibration_json(sc, "guided")
+    with pytest.raises(CalibrationRefused, match="optics = 'guided'"):
+        load_calibration(guided, sc)
+    assert float(load_calibration(guided, sc, optics=("default", "guided")).n1) == pytest.approx(1.41)
+    assert calibration_optics(_calibration_json(sc)) == "default"
+    with pytest.raises(CalibrationRefused, match="unknown"):
+        calibration_optics(_calibration_json(sc, "bulk"))
+    op = OpticalParams.from_calibration(guided, sc)
+    assert op.optics == "guided" and OpticalParams.from_calibration(_calibration_json(sc), sc).optics == "default"
+    with pytest.raises(InversionError, match="optics"):
+        op.replace(optics="bulk")
+    # time -> range: slower than c1 by the guided return's mean delay
+    c1 = speed_in_guide(1.41)
+    assert op.replace(optics="default").range_speed(sc) == pytest.approx(c1)
+    assert 0.85 * c1 < op.range_speed(sc) < 0.95 * c1
+
+
+@pytest.mark.slow
+def test_model_reconstruction_with_guided_optics():
+    """The model method's response columns come from the guided optics with the skin model: the touch column
+    adds light, the shadow column (a contact of strength 1) removes it from the far edge."""
+    from tofjax.invert.correction import OpticalParams
+    from tofjax.invert.reconstruct import response_matrix
+
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.2, 0.2], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.5, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": BIN, "n_bins": 96, "zones": 2, "fov_deg": 6.0, "emission_time_s": T_E},
+        "sensors": [{"position_m": [0.0, 0.1], "direction_deg": 0.0}],
+    })
+    op = OpticalParams.from_scene(sc)
+    centres = np.array([[0.08, 0.1], [0.12, 0.1]])
+    for optics in ("default", "guided"):
+        o = op.replace(optics=optics)
+        touch = response_matrix(sc, o, centres, 0.006)
+        shadow = response_matrix(sc, o, centres, 0.006, shadow=True)
+        assert np.isfinite(touch).all() and (touch >= 0).all() and touch.sum() > 0
+        assert (shadow <= 0).all() and shadow.sum() < 0
+    # the guided touch column arrives later than the default's (elevations inside the slab)
+    g = response_matrix(sc, op.replace(optics="guided"), centres[1:], 0.006)[0].sum((0, 1))
+    d = response_matrix(sc, op, centres[1:], 0.006)[0].sum((0, 1))
+    assert _mean_time(g) > _mean_time(d)
+
+
+@pytest.mark.slow
+def test_first_order_touch_agrees_with_the_monte_carlo():
+    """One skin contact, absorbing edges, almost no scattering: the guided touch return within 20% of the
+    Monte Carlo's (with both signs of the band for the skin's return it was 2.2x)."""
+    from tofjax.mc import MCOptions, run_mc
+
+    bare = strip(0.2, mu_s=0.01)
+    sc = strip(0.2, mu_s=0.01, touches=[TOUCH])
+    opts = MCOptions(photons=20_000, nee_points=24, seed=0, edges="absorb", contact=SkinContact())
+    mc = run_mc(sc, opts).counts - run_mc(bare, opts).counts
+    g = run(sc, ModelOptions(optics="guided", skin=SkinContact()), ("touch",))
+    assert g.sum() == pytest.approx(mc.sum(), rel=0.2)

@@ -96,6 +96,10 @@ def _cmd_calibrate(a) -> int:
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
         )
     config = load_fit_config(a.config) if a.config else FitConfig()
+    if a.optics is not None:  # the command line wins over the config file
+        import dataclasses
+
+        config = dataclasses.replace(config, optics=a.optics)
     if a.sensor:  # a sensor model fitted on real histograms (issue 12): its bin width, not the nominal one
         scene = (scene or cap.scene).with_sensor_model(a.sensor)
         print(f"sensor model {a.sensor}: bin width {scene.sensor.bin_width_s * 1e12:.2f} ps")
@@ -353,6 +357,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
     s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (its bin width replaces the scene's)")
+    s.add_argument("--optics", choices=("default", "guided"), default=None,
+                   help="forward model optics (default: the config's, else 'default'); stored in the JSON, "
+                        "and detect/process use the same")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")

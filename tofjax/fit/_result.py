@@ -28,6 +28,7 @@ __all__ = [
     "CalibrationRefused",
     "CalibrationResult",
     "RESULTS",
+    "calibration_optics",
     "fit_report",
     "load_calibration",
     "scene_fingerprint",
@@ -103,6 +104,7 @@ class CalibrationResult:
     discrepancy: dict[str, Any] = dataclasses.field(default_factory=dict)
     on_bound: list[str] = dataclasses.field(default_factory=list)
     residuals: np.ndarray | None = None  # (S, Z, B) Poisson-weighted, for plots
+    optics: str = "default"  # the forward model's optics (FitConfig.optics); readers must use the same
 
     def to_json(self) -> dict[str, Any]:
         def pack(k):
@@ -127,6 +129,7 @@ class CalibrationResult:
             "scene_fingerprint": self.scene_fingerprint,
             "loss_history": self.loss_history,
             "solver": self.solver,
+            "optics": self.optics,
             "frames": self.frames,
             "stages": self.stages,
             "fixed": {
@@ -143,6 +146,7 @@ class CalibrationResult:
         *,
         allow_unconverged: bool = False,
         allow_other_scene: bool = False,
+        optics: tuple[str, ...] = ("default",),
     ) -> Params:
         """The calibrated :class:`Params` of ``scene`` from a calibration JSON (a dict or a
         path): fitted values where the JSON has them, the scene's for the rest.
@@ -151,17 +155,11 @@ class CalibrationResult:
         (unless ``allow_unconverged``), a fit of another scene (unless
         ``allow_other_scene``), missing or unphysical parameters (always).
         """
-        return load_calibration(data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene)
+        return load_calibration(data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene,
+                                optics=optics)
 
 
-def load_calibration(
-    data: dict[str, Any] | str | Path,
-    scene: Scene,
-    *,
-    allow_unconverged: bool = False,
-    allow_other_scene: bool = False,
-) -> Params:
-    """See :meth:`CalibrationResult.from_json`."""
+def _read(data: dict[str, Any] | str | Path) -> tuple[dict, str]:
     source = "calibration"
     if not isinstance(data, dict):
         path = Path(data)
@@ -174,6 +172,37 @@ def load_calibration(
             raise CalibrationRefused(f"{path}: not valid JSON: {e}") from None
     if not isinstance(data, dict) or not isinstance(data.get("parameters"), dict):
         raise CalibrationRefused(f"{source}: not a calibration (no 'parameters' table; write it with `tofjax calibrate`)")
+    return data, source
+
+
+def calibration_optics(data: dict[str, Any] | str | Path) -> str:
+    """The optics a calibration JSON was fitted with (``FitConfig.optics``; ``"default"`` where the
+    JSON predates the field). An unknown value is refused in one line."""
+    data, source = _read(data)
+    optics = data.get("optics", "default")
+    if optics not in ("default", "guided"):
+        raise CalibrationRefused(f"{source}: optics {optics!r} unknown (this tofjax knows 'default' and 'guided')")
+    return optics
+
+
+def load_calibration(
+    data: dict[str, Any] | str | Path,
+    scene: Scene,
+    *,
+    allow_unconverged: bool = False,
+    allow_other_scene: bool = False,
+    optics: tuple[str, ...] = ("default",),
+) -> Params:
+    """See :meth:`CalibrationResult.from_json`. ``optics``: the optics the reader builds; a
+    calibration fitted with other optics (``FitConfig.optics``) is refused in one line, since its
+    parameters mean something else in another model."""
+    data, source = _read(data)
+    used = calibration_optics(data)
+    if used not in optics:
+        raise CalibrationRefused(
+            f"{source}: fitted with optics = {used!r}, which this reader does not support (it uses "
+            f"{' or '.join(repr(o) for o in optics)}); recalibrate with optics = {optics[0]!r}"
+        )
     if not allow_unconverged and data.get("converged") is not True:
         why = data.get("result", "no 'converged' flag")
         chi = data.get("reduced_chi2")

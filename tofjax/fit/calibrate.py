@@ -78,6 +78,8 @@ __all__ = [
 ]
 
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "dogleg", "poisson-deviance")
+#: The forward model's optics a calibration can use (``ModelOptions.optics``).
+OPTICS = ("default", "guided")
 DEFAULT_FREE = (
     "n1",
     "mu_s_per_m",
@@ -183,6 +185,10 @@ class FitConfig:
       another basin may describe the capture; the best result is kept.
     - ``quadrature``: model fidelity (time nodes per bin).
     - ``dtype``: ``float64`` (default) or ``float32`` for the model.
+    - ``optics``: the forward model's optics, ``"default"`` (seed 000's in-plane light at
+      ``c / n1``) or ``"guided"`` (:mod:`tofjax.model.guided`: elevations in the slab, ``1/r``
+      backscatter, a Lambertian edge; what describes Monte Carlo data, docs/tradeoff.md). The
+      calibration JSON records it (``optics``), and its readers build the same optics or refuse it.
     - ``max_reduced_chi2``: above this the fit is refused (``converged = false``,
       ``result = refused_reduced_chi2``): the model does not describe the capture.
     - ``model_error``: a relative error of the model added in quadrature to the photon
@@ -228,8 +234,11 @@ class FitConfig:
     max_reduced_chi2: float = 4.0
     pulse_tails: int = 2
     basin_check_chi2: float = 1.5
+    optics: str = "default"
 
     def __post_init__(self):
+        if self.optics not in OPTICS:
+            raise ConfigError(f"optics: must be one of {', '.join(OPTICS)}, got {self.optics!r}")
         if self.pulse_tails not in (1, 2):
             raise ConfigError(f"pulse_tails: must be 1 or 2, got {self.pulse_tails!r}")
         if not isinstance(self.free, tuple):
@@ -348,7 +357,8 @@ class FitSolution(NamedTuple):
 
 def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationProblem:
     """The calibration problem of ``scene`` (touches dropped) with ``config``'s free parameters."""
-    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails)
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails,
+                           optics=config.optics)
     if scene.noise.pile_up:
         raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
     base = scene.without_touches()
@@ -563,6 +573,7 @@ def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fin
         discrepancy=discrepancy_report(residuals, scene.sensor.bin_width_s),
         on_bound=bound,
         residuals=residuals,
+        optics=config.optics,
     )
 
 

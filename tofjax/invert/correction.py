@@ -29,6 +29,7 @@ Frames with a NaN/inf or a saturated bin are flagged and give zeros; the rest ar
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -85,6 +86,12 @@ class OpticalParams:
     # the second pulse tail of a two-tail calibration (share 0: one tail)
     pulse_slow_weight: float = 0.0
     pulse_slow_tail_s: float = 0.0
+    # the forward model's optics the calibration was fitted with (FitConfig.optics): "default" or "guided"
+    optics: str = "default"
+
+    def __post_init__(self):
+        if self.optics not in ("default", "guided"):
+            raise InversionError(f"optics: must be 'default' or 'guided', got {self.optics!r}")
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "OpticalParams":
@@ -132,14 +139,18 @@ class OpticalParams:
         one of another scene, or one with missing parameters is refused with one line."""
         from ..fit._result import CalibrationRefused, load_calibration
 
+        from ..fit._result import calibration_optics
+
         source = "calibration" if isinstance(data, dict) else str(data)
         try:
             params = load_calibration(
-                data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene
+                data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene,
+                optics=("default", "guided"),
             )
+            optics = calibration_optics(data)
         except CalibrationRefused as e:
             raise InversionError(str(e)) from None
-        return cls.from_params(params, source)
+        return dataclasses.replace(cls.from_params(params, source), optics=optics)
 
     def replace(self, **changes) -> "OpticalParams":
         import dataclasses
@@ -149,6 +160,19 @@ class OpticalParams:
     @property
     def c1(self) -> float:
         return float(speed_in_guide(self.n1))
+
+    def range_speed(self, scene: Scene) -> float:
+        """Twice the in-plane range over a return's delay: ``c1`` for the default optics. With the
+        guided optics (:mod:`tofjax.model.guided`) light goes out at the launched beam's RMS cosine
+        ``c_out`` and comes back, diffusely, at every guided elevation, ``c1 cos theta`` in the
+        plane: ``2 c1 / (1/c_out + <1/cos theta>)``, with ``<1/cos theta> = 2 n1 / (n1 + 1)`` the
+        mean over a Lambertian return across the guided band (on optoskin 8% slower than ``c1``;
+        the guided model's contact peaks move 7% per metre more than ``2/c1``)."""
+        if self.optics != "guided":
+            return self.c1
+        launch = min(math.sin(0.5 * math.radians(scene.sensor.fov_deg)) / self.n1, math.sqrt(1.0 - 1.0 / self.n1**2))
+        c_out = math.sqrt(1.0 - launch**2 / 3.0)
+        return 2.0 * self.c1 / (1.0 / c_out + 2.0 * self.n1 / (self.n1 + 1.0))
 
     @property
     def pulse_tails(self) -> int:
@@ -244,7 +268,7 @@ def bin_ranges(scene: Scene, optical: OpticalParams, response_delay: bool = True
     sm = scene.sensor
     t = (np.arange(sm.n_bins) + 0.5) * sm.bin_width_s
     delay = optical.response_delay_s(sm.bin_width_s) if response_delay else 0.0
-    return 0.5 * optical.c1 * (t - optical.emission_time_s - delay)
+    return 0.5 * optical.range_speed(scene) * (t - optical.emission_time_s - delay)
 
 
 def far_edges(scene: Scene, angles_per_zone: int = 16) -> np.ndarray:
@@ -284,7 +308,7 @@ def build_corrector(
         if not np.isfinite(baseline).all():
             raise InversionError("baseline has NaN or inf bins")
     r = bin_ranges(scene, optical, options.response_delay)  # (B,)
-    dr = 0.5 * optical.c1 * scene.sensor.bin_width_s
+    dr = 0.5 * optical.range_speed(scene) * scene.sensor.bin_width_s
     r0 = optical.near_field_m
     mu_t = optical.mu_s_per_m + optical.mu_a_per_m
     rp = np.maximum(r, 0.0)

@@ -152,7 +152,7 @@ def _projection(scene: Scene, grid: Grid, optical: OpticalParams, response_delay
     pos = (rel - lo) / w
     zone = np.where((pos >= 0) & (pos < sm.zones), pos - 0.5, np.nan)
     delay = optical.response_delay_s(sm.bin_width_s) if response_delay else 0.0
-    t = optical.emission_time_s + delay + 2.0 * dist / optical.c1
+    t = optical.emission_time_s + delay + 2.0 * dist / optical.range_speed(scene)
     u = t / sm.bin_width_s - 0.5  # fractional bin (bin centres at integers)
     return zone, u
 

@@ -121,14 +121,23 @@ def response_matrix(
     """
     base = scene.without_touches()
     proto = base.replace(touches=(Touch((0.15, 0.15), radius_m, 1.0),))
-    opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32", pulse_tails=optical.pulse_tails)
+    guided = optical.optics == "guided"
+    if guided:
+        # the calibration's optics: guided light, and contacts from the skin model (the shadow then
+        # follows from the contact's coupling, so the occupancy column is a contact of strength 1)
+        from ..model.contact import SkinContact
+
+        opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32", pulse_tails=optical.pulse_tails,
+                            optics="guided", skin=SkinContact())
+    else:
+        opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32", pulse_tails=optical.pulse_tails)
     comps = tuple(c for c in proto.components() if c != "touch") if shadow else ("touch",)
     if shadow and "shadowing" not in comps:
         return np.zeros((len(centres), *scene.shape))
     model = build_model(proto, opts, components=comps)
     p0 = _params_with_optics(proto, optical, opts.jnp_dtype)
     if shadow:
-        p0 = p0.replace(touch_strength=np.zeros(1))
+        p0 = p0.replace(touch_strength=np.ones(1) if guided else np.zeros(1))
         ref = np.asarray(
             build_model(base, opts, components=tuple(c for c in comps if c != "shadowing"))(
                 _params_with_optics(base, optical, opts.jnp_dtype)

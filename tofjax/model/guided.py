@@ -256,8 +256,12 @@ def _touch(ctx, gg, el):
     # frustrated share of the light sent towards the contact: (its angular width / fov) P_out
     base = (width * cos_s / gg.fov)[..., None] * P_out[None, :, None] * albedo * w / (math.pi * gg.thickness_m * D)
     base = base * jnp.exp(-mu_t * D / el.c_out)  # (S, N, M)
-    # the return crosses, on average, half its own contact's chord
-    amp = base[..., None] * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
+    # the return crosses, on average, half its own contact's chord. The skin lies on the top face: its
+    # Lambertian return enters the guide going down only, one sign of the band (``dmu`` weighs both
+    # signs, as for the far edge, a wall that sends light up and down): half of ``dmu``. With both
+    # signs the first-order return was 2.2x the Monte Carlo's (one contact, absorbing edges, 0.01 /m
+    # scattering: experiments/eval_mc_data.py, first_order_touch); now 0.9-1.0x.
+    amp = base[..., None] * (0.5 * el.dmu) * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
     amp = amp * (1.0 - 0.5 * P_ret[None, :, None, :])
     t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
     S, N = amp.shape[:2]
@@ -290,7 +294,7 @@ def _touch_diffuse(ctx, gg, el):
     D = jnp.maximum(cg.distance, p.touch_radius_m)  # (S, N)
     d = p.touch_xy_m[None] - geom.sensor_xy[:, None]
     cos_s = jnp.clip(jnp.sum(d * gg.sensor_normal[:, None], -1) / cg.distance, 0.0, 1.0)  # (S, N)
-    back = el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (cos_s / (math.pi * gg.thickness_m * D))[..., None]
+    back = 0.5 * el.dmu * el.mu * jnp.exp(-mu_t * D[..., None] / el.c) * (cos_s / (math.pi * gg.thickness_m * D))[..., None]
     amp = src[..., None] * back[:, None, None]  # (S, Z, A, N, J)
     inv_c = jnp.sum(el.dmu * el.mu / el.c) / jnp.sum(el.dmu * el.mu)  # mean 1/cos of a Lambertian source
     t = p.emission_time_s + (L[..., None, None] / el.c_out + rho[..., None] * inv_c + D[:, None, None, :, None] / el.c) / nodes.c1
