@@ -59,6 +59,8 @@ class CoverageConfig:
     warmup: int = 200
     draws: int = 300
     nuisance_width: float = 0.3
+    pilot: bool = True
+    target_accept: float = 0.8
 
     def __post_init__(self):
         if self.sampler not in ("nuts", "emcee"):
@@ -138,6 +140,10 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
             "laplace": _summary(rows, "laplace"),
             "posterior": _summary(rows, "posterior"),
             "seconds_per_posterior": post_s / max(sum(1 for r in rows if r.get("posterior")), 1),
+            "posterior_replicates_with_divergences": sum(1 for r in rows if r.get("posterior_divergences")),
+            "posterior_ess_min_median": float(np.median([r["posterior_ess_min"] for r in rows if "posterior_ess_min" in r]))
+            if any("posterior_ess_min" in r for r in rows)
+            else float("nan"),
             "posterior_reached_50_tau": sum(1 for r in rows if r.get("posterior_converged")),
             "posterior_rhat_max_median": float(np.median([r["posterior_rhat_max"] for r in rows if "posterior_rhat_max" in r]))
             if any("posterior_rhat_max" in r for r in rows)
@@ -168,7 +174,7 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         t = time.perf_counter()
         if config.sampler == "nuts":
             opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
-                               nuisance_width=config.nuisance_width)
+                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
@@ -205,8 +211,11 @@ def markdown(r: dict) -> str:
         "",
         f"{r['laplace']['replicates']} replicates with a Laplace interval, {r['posterior']['replicates']} with a "
         + (
-            f"NUTS posterior ({c['chains']} chains x ({c['warmup']} warm-up + {c['draws']} draws), nuisance prior width "
-            f"{c['nuisance_width']}; median of the largest R-hat {r['posterior_rhat_max_median']:.3f}"
+            f"NUTS posterior ({c['chains']} chains x ({c['warmup']} warm-up + {c['draws']} draws)"
+            + (", after a pilot run of the same length" if c.get("pilot") else "")
+            + f", slow pulse tail held at the fit, nuisance prior width "
+            f"{c['nuisance_width']}; median of the largest R-hat {r['posterior_rhat_max_median']:.3f}, of the smallest "
+            f"ESS {r['posterior_ess_min_median']:.0f}; divergences in {r['posterior_replicates_with_divergences']} replicates"
             if c["sampler"] == "nuts"
             else f"emcee posterior ({c['walkers']} walkers, up to {c['max_steps']} steps or 50 tau; "
             f"{r['posterior_reached_50_tau']} reached 50 tau; median tau {r['posterior_tau_median']:.0f} steps"
