@@ -73,17 +73,23 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
     }
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+def small_scene_of(scene_name: str, small=None):
+    """The scene, or with ``small = (sensors, zones, bins)`` a smaller one of the same physics;
+    and its label."""
     scene = load_scene(scene_name)
-    label = f"{scene_name} baseline"
-    if small:  # (sensors, zones, bins): a smaller scene of the same physics
-        from tofjax.scene import SensorModel
+    if not small:
+        return scene, f"{scene_name} baseline"
+    from tofjax.scene import SensorModel
 
-        S, Z, B = small
-        sm = scene.sensor
-        scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
-                              sensors=scene.sensors[:S])
-        label = f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
+    S, Z, B = small
+    sm = scene.sensor
+    scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
+                          sensors=scene.sensors[:S])
+    return scene, f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
+
+
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+    scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
     t = time.perf_counter()

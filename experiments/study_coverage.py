@@ -204,6 +204,38 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
     return r
 
 
+def merge(parts: list[dict]) -> dict:
+    """One result from runs of the same settings on different seeds (run side by side, each with
+    its own ``seed``): every replicate of every part; a replicate seed twice is refused."""
+    rows = [row for r in parts for row in r["replicates_run"]]
+    seeds = [row["seed"] for row in rows]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError("merge: the parts share replicate seeds")
+    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept")
+    for r in parts[1:]:
+        if any(r["config"].get(k) != parts[0]["config"].get(k) for k in keys):
+            raise ValueError("merge: the parts differ in their settings")
+    out = dict(parts[0])
+    post = [r for r in rows if "posterior_rhat_max" in r]
+    n_post = max(len(post), 1)
+    out.update(
+        finished=all(r["finished"] for r in parts),
+        parts=[{"seed": r["config"]["seed"], "replicates": r["config"]["replicates"], "finished": r["finished"],
+                "posteriors": r["posterior"]["replicates"], "seconds": r["seconds"]} for r in parts],
+        seconds=max(r["seconds"] for r in parts),
+        seconds_fits=sum(r["seconds_fits"] for r in parts),
+        seconds_posteriors=sum(r["seconds_posteriors"] for r in parts),
+        laplace=_summary(rows, "laplace"),
+        posterior=_summary(rows, "posterior"),
+        seconds_per_posterior=sum(r["seconds_posteriors"] for r in parts) / n_post,
+        posterior_replicates_with_divergences=sum(1 for r in post if r.get("posterior_divergences")),
+        posterior_ess_min_median=float(np.median([r["posterior_ess_min"] for r in post])) if post else float("nan"),
+        posterior_rhat_max_median=float(np.median([r["posterior_rhat_max"] for r in post])) if post else float("nan"),
+        replicates_run=rows,
+    )
+    return out
+
+
 def markdown(r: dict) -> str:
     c = r["config"]
     lines = [
@@ -266,7 +298,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="configs/studies/coverage.toml")
     ap.add_argument("--out", default="out/coverage")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="merge these coverage.json (runs on different seeds) into --out")
     args = ap.parse_args(argv)
+    if args.merge:
+        r = merge([json.loads(Path(p).read_text()) for p in args.merge])
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "coverage.json", json.dumps(r, indent=1))
+        atomic_write_text(out / "coverage.md", markdown(r))
+        plot(r, out / "coverage.png")
+        print(markdown(r))
+        return
     tofjax.enable_x64()
     from tofjax.compile_cache import enable_compilation_cache
 
