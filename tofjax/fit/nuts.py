@@ -156,7 +156,9 @@ def _run(problem, template, args, flat0, chol, keys, z0, warmup: int, draws: int
     def logdensity(z):
         return log_prob(problem, template, args, flat0 + chol @ z)
 
-    adapt_init, adapt_update, adapt_final = base(not dense, target_accept)
+    with warnings.catch_warnings():  # blackjax 1.7 marks base() deprecated (staged_adaptation is its successor)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        adapt_init, adapt_update, adapt_final = base(not dense, target_accept)
     kernel = blackjax.nuts.build_kernel()
     with jax.ensure_compile_time_eval():  # a constant of the program (blackjax builds it with jnp)
         schedule = np.asarray(build_schedule(warmup), np.int32).reshape(warmup, 2)
