@@ -3,15 +3,22 @@
 The target is :func:`tofjax.fit.posterior.log_density`, the same log-density emcee samples:
 the nonlinear parameters in the fit's unconstrained space, the linear ones integrated out.
 NUTS starts at the point fit and works in coordinates whitened by its Laplace covariance,
-``u = u_fit + L z`` with ``L L^T = (J^T J)^-1``: there the posterior is close to a unit
+``u = u_fit + L z`` with ``L L^T = (J^T J)^-1``: there most coordinates are close to a unit
 normal, so the initial step size and an identity mass matrix are already good, and the
 strong correlations of the nuisance parameters (interface backscatter, end reflectance and
 albedo move together) no longer slow the sampler. Stan's window adaptation then tunes the
 step size and a dense mass matrix on top. Chains start at independent draws from the
 Laplace approximation, so R-hat compares chains that began apart.
 
-Warm-up and sampling of every chain are one compiled, vmapped program, compiled once per
-problem shape (not per capture): a study's replicates reuse it.
+The fit is not where the posterior's mass is (the ridge of albedo, end reflectance and
+interface backscatter has a second, sharper mode at the point fit and its bulk several
+Laplace standard errors away; README "Posterior speed"), so by default a pilot run of the
+same chains goes first: its draws' mean and covariance whiten the kept run, which starts
+where the pilot ended (``NutsOptions.pilot``).
+
+Warm-up and sampling of every chain are one compiled, vmapped program with one NUTS kernel
+(the window adaptation is driven by hand, so the kernel is not compiled twice), compiled once
+per problem shape (not per capture): a study's replicates and the pilot reuse it.
 """
 
 from __future__ import annotations
