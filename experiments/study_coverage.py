@@ -205,12 +205,14 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
 
 
 def merge(parts: list[dict]) -> dict:
-    """One result from runs of the same settings on different seeds (run side by side, each with
-    its own ``seed``): every replicate of every part; a replicate seed twice is refused."""
-    rows = [row for r in parts for row in r["replicates_run"]]
-    seeds = [row["seed"] for row in rows]
-    if len(set(seeds)) != len(seeds):
-        raise ValueError("merge: the parts share replicate seeds")
+    """One result from runs of the same settings side by side, each from its own ``seed`` (the
+    runs may overlap: a replicate seed is one simulated capture, counted once)."""
+    by_seed: dict = {}
+    for r in parts:  # a seed in two parts is the same simulated capture: keep one row, with a posterior if either has
+        for row in r["replicates_run"]:
+            if row["seed"] not in by_seed or (row.get("posterior") and not by_seed[row["seed"]].get("posterior")):
+                by_seed[row["seed"]] = row
+    rows = [by_seed[k] for k in sorted(by_seed)]
     keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept")
     for r in parts[1:]:
         if any(r["config"].get(k) != parts[0]["config"].get(k) for k in keys):
