@@ -31,7 +31,7 @@ import numpy as np
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
 from tofjax.fit.nuts import NutsOptions, diagnostics, sample_nuts
-from tofjax.fit.posterior import NUISANCE_WIDTH, log_density
+from tofjax.fit.posterior import HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
@@ -73,24 +73,30 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
     }
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+def small_scene_of(scene_name: str, small=None):
+    """The scene, or with ``small = (sensors, zones, bins)`` a smaller one of the same physics;
+    and its label."""
     scene = load_scene(scene_name)
-    label = f"{scene_name} baseline"
-    if small:  # (sensors, zones, bins): a smaller scene of the same physics
-        from tofjax.scene import SensorModel
+    if not small:
+        return scene, f"{scene_name} baseline"
+    from tofjax.scene import SensorModel
 
-        S, Z, B = small
-        sm = scene.sensor
-        scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
-                              sensors=scene.sensors[:S])
-        label = f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
+    S, Z, B = small
+    sm = scene.sensor
+    scene = scene.replace(sensor=SensorModel(bin_width_s=sm.bin_width_s, n_bins=B, zones=Z, fov_deg=sm.fov_deg * Z / sm.zones),
+                          sensors=scene.sensors[:S])
+    return scene, f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
+
+
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+    scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
     t = time.perf_counter()
     fit = cal.fit(cap)
     fit_s = time.perf_counter() - t
     print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
-    ld = log_density(cal, cap, fit, nuts.nuisance_width)
+    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold)
     t = time.perf_counter()
     warm = sample_nuts(cal, cap, fit, nuts, density=ld)
     warm_total = time.perf_counter() - t
@@ -99,6 +105,8 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "chains": nuts.chains,
         "warmup": nuts.warmup,
         "draws": nuts.draws,
+        "target_accept": nuts.target_accept,
+        "max_tree_depth": nuts.max_tree_depth,
         "wall_s": warm.wall_s,
         "wall_s_with_compile_and_diagnostics": warm_total,
         "compile_s": warm.compile_s,
@@ -130,7 +138,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
         f"(load average at the end {os.getloadavg()[0]:.1f}); JAX {__import__('jax').__version__}",
         "posterior": {"coordinates": list(ld.coords), "parameters": ld.names, "nuisance_width": nuts.nuisance_width,
-                      "linear_parameters": "integrated out analytically"},
+                      "held_at_fit": list(nuts.hold), "linear_parameters": "integrated out analytically"},
         "fit_s": fit_s,
         "samplers": {"nuts": nuts_row, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
@@ -148,6 +156,9 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=500)
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
+    ap.add_argument("--target-accept", type=float, default=0.8)
+    ap.add_argument("--max-tree-depth", type=int, default=10)
+    ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
@@ -162,7 +173,8 @@ def main(argv=None):
     out = Path(a.out)
     check_output(out / "posterior.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width)
+    nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
+                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold))
     r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():

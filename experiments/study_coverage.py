@@ -59,6 +59,8 @@ class CoverageConfig:
     warmup: int = 200
     draws: int = 300
     nuisance_width: float = 0.3
+    pilot: bool = True
+    target_accept: float = 0.8
 
     def __post_init__(self):
         if self.sampler not in ("nuts", "emcee"):
@@ -138,6 +140,10 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
             "laplace": _summary(rows, "laplace"),
             "posterior": _summary(rows, "posterior"),
             "seconds_per_posterior": post_s / max(sum(1 for r in rows if r.get("posterior")), 1),
+            "posterior_replicates_with_divergences": sum(1 for r in rows if r.get("posterior_divergences")),
+            "posterior_ess_min_median": float(np.median([r["posterior_ess_min"] for r in rows if "posterior_ess_min" in r]))
+            if any("posterior_ess_min" in r for r in rows)
+            else float("nan"),
             "posterior_reached_50_tau": sum(1 for r in rows if r.get("posterior_converged")),
             "posterior_rhat_max_median": float(np.median([r["posterior_rhat_max"] for r in rows if "posterior_rhat_max" in r]))
             if any("posterior_rhat_max" in r for r in rows)
@@ -168,7 +174,7 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         t = time.perf_counter()
         if config.sampler == "nuts":
             opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
-                               nuisance_width=config.nuisance_width)
+                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
@@ -198,6 +204,40 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
     return r
 
 
+def merge(parts: list[dict]) -> dict:
+    """One result from runs of the same settings side by side, each from its own ``seed`` (the
+    runs may overlap: a replicate seed is one simulated capture, counted once)."""
+    by_seed: dict = {}
+    for r in parts:  # a seed in two parts is the same simulated capture: keep one row, with a posterior if either has
+        for row in r["replicates_run"]:
+            if row["seed"] not in by_seed or (row.get("posterior") and not by_seed[row["seed"]].get("posterior")):
+                by_seed[row["seed"]] = row
+    rows = [by_seed[k] for k in sorted(by_seed)]
+    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept")
+    for r in parts[1:]:
+        if any(r["config"].get(k) != parts[0]["config"].get(k) for k in keys):
+            raise ValueError("merge: the parts differ in their settings")
+    out = dict(parts[0])
+    post = [r for r in rows if "posterior_rhat_max" in r]
+    n_post = max(len(post), 1)
+    out.update(
+        finished=all(r["finished"] for r in parts),
+        parts=[{"seed": r["config"]["seed"], "replicates": r["config"]["replicates"], "finished": r["finished"],
+                "posteriors": r["posterior"]["replicates"], "seconds": r["seconds"]} for r in parts],
+        seconds=max(r["seconds"] for r in parts),
+        seconds_fits=sum(r["seconds_fits"] for r in parts),
+        seconds_posteriors=sum(r["seconds_posteriors"] for r in parts),
+        laplace=_summary(rows, "laplace"),
+        posterior=_summary(rows, "posterior"),
+        seconds_per_posterior=sum(r["seconds_posteriors"] for r in parts) / n_post,
+        posterior_replicates_with_divergences=sum(1 for r in post if r.get("posterior_divergences")),
+        posterior_ess_min_median=float(np.median([r["posterior_ess_min"] for r in post])) if post else float("nan"),
+        posterior_rhat_max_median=float(np.median([r["posterior_rhat_max"] for r in post])) if post else float("nan"),
+        replicates_run=rows,
+    )
+    return out
+
+
 def markdown(r: dict) -> str:
     c = r["config"]
     lines = [
@@ -205,8 +245,11 @@ def markdown(r: dict) -> str:
         "",
         f"{r['laplace']['replicates']} replicates with a Laplace interval, {r['posterior']['replicates']} with a "
         + (
-            f"NUTS posterior ({c['chains']} chains x ({c['warmup']} warm-up + {c['draws']} draws), nuisance prior width "
-            f"{c['nuisance_width']}; median of the largest R-hat {r['posterior_rhat_max_median']:.3f}"
+            f"NUTS posterior ({c['chains']} chains x ({c['warmup']} warm-up + {c['draws']} draws)"
+            + (", after a pilot run of the same length" if c.get("pilot") else "")
+            + f", slow pulse tail held at the fit, nuisance prior width "
+            f"{c['nuisance_width']}; median of the largest R-hat {r['posterior_rhat_max_median']:.3f}, of the smallest "
+            f"ESS {r['posterior_ess_min_median']:.0f}; divergences in {r['posterior_replicates_with_divergences']} replicates"
             if c["sampler"] == "nuts"
             else f"emcee posterior ({c['walkers']} walkers, up to {c['max_steps']} steps or 50 tau; "
             f"{r['posterior_reached_50_tau']} reached 50 tau; median tau {r['posterior_tau_median']:.0f} steps"
@@ -257,7 +300,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="configs/studies/coverage.toml")
     ap.add_argument("--out", default="out/coverage")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="merge these coverage.json (runs on different seeds) into --out")
     args = ap.parse_args(argv)
+    if args.merge:
+        r = merge([json.loads(Path(p).read_text()) for p in args.merge])
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "coverage.json", json.dumps(r, indent=1))
+        atomic_write_text(out / "coverage.md", markdown(r))
+        plot(r, out / "coverage.png")
+        print(markdown(r))
+        return
     tofjax.enable_x64()
     from tofjax.compile_cache import enable_compilation_cache
 

@@ -125,3 +125,31 @@ def test_second_basin_at_4_per_m_is_left(tmp_path):
     # n1 is -1.76% here (was -1.63% in the wrong basin): the emission time comes out 25 ps late
     # on this simulator at 4 /m (README, "On data tofjax did not make"); not the basin's doing
     assert abs(row["n1_rel_error"]) <= 0.025
+
+
+def test_coverage_merge_counts_each_seed_once():
+    """Runs side by side on overlapping seeds: a seed is one capture, kept once, with its
+    posterior if either run has one; runs of other settings are refused."""
+    study = load("study_coverage")
+    cfg = {"sensors": 3, "zones": 3, "bins": 96, "frames": 40, "sampler": "nuts", "chains": 2, "warmup": 10, "draws": 10,
+           "nuisance_width": 0.3, "pilot": True, "target_accept": 0.8}
+
+    def row(seed, covers, post=None):
+        q = {k: {"interval": [0, 1], "covers": covers, "width": 1.0} for k in study.QUANTITIES}
+        r = {"seed": seed, "laplace": q}
+        if post is not None:
+            r |= {"posterior": {k: {"interval": [0, 1], "covers": post, "width": 1.0} for k in study.QUANTITIES},
+                  "posterior_rhat_max": 1.0, "posterior_ess_min": 100.0, "posterior_divergences": 0}
+        return r
+
+    def part(seed, rows):
+        return {"config": {**cfg, "seed": seed, "replicates": len(rows)}, "finished": True, "seconds": 1.0,
+                "seconds_fits": 1.0, "seconds_posteriors": 1.0, "posterior": {"replicates": 0}, "replicates_run": rows}
+
+    a = part(0, [row(0, True, True), row(1, True), row(2, False)])
+    b = part(1, [row(1, True, False), row(2, False, True)])
+    m = study.merge([a, b])
+    assert m["laplace"]["replicates"] == 3 and m["posterior"]["replicates"] == 3
+    assert m["laplace"]["coverage"]["n1"] == pytest.approx(2 / 3) and m["posterior"]["coverage"]["n1"] == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="settings"):
+        study.merge([a, {**b, "config": {**b["config"], "draws": 11}}])

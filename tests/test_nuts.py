@@ -8,7 +8,7 @@ from tofjax.cli import main
 from tofjax.errors import UserError
 from tofjax.fit.calibrate import Calibrator
 from tofjax.fit.nuts import NutsOptions, diagnostics, plot_nuts, sample_nuts
-from tofjax.fit.posterior import NUISANCE, log_density
+from tofjax.fit.posterior import HELD, NUISANCE, log_density
 from tofjax.scene import SensorModel
 from tofjax.simulate import simulate
 
@@ -26,7 +26,8 @@ def fitted(optoskin):
 def test_log_density_is_shared_and_whitenable(fitted):
     """One log-density: the bound function and the batched one (emcee's) agree; it is finite
     with a finite gradient at the fit; the Laplace covariance is symmetric positive definite;
-    the nuisance prior only adds curvature."""
+    the nuisance prior and holding the slow tail at the fit (a conditional posterior) only
+    narrow it; held coordinates are neither sampled nor reported."""
     import jax
     import jax.numpy as jnp
 
@@ -38,13 +39,19 @@ def test_log_density_is_shared_and_whitenable(fitted):
     assert float(v) == pytest.approx(float(ld.batch(ld.flat0[None])[0]), rel=1e-12)
     np.testing.assert_allclose(ld.laplace_cov, ld.laplace_cov.T, rtol=1e-12, atol=0)
     assert np.linalg.eigvalsh(ld.laplace_cov).min() > 0
-    assert set(ld.coords) == set(cal.problem.pack(res.params, cal.problem.nonlinear))
+    held = [k for k in HELD if k in cal.problem.nonlinear]
+    assert set(ld.coords) | set(held) == set(cal.problem.pack(res.params, cal.problem.nonlinear))
     assert len(ld.names) == ld.to_physical(ld.flat0[None]).shape[1]
-    loose = log_density(cal, cap, res, nuisance_width=None)
-    for k in NUISANCE:
-        if k in ld.coords:
-            i = ld.coords.index(k)
-            assert ld.laplace_cov[i, i] < loose.laplace_cov[i, i]
+    loose = log_density(cal, cap, res, nuisance_width=None, hold=())
+    assert held and set(loose.coords) == set(ld.coords) | set(held) and not set(held) & set(ld.names)
+    assert set(held) <= set(loose.names)
+    for k in ld.coords:
+        i, j = ld.coords.index(k), loose.coords.index(k)
+        assert ld.laplace_cov[i, i] <= loose.laplace_cov[j, j] * (1 + 1e-9)
+        if k in NUISANCE:
+            assert ld.laplace_cov[i, i] < loose.laplace_cov[j, j]
+    with pytest.raises(UserError, match="hold"):
+        log_density(cal, cap, res, hold=("pulse_tails",))
 
 
 @pytest.mark.slow  # 55 s cold; the default run samples with NUTS in test_calib_studies' coverage test

@@ -6,7 +6,19 @@ import numpy as np
 
 from ._problem import JOINT, CalibrationProblem
 
-__all__ = ["laplace_covariance"]
+__all__ = ["laplace_covariance", "normal_covariance"]
+
+
+def normal_covariance(hessian, extra_precision=None) -> np.ndarray:
+    """The Laplace covariance ``(J^T J + diag(extra_precision))^+`` (pseudo-inverse, symmetric),
+    in float64 NumPy: the point fit's (``hessian = J^T J`` of its residuals, the weak prior
+    included) and the posterior's, whose nuisance prior adds ``extra_precision`` (1 / width^2
+    per coordinate, 0 where it has none)."""
+    h = np.asarray(hessian, np.float64)
+    if extra_precision is not None:
+        h = h + np.diag(np.asarray(extra_precision, np.float64))
+    cov = np.linalg.pinv(h, hermitian=True)
+    return 0.5 * (cov + cov.T)
 
 
 def laplace_covariance(problem: CalibrationProblem, values: dict, hessian, dphys):
@@ -26,7 +38,7 @@ def laplace_covariance(problem: CalibrationProblem, values: dict, hessian, dphys
         u_sizes |= {"extinction": 1, "albedo": 1}
     else:
         u_sizes |= {k: 1 for k in JOINT if k in problem.free}
-    cov_u = np.linalg.pinv(np.asarray(hessian, np.float64), hermitian=True)
+    cov_u = normal_covariance(hessian)
     d = np.asarray(dphys, np.float64)
     cov = d @ cov_u @ d.T
     names = sorted(problem.free)

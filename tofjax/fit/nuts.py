@@ -3,15 +3,22 @@
 The target is :func:`tofjax.fit.posterior.log_density`, the same log-density emcee samples:
 the nonlinear parameters in the fit's unconstrained space, the linear ones integrated out.
 NUTS starts at the point fit and works in coordinates whitened by its Laplace covariance,
-``u = u_fit + L z`` with ``L L^T = (J^T J)^-1``: there the posterior is close to a unit
+``u = u_fit + L z`` with ``L L^T = (J^T J)^-1``: there most coordinates are close to a unit
 normal, so the initial step size and an identity mass matrix are already good, and the
 strong correlations of the nuisance parameters (interface backscatter, end reflectance and
 albedo move together) no longer slow the sampler. Stan's window adaptation then tunes the
 step size and a dense mass matrix on top. Chains start at independent draws from the
 Laplace approximation, so R-hat compares chains that began apart.
 
-Warm-up and sampling of every chain are one compiled, vmapped program, compiled once per
-problem shape (not per capture): a study's replicates reuse it.
+The fit is not where the posterior's mass is (the ridge of albedo, end reflectance and
+interface backscatter has a second, sharper mode at the point fit and its bulk several
+Laplace standard errors away; README "Posterior speed"), so by default a pilot run of the
+same chains goes first: its draws' mean and covariance whiten the kept run, which starts
+where the pilot ended (``NutsOptions.pilot``).
+
+Warm-up and sampling of every chain are one compiled, vmapped program with one NUTS kernel
+(the window adaptation is driven by hand, so the kernel is not compiled twice), compiled once
+per problem shape (not per capture): a study's replicates and the pilot reuse it.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import numpy as np
 
 from ..capture import Capture
 from .calibrate import CalibrationError, CalibrationResult, Calibrator
-from .posterior import NUISANCE_WIDTH, LogDensity, log_density, log_prob, summarise
+from .posterior import HELD, NUISANCE_WIDTH, LogDensity, log_density, log_prob, summarise
 
 __all__ = ["NutsOptions", "NutsResult", "sample_nuts", "diagnostics"]
 
@@ -42,8 +49,11 @@ class NutsOptions:
     """``chains`` (run in parallel, vmapped), ``warmup`` steps of window adaptation per chain,
     ``draws`` kept per chain, ``seed``, ``target_accept`` (the adaptation's target acceptance),
     ``max_tree_depth`` (at most 2^depth leapfrog steps per draw), ``dense`` (a dense mass
-    matrix; False: diagonal), ``nuisance_width`` (the prior of
-    :func:`~tofjax.fit.posterior.log_density`)."""
+    matrix; False: diagonal), ``pilot`` (run the same chains twice: the first run, from the
+    Laplace approximation at the fit, only finds the posterior's bulk and its covariance; the
+    second, the one reported, works in coordinates whitened by them and starts where the
+    first ended; wall time and gradient evaluations count both), ``nuisance_width`` (the prior of
+    :func:`~tofjax.fit.posterior.log_density`), ``hold`` (its coordinates held at the fit)."""
 
     chains: int = 4
     warmup: int = 500
@@ -52,7 +62,9 @@ class NutsOptions:
     target_accept: float = 0.8
     max_tree_depth: int = 10
     dense: bool = True
+    pilot: bool = True
     nuisance_width: float | None = NUISANCE_WIDTH
+    hold: tuple[str, ...] = HELD
 
     def __post_init__(self):
         for k, lo in (("chains", 1), ("warmup", 10), ("draws", 10), ("max_tree_depth", 1)):
@@ -88,7 +100,10 @@ class NutsResult:
             "chains": self.options.chains,
             "warmup": self.options.warmup,
             "draws": self.options.draws,
+            "pilot": self.options.pilot,
+            "target_accept": self.options.target_accept,
             "nuisance_width": self.options.nuisance_width,
+            "held_at_fit": list(self.options.hold),
             "divergences": self.divergences,
             "step_size": self.step_size.tolist(),
             "mean_tree_depth": self.mean_tree_depth,
@@ -137,32 +152,57 @@ def diagnostics(names: list[str], chains: np.ndarray) -> dict[str, Any]:
 
 @eqx.filter_jit
 def _run(problem, template, args, flat0, chol, keys, z0, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
+    """Warm-up and draws of every chain (vmapped) as one scan over one NUTS kernel: Stan's
+    window adaptation (blackjax's ``window_adaptation.base`` and schedule) updates the step
+    size and mass matrix during the first ``warmup`` steps and is frozen after, at its final
+    values. One kernel in the program, not blackjax's two (adaptation and sampling), halves
+    what XLA compiles."""
     import blackjax
+    from blackjax.adaptation.window_adaptation import base, build_schedule
 
     def logdensity(z):
         return log_prob(problem, template, args, flat0 + chol @ z)
 
+    with warnings.catch_warnings():  # blackjax 1.7 marks base() deprecated (staged_adaptation is its successor)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        adapt_init, adapt_update, adapt_final = base(not dense, target_accept)
+    kernel = blackjax.nuts.build_kernel()
+    with jax.ensure_compile_time_eval():  # a constant of the program (blackjax builds it with jnp)
+        schedule = np.asarray(build_schedule(warmup), np.int32).reshape(warmup, 2)
+    n = warmup + draws
+    stage = jnp.asarray(np.concatenate([schedule[:, 0], np.zeros(draws, np.int32)]))
+    window_end = jnp.asarray(np.concatenate([schedule[:, 1], np.zeros(draws, np.int32)]).astype(bool))
+    warming = jnp.arange(n) < warmup
+
     def one_chain(key, z_start):
-        k_warm, k_draw = jax.random.split(key)
-        adapt = blackjax.window_adaptation(
-            blackjax.nuts, logdensity, is_mass_matrix_diagonal=not dense, initial_step_size=0.5,
-            target_acceptance_rate=target_accept, max_num_doublings=depth,
-        )
-        (state, params), winfo = adapt.run(k_warm, z_start, num_steps=warmup)
-        kernel = blackjax.nuts(logdensity, **params)  # params carry max_num_doublings too
+        def step(carry, x):
+            state, adapt = carry
+            k, st, end, warm = x
+            final_step, final_imm = adapt_final(adapt)
+            step_size = jnp.where(warm, adapt.step_size, final_step)
+            imm = jnp.where(warm, adapt.inverse_mass_matrix, final_imm)
+            state, info = kernel(k, state, logdensity, step_size, imm, depth)
+            updated = adapt_update(adapt, (st, end), state.position, info.acceptance_rate)
+            adapt = jax.tree_util.tree_map(lambda u, a: jnp.where(warm, u, a), updated, adapt)
+            return (state, adapt), (state.position, info.is_divergent, info.num_integration_steps, info.acceptance_rate,
+                                    info.num_trajectory_expansions, step_size)
 
-        def step(s, k):
-            s, info = kernel.step(k, s)
-            return s, (s.position, info.is_divergent, info.num_integration_steps, info.acceptance_rate, info.num_trajectory_expansions)
-
-        _, (zs, div, nsteps, acc, depth_used) = jax.lax.scan(step, state, jax.random.split(k_draw, draws))
-        warm_steps = jnp.sum(winfo.info.num_integration_steps)
-        return zs, div, nsteps, acc, depth_used, params["step_size"], warm_steps
+        carry = (blackjax.nuts.init(z_start, logdensity), adapt_init(z_start, 0.5))
+        _, (zs, div, nsteps, acc, depth_used, steps) = jax.lax.scan(step, carry, (jax.random.split(key, n), stage, window_end, warming))
+        return zs[warmup:], div[warmup:], nsteps[warmup:], acc[warmup:], depth_used[warmup:], steps[-1], jnp.sum(nsteps[:warmup])
 
     return jax.vmap(one_chain)(keys, z0)
 
 
 _COMPILED: dict = {}
+
+
+def _whitening(cov: np.ndarray) -> np.ndarray:
+    """``L`` with ``L L^T = cov``, the Cholesky factor taken of the correlation matrix (each
+    axis scaled first, so coordinates of very different scales stay well conditioned)."""
+    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / scale[:, None] / scale[None, :]
+    return scale[:, None] * np.linalg.cholesky(corr + 1e-10 * np.eye(len(scale)))
 
 
 def _compiled(run_args, statics):
@@ -197,28 +237,37 @@ def sample_nuts(
     ``density``: a :func:`~tofjax.fit.posterior.log_density` already built for these
     (saves rebuilding it). Returns draws in physical units and ArviZ's diagnostics.
     """
-    ld = density if density is not None else log_density(calibrator, capture, fit, options.nuisance_width)
+    ld = density if density is not None else log_density(calibrator, capture, fit, options.nuisance_width, options.hold)
     P = ld.flat0.size
-    cov = ld.laplace_cov
-    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / scale[:, None] / scale[None, :]
-    chol = scale[:, None] * np.linalg.cholesky(corr + 1e-10 * np.eye(P))  # L L^T = cov, conditioned per axis
     dtype = ld.args[1].dtype
     key = jax.random.PRNGKey(options.seed)
-    k_start, k_chains = jax.random.split(key)
+    k_start, k_chains, k_main = jax.random.split(key, 3)
     z0 = jax.random.normal(k_start, (options.chains, P), dtype)  # draws from the Laplace approximation
-    keys = jax.random.split(k_chains, options.chains)
     statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth)
-    run_args = (ld.problem, ld.template, ld.args, jnp.asarray(ld.flat0, dtype), jnp.asarray(chol, dtype), keys, z0)
-    t = time.perf_counter()
-    compiled = _compiled(run_args, statics)
-    compile_s = time.perf_counter() - t
-    t = time.perf_counter()
-    out = jax.block_until_ready(compiled(*run_args, *statics))
-    wall = time.perf_counter() - t
-    zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.asarray(x) for x in out)
+    centre, chol = ld.flat0, _whitening(ld.laplace_cov)
+    compile_s = wall = 0.0
+    grads = 0
+    runs = [k_chains, k_main] if options.pilot else [k_chains]
+    for i, k in enumerate(runs):
+        run_args = (ld.problem, ld.template, ld.args, jnp.asarray(centre, dtype), jnp.asarray(chol, dtype),
+                    jax.random.split(k, options.chains), jnp.asarray(z0, dtype))
+        t = time.perf_counter()
+        compiled = _compiled(run_args, statics)  # the same program for the pilot and the run
+        compile_s += time.perf_counter() - t
+        t = time.perf_counter()
+        out = jax.block_until_ready(compiled(*run_args, *statics))
+        wall += time.perf_counter() - t
+        zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.asarray(x) for x in out)
+        grads += int(nsteps.sum() + warm_steps.sum())
+        if i + 1 < len(runs):  # the pilot: whiten the run by its draws' mean and covariance
+            flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
+            pooled = flats.reshape(-1, P)
+            c = np.cov(pooled.T).reshape(P, P)
+            if np.all(np.isfinite(c)) and np.linalg.eigvalsh(c).min() > 0:
+                centre, chol = pooled.mean(0), _whitening(c)
+                z0 = np.linalg.solve(chol, (flats[:, -1, :] - centre).T).T  # continue from the pilot's last draws
     C, N = zs.shape[:2]
-    flats = ld.flat0[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
+    flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
     phys = ld.to_physical(flats.reshape(C * N, P)).reshape(C, N, -1)
     diag = diagnostics(ld.names, phys)
     return NutsResult(
@@ -231,7 +280,7 @@ def sample_nuts(
         step_size=np.asarray(step_size, np.float64),
         mean_tree_depth=float(depth_used.mean()),
         mean_accept=float(acc.mean()),
-        gradient_evaluations=int(nsteps.sum() + warm_steps.sum()),
+        gradient_evaluations=grads,
         wall_s=wall,
         compile_s=compile_s,
         diagnostics=diag,

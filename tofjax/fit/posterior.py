@@ -29,9 +29,11 @@ import numpy as np
 
 from ..capture import Capture
 from ._start import timing_start
+from ._laplace import normal_covariance
 from .calibrate import CalibrationError, CalibrationResult, Calibrator, _anchor, _data, scene_fingerprint
+from .transforms import FITTABLE
 
-__all__ = ["LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "sample_posterior", "summarise"]
+__all__ = ["HELD", "LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "sample_posterior", "summarise"]
 
 
 #: Nuisance parameters the default baseline barely identifies: with only the fit's weak prior
@@ -42,15 +44,25 @@ NUISANCE = ("interface_backscatter_per_m", "end_reflectance", "multiple_scatteri
 #: (one sigma) for a positive one, 0.43-0.57 for a reflectance at 0.5. Wider (1.0) still
 #: leaves R-hat at 1.4-1.8 after 4 x 200 NUTS draws on the 3-sensor scene (docs/calibration.md).
 NUISANCE_WIDTH = 0.3
+#: Coordinates held at the point fit by default (the posterior is conditional on them): the
+#: slow tail of the two-tail pulse. Where the data have no slow tail (every simulated
+#: baseline of tofjax's own simulator), its share and time constant are not identified
+#: together: with the share near zero the time constant is free, and with a time constant of
+#: 10^5 bins the slow tail is a constant the gain absorbs. NUTS draws then wander along that
+#: plateau to the edge of the fit's weak prior (slow tail at e^12 bins, 16 Laplace standard
+#: errors from the fit), the Laplace whitening is off by a factor of 8 in the fast tail, and
+#: the adapted step size collapses. They correlate with n1 and mu_s + mu_a by less than 0.1.
+HELD = ("pulse_slow_weight", "pulse_slow_tail_s")
 
 
 def log_prob(problem, template, args, flat):
     """The log posterior at the flat coordinates ``flat`` (module-level, so one compiled
     program serves every capture of the same shape). ``template``: the coordinates' pytree
-    (gives the flat order); ``args = (base, data, sigma, prior)`` as the fit's residuals."""
-    base, data, sigma, prior, widths = args
+    (gives the flat order); ``args = (base, data, sigma, prior, widths, held)``: the fit's
+    residuals' arguments, the nuisance prior's widths and the coordinates held fixed."""
+    base, data, sigma, prior, widths, held = args
     _, unravel = jax.flatten_util.ravel_pytree(template)
-    u = unravel(flat)
+    u = {**held, **unravel(flat)}
     params = problem.unpack(u, base)
     if problem.linear:
         _, m, logdet, _ = problem.profile(params, data, sigma)
@@ -67,12 +79,13 @@ _log_prob_batch = eqx.filter_jit(eqx.filter_vmap(log_prob, in_axes=(None, None, 
 
 
 @eqx.filter_jit
-def _laplace_flat(problem, template, args, flat):
+def _jtj_flat(problem, template, fit_args, held, flat):
+    """``J^T J`` of the fit's residuals (``fit_args``: weak prior and timing anchor included) over
+    the sampled coordinates, the ``held`` ones at their values; the nuisance prior is added by
+    the caller (so one compiled program serves every nuisance width)."""
     _, unravel = jax.flatten_util.ravel_pytree(template)
-    jac = jax.jacfwd(lambda f: problem.residuals(unravel(f), args[:4]))(flat)
-    widths = args[4]
-    extra = {k: jnp.zeros_like(v) + (1.0 / widths[k] ** 2 if k in widths else 0.0) for k, v in template.items()}
-    return jac.T @ jac + jnp.diag(jax.flatten_util.ravel_pytree(extra)[0])
+    jac = jax.jacfwd(lambda f: problem.residuals({**held, **unravel(f)}, fit_args))(flat)
+    return jac.T @ jac
 
 
 @eqx.filter_jit
@@ -80,7 +93,7 @@ def _to_physical_batch(problem, template, flats):
     _, unravel = jax.flatten_util.ravel_pytree(template)
 
     def one(f):
-        x = problem.physical(unravel(f))
+        x = problem.physical(unravel(f))  # the sampled coordinates only
         return jnp.concatenate([jnp.ravel(x[k]) for k in sorted(x)])
 
     return jax.vmap(one)(flats)
@@ -120,14 +133,19 @@ class LogDensity:
 
 
 def log_density(
-    calibrator: Calibrator, capture: Capture, fit: CalibrationResult, nuisance_width: float | None = NUISANCE_WIDTH
+    calibrator: Calibrator,
+    capture: Capture,
+    fit: CalibrationResult,
+    nuisance_width: float | None = NUISANCE_WIDTH,
+    hold: tuple[str, ...] = HELD,
 ) -> LogDensity:
     """The posterior of ``calibrator``'s nonlinear parameters given ``capture``, around the
     point fit ``fit`` (which must be of this scene).
 
     ``nuisance_width``: the width, in the unconstrained space, of a Gaussian prior centred on
     the scene's value of each weakly identified nuisance parameter (:data:`NUISANCE`), on top
-    of the fit's weak one; None: none (the fit's own objective alone)."""
+    of the fit's weak one; None: none (the fit's own objective alone). ``hold``: coordinates
+    (of those the fit has) held at the point fit, not sampled (default :data:`HELD`)."""
     problem = calibrator.problem
     if fit.scene_fingerprint and fit.scene_fingerprint != scene_fingerprint(calibrator.scene):
         raise CalibrationError("the point fit was made for another scene than this calibrator's")
@@ -143,21 +161,28 @@ def log_density(
     if "n1" in names:
         start, found = timing_start(problem, np.asarray(data), capture.n_frames, calibrator.scene, prior_params)
         prior["n1_anchor"] = _anchor(start, found, config, dtype)
-    template = {k: jnp.asarray(v, dtype) for k, v in problem.pack(base, names).items()}
+    packed = {k: jnp.asarray(v, dtype) for k, v in problem.pack(base, names).items()}
+    unknown = set(hold) - set(FITTABLE) - {"extinction", "albedo"}
+    if unknown:
+        raise CalibrationError(f"hold: unknown parameter {sorted(unknown)[0]!r}")
+    held = {k: v for k, v in packed.items() if k in hold}
+    template = {k: v for k, v in packed.items() if k not in held}
+    if not template:
+        raise CalibrationError("hold: every free parameter is held; nothing is left to sample")
     flat0, _ = jax.flatten_util.ravel_pytree(template)
     if nuisance_width is not None and not (0 < nuisance_width < np.inf):
         raise CalibrationError(f"nuisance_width: must be a positive number, got {nuisance_width!r}")
     widths = {k: jnp.asarray(nuisance_width, dtype) for k in NUISANCE if k in template and nuisance_width is not None}
-    args = (base, data, sigma, prior, widths)
-    jtj = np.asarray(_laplace_flat(problem, template, args, flat0), np.float64)
-    cov = np.linalg.pinv(jtj, hermitian=True)
+    args = (base, data, sigma, prior, widths, held)
+    extra = {k: np.zeros(np.shape(v)) + (1.0 / float(widths[k]) ** 2 if k in widths else 0.0) for k, v in template.items()}
+    cov = normal_covariance(_jtj_flat(problem, template, args[:4], held, flat0), np.concatenate([np.ravel(extra[k]) for k in sorted(extra)]))
     labels = []
     for k in sorted(problem.physical(template)):  # the columns of to_physical
         n = int(np.size(getattr(base, k)))
         labels += [k] if np.ndim(getattr(base, k)) == 0 else [f"{k}[{i}]" for i in range(n)]
     return LogDensity(
         problem=problem, template=template, args=args, flat0=np.asarray(flat0, np.float64),
-        laplace_cov=0.5 * (cov + cov.T), coords=tuple(sorted(template)), names=labels,
+        laplace_cov=cov, coords=tuple(sorted(template)), names=labels,
     )
 
 
@@ -183,7 +208,7 @@ class PosteriorOptions:
     between autocorrelation checks, ``tau_factor`` (stop once the chain is longer than this
     many autocorrelation times and tau changed by less than ``tau_rtol``), ``seed``,
     ``chain`` (an HDF5 file: the run resumes from it), ``progress`` (a progress bar),
-    ``nuisance_width`` (:func:`log_density`'s)."""
+    ``nuisance_width`` and ``hold`` (:func:`log_density`'s)."""
 
     walkers: int | None = None
     max_steps: int = 5000
@@ -194,6 +219,7 @@ class PosteriorOptions:
     chain: str | None = None
     progress: bool = True
     nuisance_width: float | None = NUISANCE_WIDTH
+    hold: tuple[str, ...] = HELD
 
 
 @dataclass
@@ -237,7 +263,7 @@ def sample_posterior(
     ``max_steps``; with ``chain`` set, an interrupted run resumes where it stopped (refused if
     the data or settings differ).
     """
-    ld = log_density(calibrator, capture, fit, options.nuisance_width)
+    ld = log_density(calibrator, capture, fit, options.nuisance_width, options.hold)
     flat0, P = ld.flat0, ld.flat0.size
     W = options.walkers or max(32, 4 * P)
     if W < 2 * P:
@@ -250,7 +276,7 @@ def sample_posterior(
 
     backend = None
     start = flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(W, P))
-    fingerprint = _fingerprint(capture, (*ld.names, *ld.coords, f"nuisance {options.nuisance_width}"), W)  # coordinates too
+    fingerprint = _fingerprint(capture, (*ld.names, *ld.coords, f"nuisance {options.nuisance_width}", f"hold {sorted(options.hold)}"), W)  # coordinates too
     if options.chain:
         import h5py
 
