@@ -13,13 +13,13 @@ calls :func:`initialize` first, then the same study code. What this module gives
 - :func:`split_items`: which work items (fits) this process does; contiguous blocks, so the
   gathered order is the items' order for any number of processes.
 - :func:`sharded_fit_batch`: a drop-in for :func:`tofjax.fit.calibrate.fit_problem_batch` that
-  runs the vmapped fits in fixed-size chunks whose batch axis is sharded over the local devices
-  (``NamedSharding``; XLA partitions the vmapped fit, so every device fits its share of the
-  chunk; the while loop still runs every fit of a chunk for the longest fit's steps). The chunk
-  per device is the same whatever the number of devices and processes, so the results do not
-  depend on how the work was split. (``jax.shard_map`` would let every device stop on its own
-  fits, but lineax's linear solves refuse the manual-axis shapes it traces with, as of lineax
-  in this environment.)
+  runs the vmapped fits in fixed-size chunks over the local devices, each chunk on one device,
+  dispatched asynchronously so that all devices work at once (each stops when its own fits are
+  done). The chunk is the same whatever the number of devices and processes, so the results do
+  not depend on how the work was split. Not SPMD: ``jax.shard_map`` fails inside lineax's
+  linear solves (its traced shapes carry the manual mesh axis and lineax's structure check
+  refuses them), and a batch axis sharded with ``NamedSharding`` had not finished compiling
+  after 8 minutes here (loaded machine), against 1.5 minutes for the one-device program.
 - :func:`fit_many`: :func:`~tofjax.fit.calibrate.calibrate_many` with that batch function.
 - :func:`allgather_json`: every process's JSON-able results to every process, through JAX's
   collectives (no shared file system needed).
@@ -216,77 +216,54 @@ def split_items(n: int, process_id: int, processes: int) -> range:
 # ---- sharded batched fits ------------------------------------------------------------------------
 
 
-def _fit_chunk_impl(consts, batch, mesh, kw):
-    import jax
-    from jax.sharding import NamedSharding
-    from jax.sharding import PartitionSpec as P
-
-    from .fit.calibrate import fit_problem_batch
-
-    problem, objective, solver, prior = consts
-    starts, data, sigma, anchors = batch
-    out = fit_problem_batch(problem, objective, solver, starts, data, sigma, prior, anchors, **dict(kw))
-    # every output keeps the batch axis sharded: XLA partitions the vmapped fit over the devices
-    return jax.lax.with_sharding_constraint(out, NamedSharding(mesh, P(AXIS)))
-
-
-_fit_chunk = None
-
-
-def _compiled_chunk():
-    global _fit_chunk
-    if _fit_chunk is None:
-        import equinox as eqx
-
-        _fit_chunk = eqx.filter_jit(_fit_chunk_impl)
-    return _fit_chunk
-
-
 def sharded_fit_batch(mesh=None, chunk: int = DEFAULT_CHUNK) -> Callable:
     """A function with :func:`~tofjax.fit.calibrate.fit_problem_batch`'s signature that runs the
-    batch in calls of ``chunk`` fits per device of ``mesh`` (default: :func:`local_mesh`),
-    sharded along the batch axis; the last call is padded with copies of its first fit.
-    Returns host (numpy) arrays."""
+    batch over the devices of ``mesh`` (default: :func:`local_mesh`) in chunks of ``chunk``
+    fits: chunk ``j`` goes to device ``j mod D`` and is dispatched asynchronously, so the devices
+    fit at once, each in the one-device program, each stopping when its own chunk is done. A
+    short last chunk is padded with copies of its first fit. Every fit thus runs in a program of
+    the same shape: the results do not depend on the number of devices or processes. Returns
+    host (numpy) arrays."""
     if chunk < 1:
         raise DistributedError(f"chunk: must be >= 1, got {chunk}")
 
     def fit_batch(problem, objective, solver, starts, data, sigma, prior_params, anchors, **kw):
         import jax
-        from jax.sharding import NamedSharding
-        from jax.sharding import PartitionSpec as P
+
+        from .fit.calibrate import fit_problem_batch
 
         m = local_mesh() if mesh is None else mesh
-        per_call = chunk * m.devices.size
-        sharding = NamedSharding(m, P(AXIS))
+        devs = list(m.devices.flat)
+        per_call = chunk
         n = int(data.shape[0])
-        fn = _compiled_chunk()
-        outs = []
-        for c0 in range(0, n, per_call):
+        host = jax.tree_util.tree_map(np.asarray, (starts, data, sigma, anchors))
+        pending = []
+        for j, c0 in enumerate(range(0, n, per_call)):
             k = min(per_call, n - c0)
 
             def take(x, c0=c0, k=k):
-                x = np.asarray(x)[c0 : c0 + k]
+                x = x[c0 : c0 + k]
                 return np.concatenate([x, np.repeat(x[:1], per_call - k, axis=0)]) if k < per_call else x
 
-            batch = jax.device_put(jax.tree_util.tree_map(take, (starts, data, sigma, anchors)), sharding)
-            out = fn((problem, objective, solver, prior_params), batch, m, tuple(sorted(kw.items())))
-            outs.append(jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[:k], jax.device_get(out)))
+            st, d, g, a = jax.device_put(jax.tree_util.tree_map(take, host), devs[j % len(devs)])
+            out = fit_problem_batch(problem, objective, solver, st, d, g, prior_params, a, **kw)
+            pending.append((k, out))  # dispatched; the devices work while the next chunk is sent
+        outs = [jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[:k], jax.device_get(out)) for k, out in pending]
         return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *outs)
 
     return fit_batch
 
 
 def fit_many(captures, config=None, *, scene=None, mesh=None, chunk: int = DEFAULT_CHUNK, restart_failures: bool = True):
-    """:func:`~tofjax.fit.calibrate.calibrate_many` with the fits sharded over ``mesh``'s
-    devices (default: this process's) in chunks of ``chunk`` fits per device."""
+    """:func:`~tofjax.fit.calibrate.calibrate_many` with the fits spread over ``mesh``'s
+    devices (default: this process's) in chunks of ``chunk`` fits per device
+    (:func:`sharded_fit_batch`)."""
     from .fit.calibrate import FitConfig, calibrate_many
 
     return calibrate_many(
         captures, FitConfig() if config is None else config, scene=scene, restart_failures=restart_failures,
         fit_batch=sharded_fit_batch(mesh, chunk),
     )
-
-
 # ---- gathering ------------------------------------------------------------------------------------
 
 
