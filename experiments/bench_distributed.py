@@ -117,13 +117,13 @@ def _same(task: str, a, b) -> bool:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="docs/results/distributed.json")
-    ap.add_argument("--fits", type=int, default=8, help="baselines fitted (default 8)")
+    ap.add_argument("--fits", type=int, default=4, help="baselines fitted (default 4)")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--chunk", type=int, default=2, help="fits per device per compiled call (default 2)")
     ap.add_argument("--photons", type=int, default=20_000, help="MC packets per sensor (default 2e4)")
     ap.add_argument("--batch", type=int, default=8192)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--tasks", default="fits,mc")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--tasks", default="fits,mc", help="fits, mc or both (a task left out keeps its old rows)")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / f"tofjax-bench-distributed-{os.getuid()}"))
     ap.add_argument("--worker", choices=["fits", "mc"], help=argparse.SUPPRESS)
     ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
@@ -138,6 +138,7 @@ def main(argv=None) -> None:
 
     check_output(a.out, overwrite=True)
     t_start = time.perf_counter()
+    old = json.loads(Path(a.out).read_text()) if Path(a.out).exists() else {}
     result: dict = {
         "benchmark": "studies on several devices and processes (tofjax.parallel)",
         "data": "simulated (fits: simulated optoskin baselines; Monte Carlo of optoskin)",
@@ -164,6 +165,10 @@ def main(argv=None) -> None:
                   f"({base['median_s'] / r['median_s']:.2f}x of 1 x 1), equal to 1 x 1: {rows[-1]['equal_to_1x1']}",
                   flush=True)
         result[task] = rows
+        result[f"{task}_settings"] = dict(result["settings"], load_average_at_start=result["load_average_at_start"])
+    for task in ("fits", "mc"):  # a task not run this time keeps its rows from the last run
+        if task not in result and task in old:
+            result[task], result[f"{task}_settings"] = old[task], old.get(f"{task}_settings")
     result["bench_seconds"] = time.perf_counter() - t_start
     atomic_write_text(a.out, json.dumps(result, indent=1))
     print(f"wrote {a.out}")

@@ -21,8 +21,9 @@ calls :func:`initialize` first, then the same study code. What this module gives
   refuses them), and a batch axis sharded with ``NamedSharding`` had not finished compiling
   after 8 minutes here (loaded machine), against 1.5 minutes for the one-device program.
 - :func:`fit_many`: :func:`~tofjax.fit.calibrate.calibrate_many` with that batch function.
-- :func:`allgather_json`: every process's JSON-able results to every process, through JAX's
-  collectives (no shared file system needed).
+- :func:`allgather_json`: every process's JSON-able results to every process, through the
+  key-value store of JAX's distributed runtime (no shared file system needed; no 30 s limit
+  on how long one process waits for another, unlike gloo's collectives).
 - :func:`run_mc` / :func:`run_slab`: the Monte Carlo on every device of every process: its
   packets draw their random numbers from their global index, and the compiled transport is a
   ``shard_map`` over ``jax.devices()`` (all processes' devices after :func:`initialize`) whose
@@ -49,6 +50,7 @@ __all__ = [
     "Cluster",
     "DistributedError",
     "allgather_json",
+    "barrier",
     "cluster_from_env",
     "first_slurm_host",
     "fit_many",
@@ -176,6 +178,11 @@ def initialize(cluster: Cluster, *, timeout_s: int = 300) -> Cluster:
             )
         except RuntimeError as e:  # a JAX computation ran first, or the coordinator is unreachable
             raise DistributedError(f"jax.distributed.initialize failed: {str(e).splitlines()[0]}") from None
+        # Open the collectives' context now, while the processes are in step: gloo waits only
+        # 30 s for a peer, and later the processes may be minutes apart (compiling, fitting).
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("tofjax initialize")
     return cluster
 
 
@@ -267,23 +274,47 @@ def fit_many(captures, config=None, *, scene=None, mesh=None, chunk: int = DEFAU
 # ---- gathering ------------------------------------------------------------------------------------
 
 
-def allgather_json(obj: Any) -> list[Any]:
+_GATHERS = [0]
+#: How long a process waits for the others at a gather (a fit block can take hours on a big study).
+GATHER_TIMEOUT_S = float(os.environ.get("TOFJAX_GATHER_TIMEOUT_S", 7 * 24 * 3600))
+
+
+def _client():
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if client is None:
+        raise DistributedError("several processes but no jax.distributed client: call tofjax.parallel.initialize first")
+    return client
+
+
+def allgather_json(obj: Any, *, timeout_s: float | None = None) -> list[Any]:
     """Every process's JSON-able ``obj``, in process order (one process: ``[obj]``).
 
-    Encoded as bytes and exchanged with ``process_allgather`` (JAX's collectives), so it needs
-    no shared file system. Every process must call it, in the same order."""
+    Exchanged through the key-value store of JAX's distributed runtime (the coordinator), not
+    through device collectives: gloo on CPU gives up when a peer is 30 s late, and one
+    process's block of fits can take far longer than another's. Needs no shared file system.
+    Every process must call it, in the same order; it waits up to ``timeout_s`` (default a week,
+    ``$TOFJAX_GATHER_TIMEOUT_S``) for the others."""
     import jax
 
     if jax.process_count() == 1:
         return [json.loads(json.dumps(obj))]
-    from jax.experimental import multihost_utils
+    client = _client()
+    tag = f"tofjax/gather/{_GATHERS[0]}"
+    _GATHERS[0] += 1
+    client.key_value_set(f"{tag}/{jax.process_index()}", json.dumps(obj))
+    ms = int(1000 * (GATHER_TIMEOUT_S if timeout_s is None else timeout_s))
+    return [json.loads(client.blocking_key_value_get(f"{tag}/{k}", ms)) for k in range(jax.process_count())]
 
-    raw = np.frombuffer(json.dumps(obj).encode(), np.uint8)
-    sizes = np.asarray(multihost_utils.process_allgather(np.array([raw.size], np.int32))).reshape(-1)
-    padded = np.zeros(int(sizes.max()), np.uint8)
-    padded[: raw.size] = raw
-    everyone = np.asarray(multihost_utils.process_allgather(padded)).reshape(len(sizes), -1)
-    return [json.loads(bytes(row[:s]).decode()) for row, s in zip(everyone, sizes)]
+
+def barrier(name: str, *, timeout_s: float | None = None) -> None:
+    """Wait until every process got here (the distributed runtime's barrier; one process: no-op)."""
+    import jax
+
+    if jax.process_count() > 1:
+        _GATHERS[0] += 1
+        _client().wait_at_barrier(f"tofjax/{name}/{_GATHERS[0]}", int(1000 * (GATHER_TIMEOUT_S if timeout_s is None else timeout_s)))
 
 
 def gather_items(local: Sequence[Any], items: range, n: int) -> list[Any]:
@@ -311,10 +342,15 @@ def _check_mc_devices(options) -> None:
 
 def run_mc(scene, options, *, progress: bool = False):
     """:func:`tofjax.mc.run_mc` with the packets spread over every device of every process
-    (call it on every process with the same arguments; every process gets the summed result)."""
+    (call it on every process with the same arguments; every process gets the summed result).
+
+    The tallies are summed by device collectives (gloo on CPU), which fail when one process
+    reaches them more than 30 s after another: the processes start together (a barrier), but
+    each compiles the transport on its own; with a warm compilation cache that takes seconds."""
     from .mc.transport import run_mc as _run_mc
 
     _check_mc_devices(options)
+    barrier("run_mc")
     return _run_mc(scene, options, progress=progress)
 
 
@@ -323,4 +359,5 @@ def run_slab(options, *, progress: bool = False):
     from .mc.slab import run_slab as _run_slab
 
     _check_mc_devices(options)
+    barrier("run_slab")
     return _run_slab(options, progress=progress)
