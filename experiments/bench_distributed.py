@@ -151,6 +151,7 @@ def main(argv=None) -> None:
                 "the other sessions' processes",
     }
     for task in a.tasks.split(","):
+        result.pop(task, None)
         rows = []
         base = None
         for p, d in CONFIGS:
@@ -161,6 +162,9 @@ def main(argv=None) -> None:
                 "first_run_s": r["first_s"], "speedup_vs_1x1": base["median_s"] / r["median_s"],
                 "equal_to_1x1": _same(task, base["result"], r["result"]),
             })
+            result[task] = rows
+            result["complete"] = False
+            atomic_write_text(a.out, json.dumps(result, indent=1))  # a run cut short keeps what it measured
             print(f"{task}: {p} process(es) x {d} device(s): median {r['median_s']:.2f} s "
                   f"({base['median_s'] / r['median_s']:.2f}x of 1 x 1), equal to 1 x 1: {rows[-1]['equal_to_1x1']}",
                   flush=True)
@@ -170,6 +174,7 @@ def main(argv=None) -> None:
         if task not in result and task in old:
             result[task], result[f"{task}_settings"] = old[task], old.get(f"{task}_settings")
     result["bench_seconds"] = time.perf_counter() - t_start
+    result["complete"] = True
     atomic_write_text(a.out, json.dumps(result, indent=1))
     print(f"wrote {a.out}")
 
