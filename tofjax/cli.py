@@ -373,12 +373,14 @@ def build_parser() -> argparse.ArgumentParser:
     from .invert.cli import register as register_invert  # process, detect (issue 4)
     from .mc.cli import register as register_mc  # mc, mc slab, prune (issues 7, 14)
     from .sensor.cli import register as register_sensor  # import, sensor fit, range (issue 12)
+    from .study_cli import register as register_study  # study on several devices and processes (issue 16)
 
     register_invert(sub)
     register_force(sub)
     register_hw(sub)
     register_mc(sub)
     register_sensor(sub)
+    register_study(sub)
     _add_overwrite(p)
     return p
 

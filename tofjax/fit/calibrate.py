@@ -710,10 +710,12 @@ def calibrate_many(
     *,
     scene: Scene | None = None,
     restart_failures: bool = True,
+    fit_batch=None,
 ) -> list[CalibrationResult]:
     """:func:`calibrate` for many captures of one scene: the starts and the fits each run as
     one compiled, vmapped call over the batch (the failures are then refitted one by one with
-    restarts unless ``restart_failures`` is False)."""
+    restarts unless ``restart_failures`` is False). ``fit_batch``: a replacement for
+    :func:`fit_problem_batch` (same signature), e.g. :func:`tofjax.parallel.sharded_fit_batch`."""
     scene = (scene or captures[0].scene).without_touches()
     for c in captures:
         check_baseline(c, scene)
@@ -732,7 +734,7 @@ def calibrate_many(
     data = jnp.stack([d for d, _ in pairs])
     sigma = jnp.stack([g for _, g in pairs])
     sols = jax.device_get(
-        fit_problem_batch(
+        (fit_problem_batch if fit_batch is None else fit_batch)(
             problem, objective, solver, stack, data, sigma, base, anchors,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
         )
