@@ -17,7 +17,6 @@ import dataclasses
 import itertools
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,17 +27,11 @@ from tofjax.config import from_dict, load_toml
 from tofjax.fit.calibrate import Calibrator
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
+from tofjax.study_cli import RecoveryStudy
 
 
-@dataclass(frozen=True)
-class RecoveryConfig:
-    scene: str = "optoskin"
-    frames: int = 100
-    replicates: int = 3
-    seed: int = 0
-    n1: tuple[float, ...] = (1.4,)
-    mu_s_per_m: tuple[float, ...] = (0.6,)
-    mu_a_per_m: tuple[float, ...] = (0.14,)
+# the grid's keys (configs/studies/recovery.toml), validated: the same dataclass `tofjax study` runs
+RecoveryConfig = RecoveryStudy
 
 
 def run(config: RecoveryConfig, out: Path, progress: bool = True) -> dict:

@@ -224,17 +224,13 @@ EDGE_COS_FLOOR = 1e-3
 
 def edge_incidence_cos(size_m, xy, angle):
     """|cos| of the angle between rays from ``xy`` (..., 2) along ``angle`` (...) and the normal
-    of the edge of the rectangular waveguide they hit (NumPy; the same edge choice as
-    :func:`tofjax.model.geometry.boundary_distance`: a vertical edge where the ray reaches
-    ``x = 0`` or ``x = lx`` first, else a horizontal one)."""
+    of the edge of the rectangular waveguide they hit (NumPy; the edge
+    :func:`tofjax.model.geometry.edge_hits` finds, as :func:`~tofjax.model.geometry.boundary_distance` does)."""
     import numpy as np
 
-    lx, ly = size_m
-    c, s = np.cos(angle), np.sin(angle)
-    x, y = xy[..., 0], xy[..., 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tx = np.where(c > 1e-12, (lx - x) / c, np.where(c < -1e-12, -x / c, np.inf))
-        ty = np.where(s > 1e-12, (ly - y) / s, np.where(s < -1e-12, -y / s, np.inf))
+    from .geometry import edge_hits
+
+    tx, ty, c, s = edge_hits(size_m, xy, angle)
     return np.where(tx <= ty, np.abs(c), np.abs(s))
 
 

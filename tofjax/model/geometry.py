@@ -20,7 +20,7 @@ from jaxtyping import Array, Float
 
 from ..scene import Scene
 
-__all__ = ["Geometry", "boundary_distance", "zone_edges"]
+__all__ = ["Geometry", "boundary_distance", "edge_hits", "zone_edges"]
 
 
 def zone_edges(fov_deg: float, zones: int) -> np.ndarray:
@@ -35,13 +35,22 @@ def boundary_distance(size_m, xy: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
     Rays that start on the edge and point out of the waveguide get 0.
     """
+    tx, ty, _, _ = edge_hits(size_m, xy, angle)
+    return np.clip(np.minimum(tx, ty), 0.0, None)
+
+
+def edge_hits(size_m, xy: np.ndarray, angle: np.ndarray):
+    """Where rays from ``xy`` (..., 2) along ``angle`` (...) meet the rectangle's edges:
+    distances ``tx`` to the vertical edge (``x = 0`` or ``lx``) and ``ty`` to the horizontal one
+    (inf where the ray runs parallel to it), and the ray's ``cos``, ``sin``. The ray leaves
+    through the vertical edge where ``tx <= ty``."""
     lx, ly = size_m
     c, s = np.cos(angle), np.sin(angle)
     x, y = xy[..., 0], xy[..., 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         tx = np.where(c > 1e-12, (lx - x) / c, np.where(c < -1e-12, -x / c, np.inf))
         ty = np.where(s > 1e-12, (ly - y) / s, np.where(s < -1e-12, -y / s, np.inf))
-    return np.clip(np.minimum(tx, ty), 0.0, None)
+    return tx, ty, c, s
 
 
 class Geometry(eqx.Module):
