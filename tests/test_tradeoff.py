@@ -46,7 +46,9 @@ def test_tradeoff_fast_run(tmp_path):
     assert num["q=1"] > num["default"]
     # the photon ladder: more photons, less noise
     mc = data["monte_carlo"]
-    assert mc[1]["error_vs_mc"] < mc[0]["error_vs_mc"]
+    # (quick mode runs 250, 500 and 1000 photons against a 4000-photon reference: neighbouring
+    # rungs differ by less than their scatter, the ends by about 1.8x)
+    assert mc[-1]["error_vs_mc"] < mc[0]["error_vs_mc"]
     assert [c["group"].split(" ")[0] for c in data["components"]] == ["far", "scattering"]
     # budget 10: every setting qualifies, the fastest is named
     fastest = min(data["analytic"], key=lambda row: row["seconds"])["label"]

@@ -8,12 +8,11 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..config import ConfigError
 from ..scene import COMPONENTS, Scene
 from . import components as C
-from .geometry import Geometry
+from .geometry import Geometry, ray_samples
 from .params import Params
 from .pulse import apply_kernels, bin_kernels
 
@@ -252,15 +251,15 @@ def build_model(
             raise ConfigError(f"components: unknown component {c!r}; known: {', '.join(COMPONENTS)}")
     dtype = options.jnp_dtype
     geometry = Geometry.from_scene(scene, options.angles_per_zone, dtype)
+    # NumPy from the scene, not from `geometry` (whose arrays are tracers where a model is built inside jit)
+    xy, _, edges, ang = ray_samples(scene, options.angles_per_zone)
     guided = None
     if options.optics == "guided":
         from .guided import GuidedGeometry
 
-        guided = GuidedGeometry.from_scene(scene, np.asarray(geometry.ray_angle), np.asarray(geometry.zone_lo),
-                                           np.asarray(geometry.zone_hi), options.elevations, options.aperture_m,
+        guided = GuidedGeometry.from_scene(scene, ang, edges[:, 0], edges[:, 1], options.elevations, options.aperture_m,
                                            options.skin, dtype)
-    xy = np.array([s.position_m for s in scene.sensors], float)
-    edge_cos = C.edge_incidence_cos(scene.waveguide.size_m, xy[:, None, None, :], np.asarray(geometry.ray_angle, float))
+    edge_cos = C.edge_incidence_cos(scene.waveguide.size_m, xy[:, None, None, :], ang)
     return ForwardModel(
         geometry=geometry,
         guided=guided,

@@ -20,7 +20,7 @@ from jaxtyping import Array, Float
 
 from ..scene import Scene
 
-__all__ = ["Geometry", "boundary_distance", "edge_hits", "zone_edges"]
+__all__ = ["Geometry", "boundary_distance", "edge_hits", "ray_samples", "zone_edges"]
 
 
 def zone_edges(fov_deg: float, zones: int) -> np.ndarray:
@@ -53,6 +53,20 @@ def edge_hits(size_m, xy: np.ndarray, angle: np.ndarray):
     return tx, ty, c, s
 
 
+def ray_samples(scene: Scene, angles_per_zone: int):
+    """The geometry's NumPy source (also where a model is built inside a trace, when the
+    :class:`Geometry` arrays are tracers): sensor positions (S, 2), directions (S,), zone angle
+    limits (Z, 2) and the absolute angle of every angular sample (S, Z, A), radians."""
+    sm = scene.sensor
+    xy = np.array([s.position_m for s in scene.sensors], float)
+    direction = np.radians([s.direction_deg for s in scene.sensors])
+    edges = zone_edges(sm.fov_deg, sm.zones)
+    frac = (np.arange(angles_per_zone) + 0.5) / angles_per_zone
+    rel = edges[:, :1] + (edges[:, 1:] - edges[:, :1]) * frac[None, :]  # (Z, A)
+    ang = direction[:, None, None] + rel[None]  # (S, Z, A)
+    return xy, direction, edges, ang
+
+
 class Geometry(eqx.Module):
     """Per-sensor, per-zone geometry as arrays (no static arrays: all leaves are jnp)."""
 
@@ -65,13 +79,7 @@ class Geometry(eqx.Module):
 
     @classmethod
     def from_scene(cls, scene: Scene, angles_per_zone: int, dtype) -> "Geometry":
-        sm = scene.sensor
-        xy = np.array([s.position_m for s in scene.sensors], float)
-        direction = np.radians([s.direction_deg for s in scene.sensors])
-        edges = zone_edges(sm.fov_deg, sm.zones)
-        frac = (np.arange(angles_per_zone) + 0.5) / angles_per_zone
-        rel = edges[:, :1] + (edges[:, 1:] - edges[:, :1]) * frac[None, :]  # (Z, A)
-        ang = direction[:, None, None] + rel[None]  # (S, Z, A)
+        xy, direction, edges, ang = ray_samples(scene, angles_per_zone)
         length = boundary_distance(scene.waveguide.size_m, xy[:, None, None, :], ang)
         return cls(
             sensor_xy=jnp.asarray(xy, dtype),
