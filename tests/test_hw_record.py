@@ -106,6 +106,18 @@ def test_interrupted_recordings_keep_every_whole_frame(scene_file, tmp_path):
                 f"from tofjax.cli import main\nraise SystemExit(main({args!r}))")
         cmd = [sys.executable, "-c", code]
         procs[sig] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), out)
+    try:
+        _interrupt_and_check(procs)
+    finally:
+        # a recording that ignored its signal must not run on (it would record for 1e6 s and take
+        # a core from the rest of the suite)
+        for p, _ in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+
+
+def _interrupt_and_check(procs):
     deadline = time.time() + 120
     while any(_frames_in(out) < 5 for _, out in procs.values()):
         assert time.time() < deadline, "the recordings did not start"
