@@ -191,3 +191,19 @@ def test_demo_acquisition_runs_twice_only_with_overwrite(small_scene, tmp_path):
     lines = hw_demo(tmp_path, scene, frames=2, seed=1, overwrite=True)
     assert "2 whole frames" in "\n".join(lines)
     assert read_capture(tmp_path / "acquired.h5").n_frames == 2
+
+
+def test_ctrl_c_stops_a_recording_even_when_inherited_ignored():
+    """A background job of a non-interactive shell inherits SIGINT ignored; the recorder must still
+    stop on it whenever it lands (it used to only while a frame was being written, held there)."""
+    from tofjax.hw.recorder import _sigterm_as_interrupt
+
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _sigterm_as_interrupt():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1.0)  # the handler runs at the next bytecode; never reached
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN  # restored afterwards
+    finally:
+        signal.signal(signal.SIGINT, old)

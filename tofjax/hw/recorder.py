@@ -119,7 +119,10 @@ def _sigint_deferred():
 
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
-    """SIGTERM ends a recording the way Ctrl-C does: cleanly, with every committed frame kept."""
+    """SIGTERM ends a recording the way Ctrl-C does: cleanly, with every committed frame kept.
+    SIGINT too, for the whole recording: a process started in the background by a
+    non-interactive shell inherits SIGINT ignored, and it would then stop on Ctrl-C only when
+    the signal happened to land while a frame was being written (where it is held)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -127,11 +130,12 @@ def _sigterm_as_interrupt():
     def stop(*_):
         raise KeyboardInterrupt
 
-    old = signal.signal(signal.SIGTERM, stop)
+    old = {s: signal.signal(s, stop) for s in _HELD}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 class EndOfStream(Exception):
