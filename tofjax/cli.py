@@ -13,6 +13,7 @@ from pathlib import Path
 from .capture import CaptureError
 from .config import ConfigError
 from .errors import UserError
+from .model import OPTICS
 
 
 def _cmd_simulate(a) -> int:
@@ -357,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
     s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (its bin width replaces the scene's)")
-    s.add_argument("--optics", choices=("default", "guided"), default=None,
+    s.add_argument("--optics", choices=OPTICS, default=None,
                    help="forward model optics (default: the config's, else 'default'); stored in the JSON, "
                         "and detect/process use the same")
     s.set_defaults(func=_cmd_calibrate)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import UserError
-from ..model import Params
+from ..model import OPTICS, Params
 from ..scene import Scene
 from .transforms import FITTABLE
 
@@ -180,8 +180,8 @@ def calibration_optics(data: dict[str, Any] | str | Path) -> str:
     JSON predates the field). An unknown value is refused in one line."""
     data, source = _read(data)
     optics = data.get("optics", "default")
-    if optics not in ("default", "guided"):
-        raise CalibrationRefused(f"{source}: optics {optics!r} unknown (this tofjax knows 'default' and 'guided')")
+    if optics not in OPTICS:
+        raise CalibrationRefused(f"{source}: optics {optics!r} unknown (this tofjax knows {' and '.join(map(repr, OPTICS))})")
     return optics
 
 

@@ -34,7 +34,7 @@ import optimistix as optx
 from ..capture import Capture
 from ..compile_cache import call_stored
 from ..config import ConfigError, from_dict, load_toml
-from ..model import ModelOptions, Params, build_model
+from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
 from ._discrepancy import discrepancy_report
 from ._laplace import laplace_covariance
@@ -78,8 +78,6 @@ __all__ = [
 ]
 
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "dogleg", "poisson-deviance")
-#: The forward model's optics a calibration can use (``ModelOptions.optics``).
-OPTICS = ("default", "guided")
 DEFAULT_FREE = (
     "n1",
     "mu_s_per_m",

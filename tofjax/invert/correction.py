@@ -43,6 +43,7 @@ import numpy as np
 
 from ..config import ConfigError
 from ..errors import UserError
+from ..model.forward import OPTICS
 from ..model.geometry import Geometry
 from ..model.params import speed_in_guide
 from ..model.pulse import binned_response
@@ -90,8 +91,8 @@ class OpticalParams:
     optics: str = "default"
 
     def __post_init__(self):
-        if self.optics not in ("default", "guided"):
-            raise InversionError(f"optics: must be 'default' or 'guided', got {self.optics!r}")
+        if self.optics not in OPTICS:
+            raise InversionError(f"optics: must be {' or '.join(map(repr, OPTICS))}, got {self.optics!r}")
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "OpticalParams":
@@ -145,7 +146,7 @@ class OpticalParams:
         try:
             params = load_calibration(
                 data, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene,
-                optics=("default", "guided"),
+                optics=OPTICS,
             )
             optics = calibration_optics(data)
         except CalibrationRefused as e:

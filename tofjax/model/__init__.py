@@ -2,6 +2,7 @@
 
 from .components import SPEED_OF_LIGHT_M_PER_S as SPEED_OF_LIGHT_M_PER_S
 from .forward import ForwardModel as ForwardModel
+from .forward import OPTICS as OPTICS
 from .forward import ModelOptions as ModelOptions
 from .forward import build_model as build_model
 from .forward import pile_up as pile_up

@@ -16,7 +16,12 @@ from .geometry import Geometry, ray_samples
 from .params import Params
 from .pulse import apply_kernels, bin_kernels
 
-__all__ = ["ForwardModel", "ModelOptions", "build_model", "pile_up"]
+__all__ = ["OPTICS", "ForwardModel", "ModelOptions", "build_model", "pile_up"]
+
+
+#: The forward model's optics (``ModelOptions.optics``): seed 000's in-plane light, or the
+#: guided optics of :mod:`tofjax.model.guided`. Calibrations record which (``FitConfig.optics``).
+OPTICS = ("default", "guided")
 
 
 @dataclass(frozen=True)
@@ -58,8 +63,8 @@ class ModelOptions:
                 raise ConfigError(f"{k}: must be >= 1, got {getattr(self, k)!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
-        if self.optics not in ("default", "guided"):
-            raise ConfigError(f"optics: must be 'default' or 'guided', got {self.optics!r}")
+        if self.optics not in OPTICS:
+            raise ConfigError(f"optics: must be {' or '.join(map(repr, OPTICS))}, got {self.optics!r}")
         if not isinstance(self.aperture_m, (int, float)) or not (0.0 < float(self.aperture_m) < float("inf")):
             raise ConfigError(f"aperture_m: must be a positive length in metres, got {self.aperture_m!r}")
         if self.skin is not None:
