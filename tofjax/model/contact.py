@@ -36,10 +36,14 @@ def diffuse_reflectance_semi_infinite(mu_a_per_m: float, mu_s_prime_per_m: float
     transport albedo ``a' = mu_s' / (mu_a + mu_s')`` and ``A`` for the index mismatch
     ``n_rel`` (medium over outside).
     """
-    a = mu_s_prime_per_m / (mu_a_per_m + mu_s_prime_per_m)
+    return _diffuse_reflectance(mu_s_prime_per_m / (mu_a_per_m + mu_s_prime_per_m), _internal_reflection_A(n_rel), math.exp)
+
+
+def _diffuse_reflectance(a: float, A, exp):
+    """Farrell's ``R_d`` for transport albedo ``a`` and boundary coefficient ``A`` (a float, or
+    traced where the guide's index is fitted: ``exp`` is then ``jnp.exp``)."""
     k = math.sqrt(3.0 * (1.0 - a))
-    A = _internal_reflection_A(n_rel)
-    return 0.5 * a * (1.0 + math.exp(-4.0 / 3.0 * A * k)) * math.exp(-k)
+    return 0.5 * a * (1.0 + exp(-4.0 / 3.0 * A * k)) * math.exp(-k)
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,4 @@ class SkinContact:
         import jax.numpy as jnp
 
         a = self.mu_s_prime_per_m / (self.mu_a_per_m + self.mu_s_prime_per_m)
-        k = math.sqrt(3.0 * (1.0 - a))
-        n_rel = self.n / n_guide
-        r_id = -1.440 / n_rel**2 + 0.710 / n_rel + 0.668 + 0.0636 * n_rel
-        A = (1.0 + r_id) / (1.0 - r_id)
-        return 0.5 * a * (1.0 + jnp.exp(-4.0 / 3.0 * A * k)) * math.exp(-k)
+        return _diffuse_reflectance(a, _internal_reflection_A(self.n / n_guide), jnp.exp)
