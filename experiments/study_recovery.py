@@ -14,20 +14,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 import tofjax
 from tofjax.config import from_dict, load_toml
 from tofjax.fit.calibrate import Calibrator
+from tofjax.outputs import atomic_write_text, save_figure
 from tofjax.scene import load_scene
-from tofjax.simulate import simulate
-from tofjax.study_cli import RecoveryStudy
+from tofjax.study_cli import RecoveryStudy, recovery_point, simulate_item
 
 
 # the grid's keys (configs/studies/recovery.toml), validated: the same dataclass `tofjax study` runs
@@ -37,38 +35,20 @@ RecoveryConfig = RecoveryStudy
 def run(config: RecoveryConfig, out: Path, progress: bool = True) -> dict:
     nominal = load_scene(config.scene)
     calibrator = Calibrator(nominal)
-    grid = list(itertools.product(config.n1, config.mu_s_per_m, config.mu_a_per_m))
-    rows = []
+    items = config.items()
     t0 = time.perf_counter()
-    caps = []
-    for k, (n1, mu_s, mu_a) in enumerate(grid):
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=mu_s, mu_a_per_m=mu_a)
-        truth = nominal.replace(waveguide=wg)
-        caps += [simulate(truth, config.frames, seed=config.seed + 1000 * k + r) for r in range(config.replicates)]
+    caps = [simulate_item(config, nominal, item) for item in items]
     t_fit = time.perf_counter()
     results = calibrator.fit_many(caps)
     fit_seconds = time.perf_counter() - t_fit
-    bar = tqdm(total=0, disable=True)
-    for k, (n1, mu_s, mu_a) in enumerate(grid):
+    reps = config.replicates
+    rows = []
+    for k in range(len(items) // reps):
         fits = []
-        for res in results[k * config.replicates : (k + 1) * config.replicates]:
+        for res in results[k * reps : (k + 1) * reps]:
             v = {p: float(res.values[p]) for p in ("n1", "mu_s_per_m", "mu_a_per_m")}
             fits.append({**v, "converged": res.converged, "result": res.result, "reduced_chi2": res.reduced_chi2})
-        arr = {p: np.array([f[p] for f in fits]) for p in ("n1", "mu_s_per_m", "mu_a_per_m")}
-        mu_t = arr["mu_s_per_m"] + arr["mu_a_per_m"]
-        true = {"n1": n1, "mu_s_per_m": mu_s, "mu_a_per_m": mu_a}
-        rows.append(
-            {
-                "truth": true,
-                "fits": fits,
-                "bias": {p: float(arr[p].mean() - true[p]) for p in arr} | {"mu_t": float(mu_t.mean() - mu_s - mu_a)},
-                "spread": {p: float(arr[p].std(ddof=1)) if len(fits) > 1 else 0.0 for p in arr}
-                | {"mu_t": float(mu_t.std(ddof=1)) if len(fits) > 1 else 0.0},
-                "n1_rel_error_max": float(np.max(np.abs(arr["n1"] / n1 - 1))),
-                "converged": int(sum(f["converged"] for f in fits)),
-            }
-        )
-    bar.close()
+        rows.append(recovery_point(items[k * reps][2], fits))
     result = {
         "study": "parameter recovery",
         "data": "simulated",
@@ -77,8 +57,7 @@ def run(config: RecoveryConfig, out: Path, progress: bool = True) -> dict:
         "fit_seconds_batched": fit_seconds,
         "points": rows,
     }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "recovery.json").write_text(json.dumps(result, indent=2))
+    atomic_write_text(out / "recovery.json", json.dumps(result, indent=2))
     _plot(rows, out / "recovery.png")
     return result
 
@@ -100,8 +79,7 @@ def _plot(rows, path):
         ax.set_ylabel(f"fitted {p}")
     fig.suptitle("calibration recovery (simulated baselines)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def main(argv=None):

@@ -94,6 +94,35 @@ def load_study(path_or_name: str):
         raise ConfigError(f"{p}: {e}") from None
 
 
+def simulate_item(study: RecoveryStudy, nominal, item):
+    """The simulated baseline of one work item ``(grid point k, replicate r, truth)`` of
+    :meth:`RecoveryStudy.items` (seed ``seed + 1000 k + r``)."""
+    from .simulate import simulate
+
+    k, r, (n1, mu_s, mu_a) = item
+    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=mu_s, mu_a_per_m=mu_a)
+    return simulate(nominal.replace(waveguide=wg), study.frames, seed=study.seed + 1000 * k + r)
+
+
+def recovery_point(truth: tuple[float, float, float], fits: list[dict]) -> dict:
+    """One grid point's row of a recovery study: its fits (dicts with ``n1``, ``mu_s_per_m``,
+    ``mu_a_per_m``, ``converged``), their bias and spread against the truth (``mu_t`` too),
+    the largest n1 error and how many converged."""
+    n1, mu_s, mu_a = truth
+    arr = {p: np.array([f[p] for f in fits]) for p in ("n1", "mu_s_per_m", "mu_a_per_m")}
+    mu_t = arr["mu_s_per_m"] + arr["mu_a_per_m"]
+    true = {"n1": n1, "mu_s_per_m": mu_s, "mu_a_per_m": mu_a}
+    sd = (lambda x: float(x.std(ddof=1))) if len(fits) > 1 else (lambda x: 0.0)
+    return {
+        "truth": true,
+        "fits": fits,
+        "bias": {p: float(arr[p].mean() - true[p]) for p in arr} | {"mu_t": float(mu_t.mean() - mu_s - mu_a)},
+        "spread": {p: sd(arr[p]) for p in arr} | {"mu_t": sd(mu_t)},
+        "n1_rel_error_max": float(np.max(np.abs(arr["n1"] / n1 - 1))),
+        "converged": int(sum(f["converged"] for f in fits)),
+    }
+
+
 def _fit_summary(res) -> dict:
     keys = ("n1", "mu_s_per_m", "mu_a_per_m")
     return {
@@ -113,40 +142,20 @@ def run_recovery(study: RecoveryStudy, *, chunk: int = 4, mesh=None) -> dict:
 
     from . import parallel
     from .scene import load_scene
-    from .simulate import simulate
 
     nominal = load_scene(study.scene)
     items = study.items()
     mine = parallel.split_items(len(items), jax.process_index(), jax.process_count())
     t0 = time.perf_counter()
-    caps = []
-    for i in mine:
-        k, r, (n1, mu_s, mu_a) = items[i]
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=mu_s, mu_a_per_m=mu_a)
-        caps.append(simulate(nominal.replace(waveguide=wg), study.frames, seed=study.seed + 1000 * k + r))
+    caps = [simulate_item(study, nominal, items[i]) for i in mine]
     t_fit = time.perf_counter()
     results = parallel.fit_many(caps, scene=nominal, mesh=mesh, chunk=chunk) if caps else []
     fit_s = time.perf_counter() - t_fit
     fits = parallel.gather_items([_fit_summary(r) for r in results], mine, len(items))
     timing = parallel.allgather_json({"items": len(mine), "fit_seconds": fit_s, "seconds": time.perf_counter() - t0,
                                       "devices": len(jax.local_devices()) if mesh is None else int(mesh.devices.size)})
-    rows = []
     reps = study.replicates
-    for k in range(len(items) // reps):
-        n1, mu_s, mu_a = items[k * reps][2]
-        block = fits[k * reps : (k + 1) * reps]
-        arr = {p: np.array([f[p] for f in block]) for p in ("n1", "mu_s_per_m", "mu_a_per_m")}
-        mu_t = arr["mu_s_per_m"] + arr["mu_a_per_m"]
-        true = {"n1": n1, "mu_s_per_m": mu_s, "mu_a_per_m": mu_a}
-        sd = (lambda x: float(x.std(ddof=1))) if reps > 1 else (lambda x: 0.0)
-        rows.append({
-            "truth": true,
-            "fits": block,
-            "bias": {p: float(arr[p].mean() - true[p]) for p in arr} | {"mu_t": float(mu_t.mean() - mu_s - mu_a)},
-            "spread": {p: sd(arr[p]) for p in arr} | {"mu_t": sd(mu_t)},
-            "n1_rel_error_max": float(np.max(np.abs(arr["n1"] / n1 - 1))),
-            "converged": int(sum(f["converged"] for f in block)),
-        })
+    rows = [recovery_point(items[k * reps][2], fits[k * reps : (k + 1) * reps]) for k in range(len(items) // reps)]
     return {
         "study": "parameter recovery",
         "data": "simulated",
