@@ -138,12 +138,12 @@ def _program_key(name: str, treedef, static, leaves) -> str:
     import jax
 
     s_leaves, s_def = jax.tree_util.tree_flatten(static)
-    parts = [name, _code_version(), str(treedef), str(s_def), *map(_leaf_key, s_leaves)]
-    parts += [f"{tuple(x.shape)}:{x.dtype.str}" for x in leaves]
-    text = "\n".join(parts)
-    if _ADDRESS.search(str(treedef)) or _ADDRESS.search(str(s_def)):
+    structure = f"{treedef}\n{s_def}"
+    if _ADDRESS.search(structure):
         raise _Unkeyable(name)
-    return hashlib.sha256(text.encode()).hexdigest()[:32]
+    parts = [name, _code_version(), structure, *map(_leaf_key, s_leaves)]
+    parts += [f"{tuple(x.shape)}:{x.dtype.str}" for x in leaves]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
 
 
 _loaded: dict[str, tuple[Callable, Any]] = {}

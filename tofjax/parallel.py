@@ -241,16 +241,15 @@ def sharded_fit_batch(mesh=None, chunk: int = DEFAULT_CHUNK) -> Callable:
 
         m = local_mesh() if mesh is None else mesh
         devs = list(m.devices.flat)
-        per_call = chunk
         n = int(data.shape[0])
         host = jax.tree_util.tree_map(np.asarray, (starts, data, sigma, anchors))
         pending = []
-        for j, c0 in enumerate(range(0, n, per_call)):
-            k = min(per_call, n - c0)
+        for j, c0 in enumerate(range(0, n, chunk)):
+            k = min(chunk, n - c0)
 
             def take(x, c0=c0, k=k):
                 x = x[c0 : c0 + k]
-                return np.concatenate([x, np.repeat(x[:1], per_call - k, axis=0)]) if k < per_call else x
+                return np.concatenate([x, np.repeat(x[:1], chunk - k, axis=0)]) if k < chunk else x
 
             st, d, g, a = jax.device_put(jax.tree_util.tree_map(take, host), devs[j % len(devs)])
             out = fit_problem_batch(problem, objective, solver, st, d, g, prior_params, a, **kw)
