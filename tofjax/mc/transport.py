@@ -679,6 +679,21 @@ def _hg_pdf(g, cos_t):
     return (1.0 - g**2) / (4.0 * math.pi * jnp.maximum(1.0 + g**2 - 2.0 * g * cos_t, 1e-12) ** 1.5)
 
 
+def _cumsum_lanes(flags):
+    """Inclusive cumulative sum (int32) of a boolean lane mask, as two small float32 matrix products
+    (exact: counts < 2**24): ``jnp.cumsum`` is a reduce-window on the CPU, ~50 ns per lane."""
+    n = flags.shape[0]
+    b = 64
+    if n % b or n < 2 * b:
+        return jnp.cumsum(flags, dtype=jnp.int32)
+    v = flags.astype(jnp.float32).reshape(n // b, b)
+    tri = jnp.triu(jnp.ones((b, b), jnp.float32))  # tri[i, j] = 1 for i <= j
+    within = jnp.dot(v, tri, precision=jax.lax.Precision.HIGHEST)  # (blocks, b)
+    m = n // b
+    before = jnp.dot(jnp.triu(jnp.ones((m, m), jnp.float32), 1).T, within[:, -1], precision=jax.lax.Precision.HIGHEST)
+    return (within + before[:, None]).reshape(n).astype(jnp.int32)
+
+
 def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     """Follow a queue of packets to the end, ``lanes`` at a time.
 
@@ -700,7 +715,10 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         q.update(key=jnp.stack([k0, k1], -1), ev=jnp.ones(g.shape, jnp.int32))
         return q
 
-    p = emit(idx[:lanes])
+    # every packet of the queue emitted at once (once per packet, vectorised); a free lane then
+    # gathers its next packet's state instead of emitting all lanes' in every step
+    queue = emit(idx)
+    p = {k: v[:lanes] for k, v in queue.items()}
     alive = valid[:lanes]
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     d = f(st.d)
@@ -715,9 +733,10 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     R_air_of = lambda cz: fresnel_reflectance(f(st.n1), f(1.0), cz)  # noqa: E731
     if st.nee:
         nee_q = _nee_setup(st, dtype)
-    ledger0 = jnp.zeros((len(LEDGER) + len(_EXTRA),), dtype)
+    # the ledger per lane (summed once at the end: no reductions in the loop)
+    ledger0 = tuple(jnp.zeros((lanes,), dtype) for _ in range(len(LEDGER) + len(_EXTRA)))
     tally0 = jnp.zeros((st.S * st.Z * (st.K + 2 * _PAD),), dtype)  # padded rows (see _deposit_rows)
-    acc0 = jnp.zeros((lanes, 3), dtype)  # per packet: escaped top, escaped bottom, absorbed
+    acc0 = tuple(jnp.zeros((lanes,), dtype) for _ in range(3))  # per packet: escaped top, escaped bottom, absorbed
 
     def body(carry):
         nxt, p, alive, tally, ledger, events, acc = carry
@@ -863,7 +882,8 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             w_edge = jnp.where(refl, w_new * edge_R, 0.0) if st.edge_mode == "diffuse" else None
             w_c = jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0) if has_contacts else None
             row, npath, score_n = _nee_scores(st, nee_q, nx_, ny_, nz_, p["s"], ux, uy, nuz, wnx, wny, w_sc, w_edge, w_c, nxt >= 0)
-            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_new + npath) / st.c1, score_n))
+            L_m = _materialise(nxt >= 0, L_new)  # else XLA recomputes the step in every score
+            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_m + npath) / st.c1, score_n))
             tally = _deposit_rows(tally, st, row, tau_n, score_n)
         if st.nee:
             diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
@@ -886,14 +906,18 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         roulette = jnp.where(low, wn - rw, 0.0)  # weight removed (negative when survivors gain)
         wn = rw
         still = still & ~(low & ~survive)
-        A = lambda v: jnp.sum(jnp.where(alive, v, 0.0))  # noqa: E731
+        A = lambda v: jnp.where(alive, v, 0.0)  # noqa: E731
         if has_contacts:
             escaped, e_top = escaped + gap_escape, e_top + gap_escape
-        ledger = ledger + jnp.stack([
-            jnp.sum(wd), A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
-            jnp.sum(jnp.where(late, w_new, 0.0)), f(0.0), A(roulette), A(e_top), f(0.0), f(0.0), f(0.0),
-        ])
-        acc = acc + jnp.where(alive[:, None], jnp.stack([e_top, e_bot, absorbed], 1), 0.0)
+        # (separate arrays: a stacked (12, lanes) update made XLA recompute producers per row)
+        stop = still & (p["ev"] >= st.max_events)
+        ended = alive & ~(still & ~stop)
+        acc = tuple(a + A(b) for a, b in zip(acc, (e_top, e_bot, absorbed)))
+        sq = [jnp.where(ended, a**2, 0.0) for a in acc]
+        ledger = tuple(a + b for a, b in zip(ledger, (
+            wd, A(escaped), A(edge_loss), A(absorbed), A(jnp.where(cn, contact_loss, 0.0)),
+            jnp.where(late, w_new, 0.0), jnp.where(stop, wn, 0.0), A(roulette), A(e_top), *sq,
+        )))
         if st.slab:
             # time- and radius-resolved diffuse reflectance: the step's top-face escape at its first
             # top hit (exact for n = 1, where a packet leaves at its first hit)
@@ -904,27 +928,18 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             inside = alive & (e_top > 0) & (ir < st.Z) & (it < st.K) & (it >= 0)
             tally = tally.at[jnp.where(inside, ir * (st.K + 2 * _PAD) + it + _PAD, 0)].add(jnp.where(inside, e_top, 0.0))
         # a packet at its last allowed event stops; its weight is tallied as remaining
-        stop = still & (p["ev"] >= st.max_events)
-        ledger = ledger.at[LEDGER.index("remaining")].add(jnp.sum(jnp.where(stop, wn, 0.0)))
+        # (tallied above: its weight as remaining; the second moments of packets that ended)
         still = still & ~stop
-        # packets that ended: their second moments (standard errors), then the lane is free
-        ended = alive & ~still
-        ledger = ledger.at[len(LEDGER) + 1:].add(jnp.sum(jnp.where(ended[:, None], acc**2, 0.0), axis=0))
-        acc = jnp.where(ended[:, None], 0.0, acc)
+        acc = tuple(jnp.where(ended, 0.0, a) for a in acc)
         events = events + jnp.sum(alive, dtype=jnp.int32)
         p = dict(x=nx_, y=ny_, z=nz_, ux=nux, uy=nuy, uz=nuz2, L=L_new, w=wn, s=p["s"], diffuse=diffuse,
                  key=p["key"], ev=p["ev"] + 1)
         # free lanes take the next packets of the queue
         free = ~still
-        pos = nxt + jnp.cumsum(free) - 1
+        pos = nxt + _cumsum_lanes(free) - 1
         take = free & (pos < n_q)
         pos = jnp.minimum(pos, n_q - 1)
-        # (emission only in steps where a lane is refilled: most steps of a long walk have none)
-        def refill(p):
-            fresh = emit(idx[pos])
-            return {k: jnp.where(take if v.ndim == 1 else take[:, None], fresh[k], v) for k, v in p.items()}
-
-        p = jax.lax.cond(jnp.any(take), refill, lambda p: p, p)
+        p = {k: jnp.where(take if v.ndim == 1 else take[:, None], queue[k][pos], v) for k, v in p.items()}
         alive = jnp.where(take, valid[pos], still)
         nxt = jnp.minimum(nxt + jnp.sum(free, dtype=jnp.int32), n_q)
         return nxt, p, alive, tally, ledger, events, acc
@@ -936,14 +951,14 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
     nxt, p, alive, tally, ledger, events, acc = jax.lax.while_loop(
         cond, body, (jnp.int32(lanes), p, alive, tally0, ledger0, jnp.zeros((), jnp.int32), acc0)
     )
-    return tally.reshape(-1, st.K + 2 * _PAD)[:, _PAD:_PAD + st.K].reshape(-1), ledger, events
+    return tally.reshape(-1, st.K + 2 * _PAD)[:, _PAD:_PAD + st.K].reshape(-1), jnp.stack([jnp.sum(v) for v in ledger]), events
 
 
 _COMPILED: dict = {}
 
 #: lanes per queue: (divisor, floor) -> max(queue // divisor, min(queue, floor)); (8, 512) was 1.25x faster
 #: than (4, 2048) at 2000 photons per sensor of optoskin (fewer idle lanes in the tail of the walk)
-_LANES = (8, 512)
+_LANES = (32, 256)
 
 
 def _lanes(q: int) -> int:
