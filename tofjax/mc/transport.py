@@ -423,7 +423,7 @@ def _deposit_rows(tally, st, row, tau, w):
     and ``w`` have one shape; no concatenation (it would stop XLA vectorising the fused producer)."""
     row, tau = (jnp.broadcast_to(v, w.shape) for v in (row, tau))
     r = w.ndim  # deposits keep their shape (flattening them costs XLA index arithmetic per element)
-    uu = tau / st.h - 0.5
+    uu = tau * (1.0 / st.h) - 0.5  # (a reciprocal once, not a division per element)
     uu = jnp.where((w != 0) & jnp.isfinite(uu), jnp.clip(uu, -10.0, st.K + 10.0), -10.0)
     centre = jnp.round(uu)
     dd = uu - centre
@@ -604,7 +604,7 @@ def _nee_scores(st, q, x, y, z, sensor, ux, uy, uz, wnx, wny, w_sc, w_edge, w_c,
     col = lambda v: v[None, :, None]  # noqa: E731  per node: (1, M, 1)
     mu, c = col(q["mu"]), col(q["c"])
     path = rho_[:, None, :] * col(q["inv_c"])  # (P, M, n)
-    k = jnp.abs(jnp.floor((z + mu * path) / st.d))
+    k = jnp.abs(jnp.floor((z + mu * path) * (1.0 / st.d)))
     expo = k * col(q["logR"]) - (st.mu_s + st.mu_a) * path
     if st.n_contacts:
         cxy, crad = st.contacts[:, :2], st.contacts[:, 2]
@@ -883,7 +883,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             w_c = jnp.where(cn, w_new * (1.0 - Rc) * alb, 0.0) if has_contacts else None
             row, npath, score_n = _nee_scores(st, nee_q, nx_, ny_, nz_, p["s"], ux, uy, nuz, wnx, wny, w_sc, w_edge, w_c, nxt >= 0)
             L_m = _materialise(nxt >= 0, L_new)  # else XLA recomputes the step in every score
-            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_m + npath) / st.c1, score_n))
+            tau_n, score_n = _materialise(nxt >= 0, (st.t_e + (L_m + npath) * (1.0 / st.c1), score_n))
             tally = _deposit_rows(tally, st, row, tau_n, score_n)
         if st.nee:
             diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
