@@ -8,15 +8,20 @@ definition is the same in the old and the new kernel (the same counter), so the 
 
 The machine is shared, so absolute rates move with the load: each case runs the current kernel
 and the old one (``tofjax/mc/transport.py`` and ``slab.py`` of ``--old-commit``, default main at
-71e0f30, before the speed work; read with ``git show`` and imported in this process) alternately,
-``--repeats`` times, and reports medians and the median of the per-repeat ratios. Compilation
-is excluded (``MCResult.seconds``); the first run of each program is discarded.
+1a31083, before the second round of speed work; 71e0f30 is main before any; read with
+``git show`` and imported in this process) alternately, ``--repeats`` times, and reports medians
+and the median of the per-repeat ratios, with the load average before and after. Compilation is
+excluded (``MCResult.seconds``); the first run of each program is discarded.
 
-Also written: how far float32 is from float64 (same seed) against the seed-to-seed noise, and
-whether old and new agree statistically (different random streams: the difference of their
-means against the seed-to-seed spread). All data simulated.
+By default only the headline case (optoskin, next-event estimation, float32: issue 14's target of
+1e6 packet-events/s) and the accuracy check run (about 1-2 minutes); ``--all`` adds float64, the
+analog walk and two slabs. The accuracy check: the detected fractions of old and new with the same
+seed (relative L2; when both use the same random stream it is float rounding) against the
+seed-to-seed spread, and the ledgers; with ``--all`` also float32 against float64. All data
+simulated.
 
-    python experiments/bench_mc.py --out docs/mc-bench.json --overwrite
+    python experiments/bench_mc.py --out docs/mc-bench.json --overwrite          # headline, ~2 min
+    python experiments/bench_mc.py --all --out docs/mc-bench.json --overwrite    # every case
 """
 
 from __future__ import annotations
@@ -33,8 +38,8 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).parents[1]
-#: main before the speed work (issue 14, item 5): the validated kernel at 5.8e4 events/s (NEE)
-OLD_COMMIT = "71e0f30"
+#: main before this round of speed work (issue 14, item 5); "71e0f30" is main before any speed work
+OLD_COMMIT = "1a31083"
 
 
 def _load_old(commit: str):
@@ -64,8 +69,9 @@ def _l2(a, b):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--photons", type=int, default=2_000, help="photons per sensor of the scenes")
-    ap.add_argument("--slab-photons", type=int, default=20_000, help="photons per slab run")
+    ap.add_argument("--photons", type=int, default=10_000, help="photons per sensor of the scenes")
+    ap.add_argument("--slab-photons", type=int, default=50_000, help="photons per slab run")
+    ap.add_argument("--all", action="store_true", help="also float64, the analog walk and two slabs (default: the headline case only)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--old-commit", default=OLD_COMMIT, help="git commit of the old kernel")
     ap.add_argument("--out", default="docs/mc-bench.json")
@@ -87,13 +93,14 @@ def main(argv=None) -> int:
     from tofjax.mc.slab import SlabOptions, run_slab
     from tofjax.scene import load_scene
 
+    load_start = os.getloadavg()
     old, old_slab = _load_old(a.old_commit)
     scene = load_scene("optoskin")
-    cases = {
-        "optoskin, next-event estimation (default), float32": dict(),
-        "optoskin, next-event estimation, float64": dict(dtype="float64"),
-        "optoskin, analog (nee = False), float32": dict(nee=False),
-    }
+    headline = "optoskin, next-event estimation (default), float32"
+    cases = {headline: dict()}
+    if a.all:
+        cases.update({"optoskin, next-event estimation, float64": dict(dtype="float64"),
+                      "optoskin, analog (nee = False), float32": dict(nee=False)})
     rows = []
     for name, kw in cases.items():
         run_mc(scene, MCOptions(photons=a.photons, **kw))  # compile (and warm) both
@@ -106,7 +113,7 @@ def main(argv=None) -> int:
         print(rows[-1], flush=True)
     slabs = {"slab, van de Hulst (3.7 events per photon)": dict(n=1.0, thickness_m=2e-4, mu_s_per_m=9000, mu_a_per_m=1000, g=0.75),
              "slab, n=1.4 g=0.9 albedo 0.99 tau=10": dict(n=1.4, thickness_m=1e-3, mu_s_per_m=9900, mu_a_per_m=100, g=0.9)}
-    for name, kw in slabs.items():
+    for name, kw in (slabs.items() if a.all else ()):
         run_slab(SlabOptions(photons=a.slab_photons, **kw))
         old_slab.run_slab(old_slab.SlabOptions(photons=a.slab_photons, **kw))
         new_r, old_r = [], []
@@ -116,22 +123,27 @@ def main(argv=None) -> int:
         rows.append(_row(name + ", float32", new_r, old_r, photons=a.slab_photons))
         print(rows[-1], flush=True)
 
-    # accuracy: float32 against float64 (same seed, same random numbers) and old against new
+    # accuracy: old against new with the same seed, against the seed-to-seed spread (and with --all,
+    # float32 against float64: same seed, same random numbers)
+    dts = ("float32", "float64") if a.all else ("float32",)
     f = {(impl, dt, seed): m.run_mc(scene, m.MCOptions(photons=a.photons, seed=seed, dtype=dt))
          for impl, m in (("new", sys.modules["tofjax.mc.transport"]), ("old", old))
-         for dt in ("float32", "float64") for seed in (0, 1) if not (impl == "old" and dt == "float32")}
+         for dt in dts for seed in (0, 1)}
+    dt = dts[-1]
     accuracy = {
         "note": "relative L2 over all (sensor, zone, bin) of the detected fraction, optoskin, "
-                f"{a.photons} photons per sensor, next-event estimation",
-        "new_float32_vs_float64_same_seed": _l2(f["new", "float32", 0].fraction, f["new", "float64", 0].fraction),
-        "new_seed0_vs_seed1_float64": _l2(f["new", "float64", 1].fraction, f["new", "float64", 0].fraction),
-        "old_seed0_vs_seed1_float64": _l2(f["old", "float64", 1].fraction, f["old", "float64", 0].fraction),
-        "old_vs_new_mean_of_two_seeds_float64": _l2(
-            (f["new", "float64", 0].fraction + f["new", "float64", 1].fraction) / 2,
-            (f["old", "float64", 0].fraction + f["old", "float64", 1].fraction) / 2),
-        "ledger_new_float64_seed0": f["new", "float64", 0].ledger,
-        "ledger_old_float64_seed0": f["old", "float64", 0].ledger,
+                f"{a.photons} photons per sensor, next-event estimation, {dt}",
+        "old_vs_new_same_seed": _l2(f["new", dt, 0].fraction, f["old", dt, 0].fraction),
+        "new_seed0_vs_seed1": _l2(f["new", dt, 1].fraction, f["new", dt, 0].fraction),
+        "old_seed0_vs_seed1": _l2(f["old", dt, 1].fraction, f["old", dt, 0].fraction),
+        "old_vs_new_mean_of_two_seeds": _l2(
+            (f["new", dt, 0].fraction + f["new", dt, 1].fraction) / 2,
+            (f["old", dt, 0].fraction + f["old", dt, 1].fraction) / 2),
+        "ledger_new_seed0": f["new", dt, 0].ledger,
+        "ledger_old_seed0": f["old", dt, 0].ledger,
     }
+    if a.all:
+        accuracy["new_float32_vs_float64_same_seed"] = _l2(f["new", "float32", 0].fraction, f["new", "float64", 0].fraction)
     print(accuracy, flush=True)
     out = {
         "benchmark": "monte carlo packet-events per second, current kernel and the old one side by side",
@@ -142,14 +154,24 @@ def main(argv=None) -> int:
                                    "are measured side by side in one process)",
                     "platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                     "cpu_count": os.cpu_count(), "jax": jax.__version__, "backend": jax.default_backend(),
-                    "devices": jax.device_count(), "load_average_at_end": os.getloadavg()},
-        "old": f"tofjax/mc/transport.py and slab.py at {a.old_commit} (main before the speed work), "
+                    "devices": jax.device_count(), "load_average_at_start": load_start,
+                    "load_average_at_end": os.getloadavg()},
+        "old": f"tofjax/mc/transport.py and slab.py at {a.old_commit}, "
                "read with git show and run alternately with the new kernel in this process",
+        "target": "issue 14: >= 1e6 packet-events/s with next-event estimation, float32, on the 2-core CPU",
+        "headline": {"case": headline, "events_per_s": rows[0]["events_per_s"],
+                     "old_events_per_s": rows[0]["old_events_per_s"],
+                     "speedup_median_of_pairs": rows[0]["speedup_median_of_pairs"],
+                     "target_met_here": rows[0]["events_per_s"] >= 1e6},
         "data": "simulated",
         "photons_per_sensor": a.photons, "slab_photons": a.slab_photons, "repeats": a.repeats,
         "rows": rows, "accuracy": accuracy,
     }
     atomic_write_text(out_path, json.dumps(out, indent=1) + "\n", overwrite=a.overwrite)
+    h = out["headline"]
+    print(f"next-event estimation, float32: {h['events_per_s']:.3g} packet-events/s (old {a.old_commit}: "
+          f"{h['old_events_per_s']:.3g}; ratio {h['speedup_median_of_pairs']:.2f}); load average "
+          f"{load_start[0]:.1f} -> {os.getloadavg()[0]:.1f}")
     print(f"wrote {out_path}")
     return 0
 
