@@ -273,10 +273,33 @@ def _hg_cos(g, u):
     return jnp.clip(jnp.where(small, 2.0 * u - 1.0, c), -1.0, 1.0)
 
 
-def _rotate(ux, uy, uz, cos_t, phi):
-    """New direction at polar angle acos(cos_t), azimuth phi about (ux, uy, uz)."""
+#: use the vectorised float32 ``sin``/``cos`` of a turn (:func:`_cos_sin_turn`; False: ``jnp.cos``/``jnp.sin``)
+_FAST_TRIG = True
+
+
+def _cos_sin_turn(u):
+    """``cos(2 pi u), sin(2 pi u)``. In float32 Cephes' ``sinf``/``cosf`` polynomials on
+    ``[-pi/4, pi/4]`` after reduction by quarter turns (exact in ``u``; error ~1e-7, float32
+    rounding), since ``jnp.cos`` is a scalar library call per element on the CPU (~26 ns, ``sin``
+    ~5 ns); float64 keeps ``jnp.cos``/``jnp.sin``."""
+    if u.dtype != jnp.float32 or not _FAST_TRIG:
+        phi = 2.0 * math.pi * u
+        return jnp.cos(phi), jnp.sin(phi)
+    q = jnp.floor(4.0 * u + 0.5)
+    r = (2.0 * math.pi) * (u - 0.25 * q)  # in [-pi/4, pi/4]
+    z = r * r
+    s = ((-1.9515295891e-4 * z + 8.3321608736e-3) * z - 1.6666654611e-1) * z * r + r
+    c = ((2.443315711809948e-5 * z - 1.388731625493765e-3) * z + 4.166664568298827e-2) * z * z - 0.5 * z + 1.0
+    qi = q.astype(jnp.int32) & 3  # quarter turns mod 4 (also for negative q)
+    cos = jnp.where(qi == 0, c, jnp.where(qi == 1, -s, jnp.where(qi == 2, -c, s)))
+    sin = jnp.where(qi == 0, s, jnp.where(qi == 1, c, jnp.where(qi == 2, -s, -c)))
+    return cos, sin
+
+
+def _rotate(ux, uy, uz, cos_t, u_phi):
+    """New direction at polar angle acos(cos_t), azimuth ``2 pi u_phi`` about (ux, uy, uz)."""
     sin_t = jnp.sqrt(jnp.clip(1.0 - cos_t**2, 0.0, 1.0))
-    cp, sp = jnp.cos(phi), jnp.sin(phi)
+    cp, sp = _cos_sin_turn(u_phi)
     near_pole = jnp.abs(uz) > 0.99999
     den = jnp.sqrt(jnp.clip(1.0 - uz**2, 1e-20, None))
     nx = sin_t * (ux * uz * cp - uy * sp) / den + ux * cos_t
@@ -293,9 +316,9 @@ def _lambertian(nx, ny, nz, tx, ty, tz, u1, u2):
     """Cosine-weighted direction about the unit normal n (t a unit tangent, n x t the other)."""
     cos_t = jnp.sqrt(u1)
     sin_t = jnp.sqrt(1.0 - u1)
-    phi = 2.0 * math.pi * u2
+    cp, sp = _cos_sin_turn(u2)
     bx, by, bz = ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx
-    c, s = sin_t * jnp.cos(phi), sin_t * jnp.sin(phi)
+    c, s = sin_t * cp, sin_t * sp
     return cos_t * nx + c * tx + s * bx, cos_t * ny + c * ty + s * by, cos_t * nz + c * tz + s * bz
 
 
@@ -747,7 +770,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         az_ = jnp.maximum(jnp.abs(uz), f(1e-12))
         # --- candidate distances ---
         scatters = st.mu_s > 0
-        s_scat = jnp.where(scatters, -jnp.log1p(-u[:, 0]) / jnp.where(scatters, st.mu_s, 1.0), inf)
+        s_scat = jnp.where(scatters, -jnp.log(1.0 - u[:, 0]) / jnp.where(scatters, st.mu_s, 1.0), inf)
         tx = jnp.where(ux > 1e-12, (st.lx - x) / jnp.where(ux > 1e-12, ux, 1.0),
                        jnp.where(ux < -1e-12, -x / jnp.where(ux < -1e-12, ux, 1.0), inf))
         ty = jnp.where(uy > 1e-12, (st.ly - y) / jnp.where(uy > 1e-12, uy, 1.0),
@@ -823,7 +846,7 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         # scatter
         sc = alive & (kind == 1)
         ct = _hg_cos(st.g, u[:, 1])
-        sx, sy, sz = _rotate(ux, uy, nuz, ct, 2.0 * math.pi * u[:, 2])
+        sx, sy, sz = _rotate(ux, uy, nuz, ct, u[:, 2])
         # edge: detection at the own sensor or reflection
         eg = alive & (kind == 2)
         sp = sxy[p["s"]]
@@ -972,7 +995,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
 
     Cached by the program's shapes, so runs that differ only in physics reuse it.
     Returns (executable, compile seconds: 0 when cached)."""
-    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES, _FAST_ATAN2)
+    cache_key = (st.key, mesh, n_batch, per_call, jnp.dtype(dtype).name, _LANES, _FAST_ATAN2, _FAST_TRIG)
     if cache_key in _COMPILED:
         return _COMPILED[cache_key], 0.0
 
