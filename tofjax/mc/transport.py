@@ -689,11 +689,23 @@ def _uniforms(k0, k1, counter, n_words: int, dtype):
 _EMIT_COUNTER = 0xFFFFFFFF
 
 
+def _expm1(x):
+    """``exp(x) - 1`` accurate near 0. In float32 a degree-8 Taylor polynomial for ``|x| < 0.5``
+    (truncation < 1e-8 relative) and ``exp(x) - 1`` beyond (relative error < 3e-7 there), since
+    ``jnp.expm1`` is ~5x slower than ``jnp.exp`` on the CPU; float64 keeps ``jnp.expm1``."""
+    if x.dtype != jnp.float32 or not _FAST_TRIG:
+        return jnp.expm1(x)
+    p = x * (1.0 / 40320.0) + 1.0 / 5040.0
+    for c in (1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0):
+        p = p * x + c
+    return jnp.where(jnp.abs(x) < 0.5, p * x, jnp.exp(x) - 1.0)
+
+
 def _geometric(n, log_r):
     """``sum_{j<n} r^j`` from ``log r <= 0`` (``n`` terms, 0 for ``n = 0``), stable as ``r -> 1``."""
     near_one = log_r > -1e-6
     lr = jnp.where(near_one, -1.0, log_r)
-    ratio = jnp.expm1(n * lr) / jnp.expm1(lr)
+    ratio = _expm1(n * lr) / _expm1(lr)
     return jnp.where(n > 0, jnp.where(near_one, n, ratio), 0.0)
 
 
