@@ -834,7 +834,8 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
             nz_ = jnp.where(is_cont, d, nz_)
             nuz = jnp.where(is_cont, az_, nuz)
         R_air = R_air_of(uz)
-        keep = jnp.where(R_air >= 1.0, 1.0, R_air**k_faces)
+        # R^k as exp(k log R): a float power is a scalar library call per element on the CPU
+        keep = jnp.where((R_air >= 1.0) | (k_faces == 0), 1.0, jnp.exp(k_faces * jnp.log(R_air)))  # R = 0: log -inf, exp 0
         att = jnp.exp(-st.mu_a * s)
         w_new = w * att * keep
         # what escapes at the i-th face hit is attenuated up to that face, not over the whole step:
