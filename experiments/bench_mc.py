@@ -14,7 +14,8 @@ and the median of the per-repeat ratios, with the load average before and after.
 excluded (``MCResult.seconds``); the first run of each program is discarded.
 
 By default only the headline case (optoskin, next-event estimation, float32: issue 14's target of
-1e6 packet-events/s) and the accuracy check run (about 1-2 minutes); ``--all`` adds float64, the
+1e6 packet-events/s), the same with six contacts (touch-six) and the accuracy check run (about 2
+minutes on the loaded VM); ``--all`` adds float64, the
 analog walk and two slabs. The accuracy check: the detected fractions of old and new with the same
 seed (relative L2; when both use the same random stream it is float rounding) against the
 seed-to-seed spread, and the ledgers; with ``--all`` also float32 against float64. All data
@@ -95,14 +96,16 @@ def main(argv=None) -> int:
 
     load_start = os.getloadavg()
     old, old_slab = _load_old(a.old_commit)
-    scene = load_scene("optoskin")
+    scenes = {"optoskin": load_scene("optoskin"), "touch-six": load_scene("touch-six")}
     headline = "optoskin, next-event estimation (default), float32"
-    cases = {headline: dict()}
+    cases = {headline: ("optoskin", dict()),
+             "touch-six (six contacts), next-event estimation, float32": ("touch-six", dict())}
     if a.all:
-        cases.update({"optoskin, next-event estimation, float64": dict(dtype="float64"),
-                      "optoskin, analog (nee = False), float32": dict(nee=False)})
+        cases.update({"optoskin, next-event estimation, float64": ("optoskin", dict(dtype="float64")),
+                      "optoskin, analog (nee = False), float32": ("optoskin", dict(nee=False))})
     rows = []
-    for name, kw in cases.items():
+    for name, (scene_name, kw) in cases.items():
+        scene = scenes[scene_name]
         run_mc(scene, MCOptions(photons=a.photons, **kw))  # compile (and warm) both
         old.run_mc(scene, old.MCOptions(photons=a.photons, **kw))
         new_r, old_r = [], []
@@ -125,25 +128,29 @@ def main(argv=None) -> int:
 
     # accuracy: old against new with the same seed, against the seed-to-seed spread (and with --all,
     # float32 against float64: same seed, same random numbers)
-    dts = ("float32", "float64") if a.all else ("float32",)
-    f = {(impl, dt, seed): m.run_mc(scene, m.MCOptions(photons=a.photons, seed=seed, dtype=dt))
-         for impl, m in (("new", sys.modules["tofjax.mc.transport"]), ("old", old))
-         for dt in dts for seed in (0, 1)}
-    dt = dts[-1]
-    accuracy = {
-        "note": "relative L2 over all (sensor, zone, bin) of the detected fraction, optoskin, "
-                f"{a.photons} photons per sensor, next-event estimation, {dt}",
-        "old_vs_new_same_seed": _l2(f["new", dt, 0].fraction, f["old", dt, 0].fraction),
-        "new_seed0_vs_seed1": _l2(f["new", dt, 1].fraction, f["new", dt, 0].fraction),
-        "old_seed0_vs_seed1": _l2(f["old", dt, 1].fraction, f["old", dt, 0].fraction),
-        "old_vs_new_mean_of_two_seeds": _l2(
-            (f["new", dt, 0].fraction + f["new", dt, 1].fraction) / 2,
-            (f["old", dt, 0].fraction + f["old", dt, 1].fraction) / 2),
-        "ledger_new_seed0": f["new", dt, 0].ledger,
-        "ledger_old_seed0": f["old", dt, 0].ledger,
-    }
-    if a.all:
-        accuracy["new_float32_vs_float64_same_seed"] = _l2(f["new", "float32", 0].fraction, f["new", "float64", 0].fraction)
+    accuracy = {"note": "relative L2 over all (sensor, zone, bin) of the detected fraction, "
+                        f"{a.photons} photons per sensor, next-event estimation: old and new with the same seed "
+                        "(the same random stream: float rounding) against the seed-to-seed spread"}
+    for scene_name, scene in scenes.items():
+        dts = ("float32", "float64") if a.all and scene_name == "optoskin" else ("float32",)
+        f = {(impl, dt, seed): m.run_mc(scene, m.MCOptions(photons=a.photons, seed=seed, dtype=dt))
+             for impl, m in (("new", sys.modules["tofjax.mc.transport"]), ("old", old))
+             for dt in dts for seed in (0, 1)}
+        dt = "float32"
+        acc = {
+            "dtype": dt,
+            "old_vs_new_same_seed": _l2(f["new", dt, 0].fraction, f["old", dt, 0].fraction),
+            "new_seed0_vs_seed1": _l2(f["new", dt, 1].fraction, f["new", dt, 0].fraction),
+            "old_seed0_vs_seed1": _l2(f["old", dt, 1].fraction, f["old", dt, 0].fraction),
+            "old_vs_new_mean_of_two_seeds": _l2(
+                (f["new", dt, 0].fraction + f["new", dt, 1].fraction) / 2,
+                (f["old", dt, 0].fraction + f["old", dt, 1].fraction) / 2),
+            "ledger_new_seed0": f["new", dt, 0].ledger,
+            "ledger_old_seed0": f["old", dt, 0].ledger,
+        }
+        if "float64" in dts:
+            acc["new_float32_vs_float64_same_seed"] = _l2(f["new", "float32", 0].fraction, f["new", "float64", 0].fraction)
+        accuracy[scene_name] = acc
     print(accuracy, flush=True)
     out = {
         "benchmark": "monte carlo packet-events per second, current kernel and the old one side by side",

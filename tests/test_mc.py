@@ -335,3 +335,27 @@ def test_vectorised_atan2_is_float32_accurate():
     got = np.asarray(jax.jit(_atan2)(jnp.asarray(y), jnp.asarray(x)))  # one compiled call, not 15 eager ones
     assert got.dtype == np.float32
     assert np.abs(got - exact).max() < 4e-7
+
+
+def test_vectorised_float32_cos_sin_expm1_and_lane_cumsum():
+    """The kernel's float32 cos/sin of a turn and expm1 (polynomials XLA vectorises; jnp.cos and
+    jnp.expm1 are scalar calls or slow on the CPU) are at least as accurate as jnp's in float32, and
+    the lane cumsum (two float32 matrix products) equals jnp.cumsum."""
+    import jax
+    import jax.numpy as jnp
+
+    from tofjax.mc.transport import _cos_sin_turn, _cumsum_lanes, _expm1
+
+    r = np.random.default_rng(0)
+    u = np.concatenate([r.random(100_000), r.uniform(-3, 3, 10_000), [0.0, 0.125, 0.25, 0.5, 0.75, 1 - 2**-24]]).astype(np.float32)
+    c, s = jax.jit(_cos_sin_turn)(jnp.asarray(u))
+    assert c.dtype == jnp.float32
+    phi = 2 * np.pi * u.astype(np.float64)
+    assert np.abs(np.asarray(c, np.float64) - np.cos(phi)).max() < 2e-7
+    assert np.abs(np.asarray(s, np.float64) - np.sin(phi)).max() < 2e-7
+    x = -np.concatenate([np.logspace(-9, 2, 50_000), np.linspace(0.0, 1.0, 5_001)]).astype(np.float32)
+    got = np.asarray(jax.jit(_expm1)(jnp.asarray(x)), np.float64)
+    exact = np.expm1(x.astype(np.float64))
+    assert np.max(np.abs(got - exact) / np.maximum(np.abs(exact), 1e-300)) < 3e-7
+    flags = jnp.asarray(r.random(1024) < 0.3)
+    assert np.array_equal(np.asarray(jax.jit(_cumsum_lanes)(flags)), np.cumsum(np.asarray(flags)))
