@@ -72,6 +72,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--photons", type=int, default=10_000, help="photons per sensor of the scenes")
     ap.add_argument("--slab-photons", type=int, default=50_000, help="photons per slab run")
+    ap.add_argument("--ops", action="store_true", help="only time single float32 operations on this CPU (ns per element) and write those")
     ap.add_argument("--all", action="store_true", help="also float64, the analog walk and two slabs (default: the headline case only)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--old-commit", default=OLD_COMMIT, help="git commit of the old kernel")
@@ -89,6 +90,16 @@ def main(argv=None) -> int:
     from tofjax.outputs import atomic_write_text, check_output
 
     out_path = check_output(a.out, overwrite=a.overwrite)
+    if a.ops:
+        out = {"benchmark": "float32 elementwise operations on the CPU backend, ns per element (one device, 2**16 "
+                            "elements in [0, 1) (cos and sin of 6.28 times that), 200 loop iterations, medians of 5 interleaved rounds, "
+                            "wall time; the kernel's reason to avoid the slow ones)",
+               "machine": {"description": "the project's 2-core shared x86-64 VM, loaded by other sessions' jobs",
+                           "load_average": os.getloadavg(), "jax": jax.__version__},
+               "data": "simulated (random inputs)", "ns_per_element": _time_ops()}
+        atomic_write_text(out_path, json.dumps(out, indent=1) + "\n", overwrite=a.overwrite)
+        print(out["ns_per_element"], f"wrote {out_path}")
+        return 0
     enable_x64()  # for the float64 cases (every case names its dtype)
     from tofjax.mc import MCOptions, run_mc
     from tofjax.mc.slab import SlabOptions, run_slab
@@ -181,6 +192,33 @@ def main(argv=None) -> int:
           f"{load_start[0]:.1f} -> {os.getloadavg()[0]:.1f}")
     print(f"wrote {out_path}")
     return 0
+
+
+def _time_ops() -> dict:
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.mc.transport import _cos_sin_turn, _expm1
+
+    x = jnp.asarray(np.random.default_rng(0).random(1 << 16), jnp.float32)
+    ops = {"cos": lambda v: jnp.cos(6.28 * v), "sin": lambda v: jnp.sin(6.28 * v), "exp": jnp.exp, "log": jnp.log,
+           "log1p": jnp.log1p, "expm1": jnp.expm1, "sqrt": jnp.sqrt, "multiply": lambda v: v * 1.5,
+           "power (float exponent)": lambda v: v ** (3.0 * v), "exp(k log R)": lambda v: jnp.exp(3.0 * v * jnp.log(v)),
+           "kernel _cos_sin_turn (cos + sin)": lambda v: sum(_cos_sin_turn(v)), "kernel _expm1": lambda v: _expm1(-v)}
+    fns = {name: jax.jit(lambda v, op=op: jax.lax.fori_loop(
+        0, 200, lambda i, acc: acc + op(v + i.astype(jnp.float32) * 1e-6), jnp.zeros(v.shape, jnp.float32)))
+        for name, op in ops.items()}
+    times = {name: [] for name in ops}
+    for rnd in range(6):  # interleaved rounds, the first discarded (compilation); medians
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn(x).block_until_ready()
+            if rnd:
+                times[name].append((time.perf_counter() - t0) / 200 / x.size * 1e9)
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def _row(name, new_rates, old_rates, **extra):
