@@ -23,6 +23,7 @@ simulated.
 
     python experiments/bench_mc.py --out docs/mc-bench.json --overwrite          # headline, ~2 min
     python experiments/bench_mc.py --all --out docs/mc-bench.json --overwrite    # every case
+    python experiments/bench_mc.py --ops --cpu-devices 1 --out docs/results/mc-ops.json --overwrite  # single operations
 """
 
 from __future__ import annotations

@@ -722,7 +722,7 @@ def _hg_pdf(g, cos_t):
 
 def _cumsum_lanes(flags):
     """Inclusive cumulative sum (int32) of a boolean lane mask, as two small float32 matrix products
-    (exact: counts < 2**24): ``jnp.cumsum`` is a reduce-window on the CPU, ~50 ns per lane."""
+    (exact: counts < 2**24): ``jnp.cumsum`` is a reduce-window on the CPU (4% of a step in XLA's trace)."""
     n = flags.shape[0]
     b = 64
     if n % b or n < 2 * b:
