@@ -189,7 +189,8 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     truth = np.repeat(contacts, frames_per_config, axis=0)
     border = np.concatenate([eval_touch._edge_distance(scene, c[:, :2]) < cfg.border_m for c in truth])
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
-           "calibration_forced": forced, "optics": optical.optics, "methods": {}}
+           "calibration_forced": forced, "optics": optical.optics, "methods": {},
+           "information_limit": information_limit(scene, optical, base.mean(), contacts)}
     for m in ("full", "model"):
         t = time.perf_counter()
         inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
@@ -200,10 +201,29 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
         score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
         score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
         score["seconds"] = time.perf_counter() - t
+        if inv.reconstructor is not None:
+            score["contact_response"] = inv.reconstructor.response
         out["methods"][m] = score
         if progress:
             print(f"  {m}: P {score['precision']:.3f} R {score['recall']:.3f} err {score['mean_error_cm']:.2f} cm", flush=True)
     return out
+
+
+def information_limit(scene, optical, baseline: np.ndarray, contacts: np.ndarray) -> dict:
+    """The most any detector can get from one frame, by the calibrated model's own account: each true
+    contact's matched-filter signal-to-noise ratio at its known position and strength,
+    ``sqrt(sum_bins r^2 / sigma^2)`` with ``r`` the model's signed response of that contact alone (added and
+    removed light) and ``sigma^2`` the frame's Poisson variance (the baseline). A contact below ~5 cannot be
+    found at a low false-alarm rate when its position is unknown, whatever the detector."""
+    from tofjax.invert.reconstruct import response_matrix
+
+    c = np.asarray(contacts).reshape(-1, 3)
+    R = response_matrix(scene, optical, c[:, :2], 0.006, signed=True) * c[:, 2, None, None, None]
+    snr = np.sqrt(np.sum(R**2 / np.maximum(baseline, 1.0)[None], axis=(1, 2, 3)))
+    return {"what": "matched-filter SNR of each contact alone in one frame (known position; calibrated model's "
+                    "signed response, Poisson noise of the baseline)",
+            "snr_quantiles_10_25_50_75_90": np.quantile(snr, [0.1, 0.25, 0.5, 0.75, 0.9]).tolist(),
+            "share_above_4": float(np.mean(snr > 4)), "share_above_5": float(np.mean(snr > 5))}
 
 
 def first_order_touch(photons: int = 10_000, distances=(0.05, 0.2)) -> dict:
