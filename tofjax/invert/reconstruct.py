@@ -148,7 +148,8 @@ def response_matrix(
     if shadow and signed:
         raise ValueError("response_matrix: shadow and signed are exclusive")
     base = scene.without_touches()
-    proto = base.replace(touches=(Touch((0.15, 0.15), radius_m, 1.0),))
+    lx, ly = scene.waveguide.size_m
+    proto = base.replace(touches=(Touch((0.5 * lx, 0.5 * ly), radius_m, 1.0),))  # inside any guide
     guided = optical.optics == "guided"
     if guided:
         # the calibration's optics: guided light, and contacts from the skin model (the shadow then
@@ -272,15 +273,20 @@ class Reconstructor:
         strength (the matched filter's noise, in strength units), nine added in quadrature
         for the 3 x 3 sums. Cells left out (near the edge) get +inf (never detected)."""
         var = np.full(self.grid.ny * self.grid.nx, np.inf)
-        var[self.cells] = 1.0 / np.maximum(self._g_diag[: self.n_cells], 1e-30)
+        g = self._g_diag[: self.n_cells]
+        # a cell no sensor sees (no response: a million times weaker than the best seen) is never
+        # detected: infinite noise, kept out of the sums
+        var[self.cells] = np.where(g > 1e-12 * max(float(g.max()), 1e-300), 1.0 / np.maximum(g, 1e-300), np.inf)
         var = var.reshape(self.grid.ny, self.grid.nx)
         if self.options.sum_cells:
             from scipy import ndimage
 
             finite = np.isfinite(var)
             v = np.where(finite, var, 0.0)
-            var = np.where(finite, 9.0 * ndimage.uniform_filter(v, size=3, mode="constant"), np.inf)
-        return np.sqrt(var)
+            # a direct 3 x 3 sum (uniform_filter's running sums cancel catastrophically across the
+            # orders of magnitude between well-seen and barely-seen cells)
+            var = np.where(finite, ndimage.correlate(v, np.ones((3, 3)), mode="constant"), np.inf)
+        return np.sqrt(np.maximum(var, 0.0))
 
 
 def build_reconstructor(
