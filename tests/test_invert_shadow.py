@@ -137,3 +137,16 @@ def test_added_response_misses_the_shadow(small):
 def test_response_option_checked():
     with pytest.raises(ConfigError, match="response"):
         ReconstructOptions(response="both")
+
+
+def test_cli_contact_response_checked(tmp_path, capsys):
+    from tofjax.cli import main
+
+    # option errors come before any reading: the captures need not exist
+    args = ["detect", str(tmp_path / "t.h5"), "--baseline", str(tmp_path / "b.h5"), "--json", str(tmp_path / "o.json")]
+    rc = main([*args, "--method", "full", "--contact-response", "signed"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "--contact-response applies to --method model only" in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(SystemExit) as e:
+        main([*args, "--method", "model", "--contact-response", "both"])
+    assert e.value.code != 0 and "invalid choice" in capsys.readouterr().err
