@@ -20,7 +20,11 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    baseline by what the contacts do, not by independent Monte Carlo noise of the whole histogram),
    ``frames_per_config`` photon-noise frames each; inverted with the calibrated optics by the
    ``full`` (back-projection) and ``model`` methods; scored as experiments/eval_touch.py scores
-   (2 cm match radius).
+   (2 cm match radius). The model method's contact response follows from the calibration: with the
+   guided optics it is the skin contact's signed response (added and removed light,
+   ``ReconstructOptions.response`` "auto"). ``information_limit``: how much evidence of each contact
+   one frame holds (matched-filter SNR at the known position, by the guided model; and the whole
+   frame's change), the ceiling of any single-frame detector.
 
 4. The touch relative L2 of the guided optics against the Monte Carlo on those scenes, split into the
    reference's noise and the model's error (noise removed in quadrature; extrapolated from two photon
