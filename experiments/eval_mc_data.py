@@ -24,7 +24,8 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    guided optics it is the skin contact's signed response (added and removed light,
    ``ReconstructOptions.response`` "auto"). ``information_limit``: how much evidence of each contact
    one frame holds (matched-filter SNR at the known position, by the guided model; and the whole
-   frame's change), the ceiling of any single-frame detector.
+   frame's change), the ceiling of any single-frame detector. Each method also processes 20 no-touch
+   frames (``false_per_no_touch_frame``).
 
 4. The touch relative L2 of the guided optics against the Monte Carlo on those scenes, split into the
    reference's noise and the model's error (noise removed in quadrature; extrapolated from two photon
@@ -175,7 +176,8 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
-                  cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool) -> dict:
+                  cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
+                  no_touch_frames: int = 20) -> dict:
     """Six-contact detection with the calibrated optics, full and model methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
@@ -201,6 +203,9 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
                              baseline_frames=base.histograms)
         res = inv.process(H)
         score, found = eval_touch._score(res.detections, truth, cfg.match_radius_m)
+        quiet = inv.process(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms)
+        score["no_touch_frames"] = no_touch_frames
+        score["false_per_no_touch_frame"] = float(np.mean([len(d.touches) for d in quiet.detections]))
         found = np.concatenate(found)
         score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
         score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
