@@ -29,8 +29,11 @@ EDGE_BIN, BINS = 30, 48
 def _small_scene():
     sc = load_scene("optoskin").without_touches()
     wg = dataclasses.replace(sc.waveguide, size_m=(0.15, 0.15))
-    sensors = (SensorPlacement((0.0, 0.0), 45.0, name="A"), SensorPlacement((0.15, 0.0), 135.0, name="B"),
-               SensorPlacement((0.0, 0.15), 315.0, name="C"))
+    sensors = (
+        SensorPlacement((0.0, 0.0), 45.0, name="A"),
+        SensorPlacement((0.15, 0.0), 135.0, name="B"),
+        SensorPlacement((0.0, 0.15), 315.0, name="C"),
+    )
     return sc.replace(waveguide=wg, sensors=sensors, sensor=dataclasses.replace(sc.sensor, n_bins=BINS))
 
 
@@ -85,8 +88,9 @@ def test_fast_shadow_only_contact_found_no_false_detection(stand_in):
     assert np.isfinite(inv.noise).any() and not np.isnan(inv.noise).any()
     # the default optics keep the old column (a contact's added light): this contact adds none
     plain = dataclasses.replace(optical, optics="default")
-    assert _inverter(sc, base, plain, "auto").reconstructor.response == "added"
-    assert not _inverter(sc, base, plain, "auto").process(frames[:1]).detections[0].touches
+    old = _inverter(sc, base, plain, "auto")
+    assert old.reconstructor.response == "added"
+    assert not old.process(frames[:1]).detections[0].touches
 
 
 @pytest.fixture(scope="module")
@@ -130,8 +134,9 @@ def test_added_response_misses_the_shadow(small):
     sc, base, touch, optical = small
     # The old column (added light only) sees nothing of a contact that only shadows.
     res = _inverter(sc, base, optical, "added").process(touch[None])
-    assert not any(abs(t["x_m"] - CONTACT[0]) < 0.02 and abs(t["y_m"] - CONTACT[1]) < 0.02
-                   for t in res.detections[0].touches)
+    assert not any(
+        abs(t["x_m"] - CONTACT[0]) < 0.02 and abs(t["y_m"] - CONTACT[1]) < 0.02 for t in res.detections[0].touches
+    )
 
 
 def test_response_option_checked():
