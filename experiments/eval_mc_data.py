@@ -20,7 +20,12 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    baseline by what the contacts do, not by independent Monte Carlo noise of the whole histogram),
    ``frames_per_config`` photon-noise frames each; inverted with the calibrated optics by the
    ``full`` (back-projection) and ``model`` methods; scored as experiments/eval_touch.py scores
-   (2 cm match radius).
+   (2 cm match radius). The model method's contact response follows from the calibration: with the
+   guided optics it is the skin contact's signed response (added and removed light,
+   ``ReconstructOptions.response`` "auto"). ``information_limit``: how much evidence of each contact
+   one frame holds (matched-filter SNR at the known position, by the guided model; and the whole
+   frame's change), the ceiling of any single-frame detector. Each method also processes 20 no-touch
+   frames (``false_per_no_touch_frame``).
 
 4. The touch relative L2 of the guided optics against the Monte Carlo on those scenes, split into the
    reference's noise and the model's error (noise removed in quadrature; extrapolated from two photon
@@ -171,7 +176,8 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
-                  cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool) -> dict:
+                  cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
+                  no_touch_frames: int = 20) -> dict:
     """Six-contact detection with the calibrated optics, full and model methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
@@ -189,21 +195,58 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     truth = np.repeat(contacts, frames_per_config, axis=0)
     border = np.concatenate([eval_touch._edge_distance(scene, c[:, :2]) < cfg.border_m for c in truth])
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
-           "calibration_forced": forced, "optics": optical.optics, "methods": {}}
+           "calibration_forced": forced, "optics": optical.optics, "methods": {},
+           "information_limit": information_limit(scene, base_expected, contacts, touch_expected)}
     for m in ("full", "model"):
         t = time.perf_counter()
         inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
                              baseline_frames=base.histograms)
         res = inv.process(H)
         score, found = eval_touch._score(res.detections, truth, cfg.match_radius_m)
+        quiet = inv.process(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms)
+        score["no_touch_frames"] = no_touch_frames
+        score["false_per_no_touch_frame"] = float(np.mean([len(d.touches) for d in quiet.detections]))
         found = np.concatenate(found)
         score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
         score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
         score["seconds"] = time.perf_counter() - t
+        if inv.reconstructor is not None:
+            score["contact_response"] = inv.reconstructor.response
         out["methods"][m] = score
         if progress:
             print(f"  {m}: P {score['precision']:.3f} R {score['recall']:.3f} err {score['mean_error_cm']:.2f} cm", flush=True)
     return out
+
+
+def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_expected: list[np.ndarray]) -> dict:
+    """The most any detector can get from one frame.
+
+    - ``per_contact_snr_guided_model``: each true contact's matched-filter signal-to-noise ratio at its
+      known position and strength, ``sqrt(sum_bins r^2 / sigma^2)``, with ``r`` the guided model's signed
+      response (skin contact, the scene's true optics) of that contact alone, added and removed light, and
+      ``sigma^2`` the frame's Poisson variance (the baseline). A contact below ~5 cannot be found at a low
+      false-alarm rate when its position is unknown, whatever the detector. It is the model's account: on
+      the Monte Carlo column it holds only as far as the model's contact response agrees with the Monte
+      Carlo's (it does not; see ``guided_vs_mc_relative_l2``).
+    - ``frame_change_snr``: the same for the data's own expected change of a frame, all six contacts
+      together (touch minus baseline; for the Monte Carlo, common random numbers, so its own noise is in it)."""
+    from tofjax.invert.correction import OpticalParams
+    from tofjax.invert.reconstruct import response_matrix
+
+    optical = dataclasses.replace(OpticalParams.from_scene(scene), optics="guided")
+    c = np.asarray(contacts).reshape(-1, 3)
+    R = response_matrix(scene, optical, c[:, :2], 0.006, signed=True) * c[:, 2, None, None, None]
+    var = np.maximum(baseline, 1.0)
+    snr = np.sqrt(np.sum(R**2 / var[None], axis=(1, 2, 3)))
+    frame = np.array([np.sqrt(np.sum((t - baseline) ** 2 / var)) for t in touch_expected])
+    return {"per_contact_snr_guided_model": {
+                "what": "matched-filter SNR of each contact alone in one frame (known position and strength; the "
+                        "guided model's signed skin-contact response at the true optics; Poisson noise)",
+                "quantiles_10_25_50_75_90": np.quantile(snr, [0.1, 0.25, 0.5, 0.75, 0.9]).tolist(),
+                "share_above_4": float(np.mean(snr > 4)), "share_above_5": float(np.mean(snr > 5))},
+            "frame_change_snr": {
+                "what": "sqrt(sum (touch - baseline)^2 / baseline) of each configuration's expected frame (six contacts)",
+                "median": float(np.median(frame)), "min": float(frame.min()), "max": float(frame.max())}}
 
 
 def first_order_touch(photons: int = 10_000, distances=(0.05, 0.2)) -> dict:

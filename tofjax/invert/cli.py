@@ -30,9 +30,12 @@ def _options(a):
         raise InversionError("--no-cfar applies to back-projection, not --method model")
     if not model and a.min_strength is not None:
         raise InversionError("--min-strength applies to --method model only")
+    if not model and a.contact_response is not None:
+        raise InversionError("--contact-response applies to --method model only")
     detect, rec = DetectOptions(), ReconstructOptions()
     if model:
-        changes = {"n_sigma": a.n_sigma, "relative": a.relative, "min_strength": a.min_strength}
+        changes = {"n_sigma": a.n_sigma, "relative": a.relative, "min_strength": a.min_strength,
+                   "response": a.contact_response}
         rec = dataclasses.replace(rec, **{k: v for k, v in changes.items() if v is not None})
     else:
         changes = {"n_sigma": a.n_sigma, "relative": a.relative, "cfar": not a.no_cfar}
@@ -157,6 +160,7 @@ def _with_frame_flags(data: dict, touch, res) -> dict:
 
 def _common(s):
     from .pipeline import ALL_METHODS
+    from .reconstruct import RESPONSES
 
     s.add_argument("touch", help="touch capture (.h5)")
     s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
@@ -201,6 +205,14 @@ def _common(s):
         "--min-strength",
         type=float,
         help="--method model: also require this summed strength, in the forward model's units (default: none)",
+    )
+    s.add_argument(
+        "--contact-response",
+        choices=RESPONSES,
+        help="--method model: the contact's response the fit explains frames with: 'added' (the light a contact "
+        "adds, its shadow a separate occupancy), 'signed' (added and removed light of a contact, one strength: "
+        "contacts that mostly shadow, such as skin) or 'auto' (default: signed with a guided-optics calibration, "
+        "added otherwise)",
     )
     s.add_argument(
         "--dynamic-baseline",

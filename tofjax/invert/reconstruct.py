@@ -16,6 +16,18 @@ costs a few hundred (cells x cells) products, independent of the number of bins.
 Unlike back-projection, every sensor's histogram is explained jointly: a contact dimmed in
 one sensor by a contact in front of it is still supported by the others, and one contact's
 response tail is not mistaken for another.
+
+**Contacts that shadow.** With a physical contact model (the guided optics' skin contact,
+:mod:`tofjax.model.contact`) a contact mostly *removes* light: what it frustrates into the
+skin is missing from the far-edge return and the volume light behind it, and the skin sends
+little back. Its whole effect on the histograms, added and removed light with their signs,
+grows with its coupling (``touch_strength``), so the column of ``A`` is that signed response
+of a strength-1 contact (``response="signed"``) and the non-negative unknown is the contact's
+strength: the fit uses the removed light as evidence *for* a contact, where the ``added``
+column (the touch return alone) sees only the little light the skin returns. ``response``
+``auto`` (default) takes the signed response when the calibration's optics are ``guided``
+(their contacts come from the skin model) and the added one otherwise (the default optics:
+contacts add light, their shadow is a separate strength-free occupancy, see ``shadow``).
 """
 
 from __future__ import annotations
@@ -33,7 +45,10 @@ from ..scene import Scene, Touch
 from .correction import OpticalParams
 from .maps import Grid
 
-__all__ = ["ReconstructOptions", "Reconstructor", "build_reconstructor", "response_matrix"]
+__all__ = ["RESPONSES", "ReconstructOptions", "Reconstructor", "build_reconstructor", "response_matrix"]
+
+#: Which contact response fills the model method's columns (see the module docstring).
+RESPONSES = ("auto", "added", "signed")
 
 
 @dataclass(frozen=True)
@@ -60,6 +75,11 @@ class ReconstructOptions:
       around it, in proportion to the contact (scale-free, like the noise threshold).
     - ``min_strength``: an extra absolute floor on the summed strength, in the forward
       model's units (default 0: none; it was the only threshold before, 0.2).
+    - ``response``: the contact column: ``added`` (the touch return a contact adds, plus the
+      ``shadow`` occupancy), ``signed`` (the contact's whole change of the histograms, added
+      and removed light, per unit strength; ``shadow`` is then part of it), or ``auto``
+      (default): ``signed`` when the optics are ``guided`` (skin contacts, which mostly
+      shadow), ``added`` otherwise.
     - ``dtype``: float32 or float64 for the solve."""
 
     cell_m: float = 0.0075
@@ -73,8 +93,11 @@ class ReconstructOptions:
     n_sigma: float = 1.0
     relative: float = 0.1
     dtype: str = "float32"
+    response: str = "auto"
 
     def __post_init__(self):
+        if self.response not in RESPONSES:
+            raise ConfigError(f"response: must be one of {', '.join(RESPONSES)}, got {self.response!r}")
         if not self.cell_m > 0:
             raise ConfigError(f"cell_m: must be > 0, got {self.cell_m!r}")
         if not self.contact_radius_m > 0:
@@ -113,14 +136,20 @@ def response_matrix(
     chunk: int = 128,
     *,
     shadow: bool = False,
+    signed: bool = False,
 ) -> np.ndarray:
     """Expected touch counts (S, Z, B) of a unit contact at each of ``centres`` (K, 2): (K, S, Z, B).
 
     With ``shadow``: instead, the change of the no-touch histograms when a contact of zero
     strength sits there (the light it removes from everything behind it; <= 0).
+    With ``signed``: the whole change a strength-1 contact makes (its touch return plus the
+    light it removes, with their signs: every component with the contact minus without).
     """
+    if shadow and signed:
+        raise ValueError("response_matrix: shadow and signed are exclusive")
     base = scene.without_touches()
-    proto = base.replace(touches=(Touch((0.15, 0.15), radius_m, 1.0),))
+    lx, ly = scene.waveguide.size_m
+    proto = base.replace(touches=(Touch((0.5 * lx, 0.5 * ly), radius_m, 1.0),))  # inside any guide
     guided = optical.optics == "guided"
     if guided:
         # the calibration's optics: guided light, and contacts from the skin model (the shadow then
@@ -131,12 +160,21 @@ def response_matrix(
                             optics="guided", skin=SkinContact())
     else:
         opts = ModelOptions(dtype="float64" if jax.config.jax_enable_x64 else "float32", pulse_tails=optical.pulse_tails)
-    comps = tuple(c for c in proto.components() if c != "touch") if shadow else ("touch",)
+    if signed:
+        comps = proto.components()
+    else:
+        comps = tuple(c for c in proto.components() if c != "touch") if shadow else ("touch",)
     if shadow and "shadowing" not in comps:
         return np.zeros((len(centres), *scene.shape))
     model = build_model(proto, opts, components=comps)
     p0 = _params_with_optics(proto, optical, opts.jnp_dtype)
-    if shadow:
+    if signed:
+        ref = np.asarray(
+            build_model(base, opts, components=tuple(c for c in comps if c not in ("touch", "shadowing")))(
+                _params_with_optics(base, optical, opts.jnp_dtype)
+            )
+        )
+    elif shadow:
         p0 = p0.replace(touch_strength=np.ones(1) if guided else np.zeros(1))
         ref = np.asarray(
             build_model(base, opts, components=tuple(c for c in comps if c != "shadowing"))(
@@ -145,6 +183,8 @@ def response_matrix(
         )
     f = jax.jit(jax.vmap(lambda xy: model(p0.replace(touch_xy_m=xy[None, :]))))
     out = np.concatenate([np.asarray(f(jnp.asarray(centres[i : i + chunk]))) for i in range(0, len(centres), chunk)])
+    if signed:
+        return out - ref[None]
     return np.minimum(out - ref[None], 0.0) if shadow else out
 
 
@@ -162,11 +202,14 @@ class Reconstructor:
         x, y = all_centres[:, 0], all_centres[:, 1]
         self.cells = np.flatnonzero((x >= e) & (x <= lx - e) & (y >= e) & (y <= ly - e))
         centres = all_centres[self.cells]
-        R = response_matrix(scene, optical, centres, options.contact_radius_m)  # (K, S, Z, B)
+        resp = options.response
+        self.response = ("signed" if optical.optics == "guided" else "added") if resp == "auto" else resp
+        signed = self.response == "signed"
+        R = response_matrix(scene, optical, centres, options.contact_radius_m, signed=signed)  # (K, S, Z, B)
         K = R.shape[0]
         self.n_cells = K
         A = R.reshape(K, -1).T  # (n, K)
-        if options.shadow:
+        if options.shadow and not signed:
             D = response_matrix(scene, optical, centres, options.contact_radius_m, shadow=True).reshape(K, -1).T
             A = np.concatenate([A, D], 1)  # (n, 2K): strengths, then occupancies
         rows = np.flatnonzero(np.abs(A).max(1) > 1e-9 * np.abs(A).max())
@@ -230,15 +273,20 @@ class Reconstructor:
         strength (the matched filter's noise, in strength units), nine added in quadrature
         for the 3 x 3 sums. Cells left out (near the edge) get +inf (never detected)."""
         var = np.full(self.grid.ny * self.grid.nx, np.inf)
-        var[self.cells] = 1.0 / np.maximum(self._g_diag[: self.n_cells], 1e-30)
+        g = self._g_diag[: self.n_cells]
+        # a cell no sensor sees (no response: a million times weaker than the best seen) is never
+        # detected: infinite noise, kept out of the sums
+        var[self.cells] = np.where(g > 1e-12 * max(float(g.max()), 1e-300), 1.0 / np.maximum(g, 1e-300), np.inf)
         var = var.reshape(self.grid.ny, self.grid.nx)
         if self.options.sum_cells:
             from scipy import ndimage
 
             finite = np.isfinite(var)
             v = np.where(finite, var, 0.0)
-            var = np.where(finite, 9.0 * ndimage.uniform_filter(v, size=3, mode="constant"), np.inf)
-        return np.sqrt(var)
+            # a direct 3 x 3 sum (uniform_filter's running sums cancel catastrophically across the
+            # orders of magnitude between well-seen and barely-seen cells)
+            var = np.where(finite, ndimage.correlate(v, np.ones((3, 3)), mode="constant"), np.inf)
+        return np.sqrt(np.maximum(var, 0.0))
 
 
 def build_reconstructor(
