@@ -215,6 +215,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--bench", action="store_true", help="tofjax bench tradeoff with --transport")
     ap.add_argument("--transport", choices=("as-is", "fixed"), default="fixed")
+    ap.add_argument("--repeats", type=int, default=31, help="--bench: timed pairs of forward evaluations")
+    ap.add_argument("--touch-scene", default="touch-three-line", help="--bench: the scene with contacts")
     ap.add_argument("--cache", help="folder caching the Monte Carlo runs of --bench (e.g. out/mc_cache)")
     a = ap.parse_args(argv)
     from tofjax.outputs import atomic_write_text, check_output
@@ -234,7 +236,7 @@ def main(argv=None) -> int:
         mod = fixed_transport() if a.transport == "fixed" else T
         if a.cache:
             mod = CachedTransport(mod, a.cache)
-        r = run_bench_tradeoff(BenchOptions(photons=a.photons, seeds=a.seeds, repeats=15), transport=mod)
+        r = run_bench_tradeoff(BenchOptions(photons=a.photons, seeds=a.seeds, repeats=a.repeats, touch_scene=a.touch_scene), transport=mod)
         r["monte_carlo_note"] = ("tofjax.mc.transport" if a.transport == "as-is" else
                                  "tofjax.mc.transport with the contact flag fixed (experiments/study_mc_guided.py)")
         atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)

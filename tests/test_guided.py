@@ -378,3 +378,36 @@ def test_skin_contact_signal_agrees_with_the_analog_monte_carlo():
     g = run(t, ModelOptions(optics="guided", skin=skin), comps + ("touch", "shadowing")).sum() - run(sc, GUIDED, comps).sum()
     assert nee < 0 and abs(nee - analog) < 4 * np.hypot(se_a, se_n) + 0.1 * abs(nee)
     assert g == pytest.approx(nee, rel=0.35)
+
+
+def test_far_edge_second_bounce(monkeypatch):
+    """The far edge's second diffuse bounce (tofjax.model.guided.EDGE_SECOND): a sensor aimed at a corner
+    gets light that crossed the corner from one lit wall to the other; it is non-negative, arrives after
+    the first bounce's onset, grows as R^2 (two diffuse reflections), and vanishes on one straight wall."""
+    import tofjax.model.guided as guided
+
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.1, 0.1], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.0, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": BIN, "n_bins": 96, "zones": 2, "fov_deg": 30.0, "emission_time_s": T_E},
+        "sensors": [{"position_m": [0.01, 0.0], "direction_deg": 45.0}],
+    })
+    out = {}
+    for flag in (False, True):
+        monkeypatch.setattr(guided, "EDGE_SECOND", flag)
+        model = build_model(sc, GUIDED, ("end",))
+        p = Params.from_scene(sc)
+        out[flag] = {R: np.asarray(model(p.replace(end_reflectance=jnp.asarray(R, p.n1.dtype)))) for R in (0.0, 0.25, 0.5)}
+    second = {R: out[True][R] - out[False][R] for R in (0.25, 0.5)}
+    assert np.abs(out[True][0.0]).max() == 0.0
+    assert (second[0.5] >= -1e-9 * out[False][0.5].max()).all() and second[0.5].sum() > 0.02 * out[False][0.5].sum()
+    assert second[0.5].sum() / second[0.25].sum() == pytest.approx(4.0, rel=1e-6)
+    first = out[False][0.5].sum(axis=(0, 1))
+    onset = np.argmax(first > 1e-3 * first.max())
+    assert second[0.5].sum(axis=(0, 1))[:onset].sum() < 1e-3 * second[0.5].sum()
+    # one straight far wall (the strip): the lit footprint is on one wall and exchanges nothing
+    strip_sc = strip()
+    monkeypatch.setattr(guided, "EDGE_SECOND", False)
+    a = run(strip_sc, GUIDED, ("end",))
+    monkeypatch.setattr(guided, "EDGE_SECOND", True)
+    b = run(strip_sc, GUIDED, ("end",))
+    np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9 * a.max())
