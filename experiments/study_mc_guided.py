@@ -93,7 +93,8 @@ class CachedTransport:
         return r
 
 
-def contacts(photons: int, analog_photons: int, seeds: int, distances=(0.05, 0.15), edges=("diffuse", "absorb")) -> dict:
+def contacts(photons: int, analog_photons: int, seeds: int, distances=(0.05, 0.15), edges=("diffuse", "absorb"),
+             cache: str | None = None) -> dict:
     """One skin contact on S0's axis (S0 alone): counts added / removed / net, analog Monte Carlo,
     next-event Monte Carlo as is and fixed, guided optics (mean and standard error over seeds)."""
     import tofjax
@@ -106,6 +107,8 @@ def contacts(photons: int, analog_photons: int, seeds: int, distances=(0.05, 0.1
     tofjax.enable_x64()
     t0 = time.perf_counter()
     F = fixed_transport()
+    if cache:
+        T, F = CachedTransport(T, cache), CachedTransport(F, cache)
     full = load_scene("optoskin").without_touches()
     s0 = full.sensors[0]
     ang = np.radians(s0.direction_deg)
@@ -147,6 +150,47 @@ def contacts(photons: int, analog_photons: int, seeds: int, distances=(0.05, 0.1
             out["rows"].append(row)
             print(json.dumps(row), flush=True)
     out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def contacts_guided(distances=(0.05, 0.15), edges=("diffuse", "absorb")) -> dict:
+    """The guided column of :func:`contacts` alone (no Monte Carlo), with the model's switches
+    (``EDGE_SECOND``, ``DISCRETE_HITS``) as they are and each one flipped."""
+    import tofjax
+    import tofjax.model.guided as guided
+    from tofjax.mc.bench import _machine
+    from tofjax.model import ModelOptions, Params, build_model
+    from tofjax.model.contact import SkinContact
+    from tofjax.scene import Touch, load_scene
+
+    tofjax.enable_x64()
+    full = load_scene("optoskin").without_touches()
+    s0 = full.sensors[0]
+    ang = np.radians(s0.direction_deg)
+    comps = ("volume", "multiple_scattering", "end")
+    keep = (guided.EDGE_SECOND, guided.DISCRETE_HITS)
+    variants = {"first_bounce_edge": (False, False), "second_bounce_edge": (True, False),
+                "second_bounce_edge_discrete_hits": (True, True)}
+    out = {"what": "guided optics, the scene of --contacts: net counts of one skin contact (touch minus bare slab)",
+           "data": "simulated", "machine": _machine(), "default_switches": {"EDGE_SECOND": keep[0], "DISCRETE_HITS": keep[1]},
+           "rows": []}
+    try:
+        for edge in edges:
+            wg = dataclasses.replace(full.waveguide, volume_backscatter_fraction=0.5,
+                                     end_reflectance=full.waveguide.end_reflectance if edge == "diffuse" else 0.0)
+            sc = full.replace(sensors=(s0,), waveguide=wg)
+            for D in distances:
+                t = sc.replace(touches=(Touch((s0.position_m[0] + D * np.cos(ang), s0.position_m[1] + D * np.sin(ang)), 0.006, 1.0),))
+                row = {"edges": edge, "distance_m": D}
+                for name, (es, dh) in variants.items():
+                    guided.EDGE_SECOND, guided.DISCRETE_HITS = es, dh
+                    gb = np.asarray(build_model(sc, ModelOptions(optics="guided"), comps)(Params.from_scene(sc)), np.float64)
+                    g = np.asarray(build_model(t, ModelOptions(optics="guided", skin=SkinContact()), comps + ("touch", "shadowing"))(
+                        Params.from_scene(t)), np.float64)
+                    row[name] = float((g - gb).sum())
+                out["rows"].append(row)
+    finally:
+        guided.EDGE_SECOND, guided.DISCRETE_HITS = keep
     return out
 
 
@@ -211,19 +255,25 @@ def main(argv=None) -> int:
     ap.add_argument("--json", required=True)
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--contacts", action="store_true", help="the one-contact checks (see the module docstring)")
+    ap.add_argument("--contacts-guided", action="store_true", help="the guided column of --contacts alone, each switch")
     ap.add_argument("--analog-photons", type=int, default=2_000_000)
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--bench", action="store_true", help="tofjax bench tradeoff with --transport")
     ap.add_argument("--transport", choices=("as-is", "fixed"), default="fixed")
     ap.add_argument("--repeats", type=int, default=31, help="--bench: timed pairs of forward evaluations")
     ap.add_argument("--touch-scene", default="touch-three-line", help="--bench: the scene with contacts")
-    ap.add_argument("--cache", help="folder caching the Monte Carlo runs of --bench (e.g. out/mc_cache)")
+    ap.add_argument("--cache", help="folder caching the Monte Carlo runs (e.g. out/mc_cache)")
     a = ap.parse_args(argv)
     from tofjax.outputs import atomic_write_text, check_output
 
     check_output(a.json, overwrite=a.overwrite, flag="--json")
+    if a.contacts_guided:
+        r = contacts_guided()
+        atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
+        print(json.dumps(r["rows"], indent=1))
+        return 0
     if a.contacts:
-        r = contacts(a.photons, a.analog_photons, a.seeds)
+        r = contacts(a.photons, a.analog_photons, a.seeds, cache=a.cache)
         atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
         return 0
     if a.bench:

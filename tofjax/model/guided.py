@@ -29,6 +29,10 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   skin model the guided optics keep the free touch strength and shadow opacity, with the
   guided timing and ``1/D^2`` falloff.
 
+* **second far-edge bounce** (``EDGE_SECOND``): light the lit wall footprint sends diffusely to another
+  part of it (across a corner) and that part returns, from the same Lambertian law, no free
+  parameter (:func:`_edge_second`).
+
 Multiple scattering keeps its phenomenological coupling (``multiple_scattering``) with the
 guided falloff and timing. See docs/tradeoff.md for the comparison with the Monte Carlo.
 """
