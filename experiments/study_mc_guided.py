@@ -9,6 +9,25 @@ Three checks behind the figures in docs/tradeoff.md ("Guided optics"), all simul
    guided model with the skin model.
 
     python experiments/study_mc_guided.py --photons 50000 --json docs/results/study_mc_guided.json
+
+Two more modes (issue 14, touch scenes):
+
+* ``--contacts``: one skin contact on sensor S0's axis (S0 alone), at several distances, diffuse and
+  absorbing edges: the counts the contact adds and removes (touch minus bare slab, same seeds), from
+  the analog Monte Carlo (``nee=False``: no next-event estimation, unbiased, noisy), the Monte Carlo
+  with next-event estimation as it is and with the contact flag fixed (below), and the guided optics;
+* ``--bench``: ``tofjax bench tradeoff`` (:func:`tofjax.mc.bench.run_bench_tradeoff`) with the Monte
+  Carlo as it is (``--transport as-is``) or with the contact flag fixed (``--transport fixed``).
+
+**The contact flag.** After a diffuse event the Monte Carlo scores the direct flight to the sensor by
+next-event estimation, contact frustration on the way included (``_nee_scores``: each top-face hit
+under a contact reflects ``fc Rs + (1 - fc) R_air``), and marks the packet so that its later direct
+detection is not scored twice. A contact *mirror* (the packet reflected under a contact) clears that
+mark (``diffuse = jnp.where(cn, into, diffuse)`` in ``tofjax/mc/transport.py``), so a packet that
+scattered (or left a diffuse edge), then mirrored under a contact and reached the aperture is scored
+twice: once by next-event estimation, once directly. The fix keeps the mark on a mirror
+(``jnp.where(cn & into, True, diffuse)``); :func:`fixed_transport` applies it to a copy of the module
+(transport.py is another helper's file: the fix is proposed there, not made here).
 """
 
 from __future__ import annotations
@@ -20,6 +39,159 @@ import os
 import time
 
 import numpy as np
+
+
+FLAG_OLD = "diffuse = jnp.where(cn, into, diffuse)"
+FLAG_NEW = "diffuse = jnp.where(cn & into, True, diffuse)"
+
+
+def fixed_transport():
+    """A copy of :mod:`tofjax.mc.transport` with the contact flag fixed (see the module docstring);
+    the module itself if it has the fix already."""
+    import sys
+    import types
+
+    import tofjax.mc.transport as T
+
+    src = open(T.__file__).read()
+    if src.count(FLAG_OLD) != 1:
+        if FLAG_NEW in src:
+            return T
+        raise RuntimeError("tofjax/mc/transport.py changed: the contact flag line was not found")
+    name = "tofjax.mc._transport_contact_flag_fixed"
+    if name in sys.modules:
+        return sys.modules[name]
+    m = types.ModuleType(name)
+    m.__package__, m.__file__ = "tofjax.mc", T.__file__
+    sys.modules[name] = m
+    exec(compile(src.replace(FLAG_OLD, FLAG_NEW), T.__file__, "exec"), m.__dict__)
+    return m
+
+
+class CachedTransport:
+    """``MCOptions`` and ``run_mc`` of a transport module, the counts cached on disk by scene, options and
+    module (re-evaluating the analytic model against the same references costs no Monte Carlo)."""
+
+    def __init__(self, module, cache_dir):
+        self.module, self.cache = module, cache_dir
+        self.__name__ = module.__name__
+        self.MCOptions = module.MCOptions
+
+    def run_mc(self, scene, options, progress=False):
+        import hashlib
+        import types
+
+        key = hashlib.sha256((self.__name__ + scene.to_toml() + repr(options)).encode()).hexdigest()[:20]
+        path = os.path.join(self.cache, key + ".npz")
+        if os.path.exists(path):
+            z = np.load(path)
+            return types.SimpleNamespace(counts=z["counts"], seconds=float(z["seconds"]))
+        r = self.module.run_mc(scene, options, progress=progress)
+        os.makedirs(self.cache, exist_ok=True)
+        np.savez(path + ".tmp.npz", counts=np.asarray(r.counts), seconds=r.seconds)
+        os.replace(path + ".tmp.npz", path)
+        return r
+
+
+def contacts(photons: int, analog_photons: int, seeds: int, distances=(0.05, 0.15), edges=("diffuse", "absorb"),
+             cache: str | None = None) -> dict:
+    """One skin contact on S0's axis (S0 alone): counts added / removed / net, analog Monte Carlo,
+    next-event Monte Carlo as is and fixed, guided optics (mean and standard error over seeds)."""
+    import tofjax
+    import tofjax.mc.transport as T
+    from tofjax.mc.bench import _machine
+    from tofjax.model import ModelOptions, Params, build_model
+    from tofjax.model.contact import SkinContact
+    from tofjax.scene import Touch, load_scene
+
+    tofjax.enable_x64()
+    t0 = time.perf_counter()
+    F = fixed_transport()
+    if cache:
+        T, F = CachedTransport(T, cache), CachedTransport(F, cache)
+    full = load_scene("optoskin").without_touches()
+    s0 = full.sensors[0]
+    ang = np.radians(s0.direction_deg)
+    skin = SkinContact()
+    comps = ("volume", "multiple_scattering", "end")
+    out = {"what": "one skin contact (radius 6 mm, strength 1) on sensor S0's axis, S0 alone, optoskin slab: "
+                   "touch minus bare slab (same seeds), transported light, counts of S0",
+           "data": "simulated", "machine": _machine(), "photons_nee": photons, "photons_analog": analog_photons,
+           "seeds": seeds, "contact_model": dataclasses.asdict(skin), "rows": []}
+
+    def sig(d):
+        return {"added": float(np.clip(d, 0, None).sum()), "removed": float(np.clip(d, None, 0).sum()), "net": float(d.sum())}
+
+    for edge in edges:
+        wg = dataclasses.replace(full.waveguide, volume_backscatter_fraction=0.5,
+                                 end_reflectance=full.waveguide.end_reflectance if edge == "diffuse" else 0.0)
+        sc = full.replace(sensors=(s0,), waveguide=wg)
+        gb = np.asarray(build_model(sc, ModelOptions(optics="guided"), comps)(Params.from_scene(sc)), np.float64)
+        for D in distances:
+            t = sc.replace(touches=(Touch((s0.position_m[0] + D * np.cos(ang), s0.position_m[1] + D * np.sin(ang)), 0.006, 1.0),))
+            row = {"edges": edge, "distance_m": D}
+            g = np.asarray(build_model(t, ModelOptions(optics="guided", skin=skin), comps + ("touch", "shadowing"))(
+                Params.from_scene(t)), np.float64)
+            row["guided"] = sig((g - gb)[0])
+            for name, mod, nee, n in (("analog", T, False, analog_photons), ("nee_as_is", T, True, photons),
+                                      ("nee_fixed", F, True, photons)):
+                ds = []
+                for k in range(seeds):
+                    kw = dict(photons=n, seed=k, nee=nee, edges=edge)
+                    if nee:
+                        kw.update(nee_points=24, nee_aperture=4)
+                    b = mod.run_mc(sc, mod.MCOptions(**kw)).counts
+                    c = mod.run_mc(t, mod.MCOptions(contact=skin, **kw)).counts
+                    ds.append((c - b)[0])
+                sigs = [sig(d) for d in ds]
+                row[name] = {k: float(np.mean([x[k] for x in sigs])) for k in ("added", "removed", "net")}
+                row[name]["net_se"] = float(np.std([x["net"] for x in sigs], ddof=1) / np.sqrt(seeds))
+                row[name]["mean_signal"] = sig(np.mean(ds, 0))
+            out["rows"].append(row)
+            print(json.dumps(row), flush=True)
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def contacts_guided(distances=(0.05, 0.15), edges=("diffuse", "absorb")) -> dict:
+    """The guided column of :func:`contacts` alone (no Monte Carlo), with the model's switches
+    (``EDGE_SECOND``, ``DISCRETE_HITS``) as they are and each one flipped."""
+    import tofjax
+    import tofjax.model.guided as guided
+    from tofjax.mc.bench import _machine
+    from tofjax.model import ModelOptions, Params, build_model
+    from tofjax.model.contact import SkinContact
+    from tofjax.scene import Touch, load_scene
+
+    tofjax.enable_x64()
+    full = load_scene("optoskin").without_touches()
+    s0 = full.sensors[0]
+    ang = np.radians(s0.direction_deg)
+    comps = ("volume", "multiple_scattering", "end")
+    keep = (guided.EDGE_SECOND, guided.DISCRETE_HITS)
+    variants = {"first_bounce_edge": (False, False), "second_bounce_edge": (True, False),
+                "second_bounce_edge_discrete_hits": (True, True)}
+    out = {"what": "guided optics, the scene of --contacts: net counts of one skin contact (touch minus bare slab)",
+           "data": "simulated", "machine": _machine(), "default_switches": {"EDGE_SECOND": keep[0], "DISCRETE_HITS": keep[1]},
+           "rows": []}
+    try:
+        for edge in edges:
+            wg = dataclasses.replace(full.waveguide, volume_backscatter_fraction=0.5,
+                                     end_reflectance=full.waveguide.end_reflectance if edge == "diffuse" else 0.0)
+            sc = full.replace(sensors=(s0,), waveguide=wg)
+            for D in distances:
+                t = sc.replace(touches=(Touch((s0.position_m[0] + D * np.cos(ang), s0.position_m[1] + D * np.sin(ang)), 0.006, 1.0),))
+                row = {"edges": edge, "distance_m": D}
+                for name, (es, dh) in variants.items():
+                    guided.EDGE_SECOND, guided.DISCRETE_HITS = es, dh
+                    gb = np.asarray(build_model(sc, ModelOptions(optics="guided"), comps)(Params.from_scene(sc)), np.float64)
+                    g = np.asarray(build_model(t, ModelOptions(optics="guided", skin=SkinContact()), comps + ("touch", "shadowing"))(
+                        Params.from_scene(t)), np.float64)
+                    row[name] = float((g - gb).sum())
+                out["rows"].append(row)
+    finally:
+        guided.EDGE_SECOND, guided.DISCRETE_HITS = keep
+    return out
 
 
 def run(photons: int, seed: int = 0) -> dict:
@@ -82,10 +254,44 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=int, default=50_000)
     ap.add_argument("--json", required=True)
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--contacts", action="store_true", help="the one-contact checks (see the module docstring)")
+    ap.add_argument("--contacts-guided", action="store_true", help="the guided column of --contacts alone, each switch")
+    ap.add_argument("--analog-photons", type=int, default=2_000_000)
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--bench", action="store_true", help="tofjax bench tradeoff with --transport")
+    ap.add_argument("--transport", choices=("as-is", "fixed"), default="fixed")
+    ap.add_argument("--repeats", type=int, default=31, help="--bench: timed pairs of forward evaluations")
+    ap.add_argument("--touch-scene", default="touch-three-line", help="--bench: the scene with contacts")
+    ap.add_argument("--cache", help="folder caching the Monte Carlo runs (e.g. out/mc_cache)")
     a = ap.parse_args(argv)
     from tofjax.outputs import atomic_write_text, check_output
 
     check_output(a.json, overwrite=a.overwrite, flag="--json")
+    if a.contacts_guided:
+        r = contacts_guided()
+        atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
+        print(json.dumps(r["rows"], indent=1))
+        return 0
+    if a.contacts:
+        r = contacts(a.photons, a.analog_photons, a.seeds, cache=a.cache)
+        atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
+        return 0
+    if a.bench:
+        import tofjax
+        from tofjax.mc.bench import BenchOptions, run_bench_tradeoff, summary
+
+        tofjax.enable_x64()
+        import tofjax.mc.transport as T
+
+        mod = fixed_transport() if a.transport == "fixed" else T
+        if a.cache:
+            mod = CachedTransport(mod, a.cache)
+        r = run_bench_tradeoff(BenchOptions(photons=a.photons, seeds=a.seeds, repeats=a.repeats, touch_scene=a.touch_scene), transport=mod)
+        r["monte_carlo_note"] = ("tofjax.mc.transport" if a.transport == "as-is" else
+                                 "tofjax.mc.transport with the contact flag fixed (experiments/study_mc_guided.py)")
+        atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
+        print(summary(r))
+        return 0
     r = run(a.photons)
     atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
     print(json.dumps({k: r[k] for k in ("nee_points", "near_field_per_thickness", "touch_relative_l2")}, indent=1))

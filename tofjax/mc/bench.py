@@ -12,9 +12,19 @@ with the guided optics (:mod:`tofjax.model.guided`), and reports
 * ``gain_scale``: the profiled gains (1 where the absolute amplitudes agree);
 * ``forward_cost``: seconds per evaluation of the whole jitted forward model of each scene
   (every component the scene needs), default and guided optics timed alternately, and the
-  median of the per-pair ratios guided / default;
-* ``reference``: the Monte Carlo's settings, time, and its own noise (two halves of the photons
-  with different seeds: their difference over sqrt 2 over the mean, halved for the average).
+  median of the per-pair ratios guided / default, and the ratio of the fastest evaluations (less
+  sensitive to other jobs on a loaded machine);
+* ``reference``: the Monte Carlo's settings, time, and its own noise: the photons are split over
+  ``seeds`` independent seeds, the reference is their mean, and its noise is the norm of the
+  standard error of that mean (the spread across seeds, bin by bin) over the reference's norm;
+* ``analytic_vs_mc_relative_l2_noise_removed``: the model's own error, the reference's noise
+  taken out two ways: ``quadrature`` (``sqrt(L2^2 - noise^2)``, the expected squared error of a
+  noisy reference being the model's plus the noise's) and ``extrapolated`` (the L2 against half
+  the seeds and against all, extrapolated as ``L2^2 = m^2 + c / photons`` to infinitely many);
+  ``analytic_vs_mc_relative_l2`` stays the raw figure;
+* ``touch_signal``: per sensor, the counts the contacts add and remove (touch scene minus baseline,
+  both Monte Carlo runs on the same seeds, so the difference is what the contacts do, not the
+  noise of the whole histogram), Monte Carlo against the guided optics.
 
 The guided optics get the physical volume backscatter of the Monte Carlo's phase function
 (``volume_backscatter_fraction`` = the Henyey-Greenstein backward share, 0.5 for ``g = 0``) and,
@@ -52,6 +62,8 @@ class BenchOptions:
     - ``nee_points``: the Monte Carlo's elevation nodes for next-event estimation (24: its
       own quadrature error is then below its noise; the default 6 puts the far-edge return at
       three discrete delays).
+    - ``seeds``: independent Monte Carlo runs the photons are split over (>= 2; their spread is the
+      reference's noise).
     - ``repeats``: timed pairs of forward evaluations.
     - ``elevations``: the guided optics' elevation nodes.
     """
@@ -62,15 +74,18 @@ class BenchOptions:
     seed: int = 0
     g: float = 0.0
     nee_points: int = 24
+    seeds: int = 4
     repeats: int = 31
     elevations: int = 8
     batch: int = 32_768
 
     def __post_init__(self):
-        for k, lo in (("photons", 2), ("repeats", 1), ("nee_points", 1), ("elevations", 1), ("batch", 1), ("seed", 0)):
+        for k, lo in (("photons", 2), ("seeds", 2), ("repeats", 1), ("nee_points", 1), ("elevations", 1), ("batch", 1), ("seed", 0)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ConfigError(f"{k}: must be an integer >= {lo}, got {v!r}")
+        if self.photons < 2 * self.seeds:
+            raise ConfigError(f"photons: at least 2 per seed ({self.seeds} seeds), got {self.photons!r}")
         if isinstance(self.g, bool) or not isinstance(self.g, (int, float)) or not -0.99 <= float(self.g) <= 0.99:
             raise ConfigError(f"g: must be a number in [-0.99, 0.99], got {self.g!r}")
 
@@ -83,6 +98,41 @@ def profiled_relative_l2(ref: np.ndarray, y: np.ndarray) -> tuple[float, np.ndar
     scale = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     err = np.linalg.norm(ref - scale[:, None, None] * y) / max(np.linalg.norm(ref), 1e-300)
     return float(err), scale
+
+
+def reference_noise(runs) -> tuple[np.ndarray, float]:
+    """Mean of independent Monte Carlo runs (n, ...) and its relative noise: the norm of the standard
+    error of the mean (the spread across runs, bin by bin) over the mean's norm."""
+    runs = np.asarray(runs, np.float64)
+    n = runs.shape[0]
+    ref = runs.mean(0)
+    var_mean = np.sum((runs - ref) ** 2, axis=0) / (n * (n - 1))
+    return ref, float(np.sqrt(var_mean.sum()) / max(np.linalg.norm(ref), 1e-300))
+
+
+def noise_removed(runs, y) -> dict:
+    """The model's own relative L2 against noisy Monte Carlo runs (n, S, Z, B) of equal photon counts:
+    ``raw`` (against their mean), ``reference_noise``, ``quadrature`` (``sqrt(raw^2 - noise^2)``) and
+    ``extrapolated`` (``L2^2 = m^2 + c / photons`` through the L2 against each half of the runs, averaged
+    in squares, and against all of them; n >= 2)."""
+    runs = np.asarray(runs, np.float64)
+    n = runs.shape[0]
+    ref, noise = reference_noise(runs)
+    raw = profiled_relative_l2(ref, y)[0]
+    h = n // 2
+    halves = [runs[:h].mean(0), runs[h:2 * h].mean(0)]
+    e_half2 = float(np.mean([profiled_relative_l2(r, y)[0] ** 2 for r in halves]))
+    # photons: h runs for the halves, n for all: m^2 = (n raw^2 - h e_half^2) / (n - h)
+    m2 = (n * raw**2 - h * e_half2) / (n - h)
+    return {"raw": raw, "reference_noise": noise, "quadrature": float(np.sqrt(max(raw**2 - noise**2, 0.0))),
+            "extrapolated": float(np.sqrt(max(m2, 0.0))), "half_references_l2": float(np.sqrt(e_half2))}
+
+
+def _signal(delta) -> list:
+    """Counts added and removed per sensor of a (S, Z, B) difference, and the net."""
+    d = np.asarray(delta, np.float64)
+    return [{"sensor": s, "added": float(d[s].clip(0).sum()), "removed": float(d[s].clip(None, 0).sum()),
+             "net": float(d[s].sum())} for s in range(d.shape[0])]
 
 
 def _machine() -> dict:
@@ -125,14 +175,21 @@ def _pair_timing(fa, pa, fb, pb, repeats: int) -> dict:
             acc.append(time.perf_counter() - t)
     ta, tb = np.array(ta), np.array(tb)
     return {"default_s": float(np.median(ta)), "guided_s": float(np.median(tb)),
-            "ratio_guided_over_default": float(np.median(tb / ta)), "pairs": repeats}
+            "ratio_guided_over_default": float(np.median(tb / ta)), "pairs": repeats,
+            "ratio_of_minima": float(tb.min() / ta.min())}
 
 
-def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = False) -> dict:
-    """Run the benchmark; returns the JSON-ready result (see the module docstring)."""
+def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = False, transport=None) -> dict:
+    """Run the benchmark; returns the JSON-ready result (see the module docstring).
+
+    ``transport``: a module with ``MCOptions`` and ``run_mc`` (default :mod:`tofjax.mc.transport`;
+    a study may pass a variant, whose name the result records as ``monte_carlo``)."""
     from ..model.contact import SkinContact
     from ..scene import load_scene
-    from .transport import MCOptions, run_mc
+
+    if transport is None:
+        from . import transport
+    MCOptions, run_mc = transport.MCOptions, transport.run_mc
 
     t0 = time.perf_counter()
     base = load_scene(opts.scene).without_touches()
@@ -143,34 +200,48 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
         "what": "analytic model (default fidelity; default and guided optics) against the Monte Carlo",
         "data": "simulated (monte carlo reference and analytic model)",
         "machine": _machine(),
+        "monte_carlo": transport.__name__,
         "options": dataclasses.asdict(opts),
         "analytic_vs_mc_relative_l2": {"default": {}, "guided": {}},
+        "analytic_vs_mc_relative_l2_noise_removed": {"default": {}, "guided": {}},
         "gain_scale": {"default": {}, "guided": {}},
         "forward_cost": {},
         "reference": {},
     }
+    per_seed = opts.photons // opts.seeds
+    runs_of, guided_of = {}, {}
     for case, scene in (("baseline", base), ("touch", touch)):
         comps = tuple(c for c in scene.components() if c not in NOT_TRANSPORTED)
         skin = SkinContact() if scene.touches else None
-        halves, secs = [], 0.0
-        for k in range(2):
-            mo = MCOptions(photons=opts.photons // 2, seed=opts.seed + k, g=opts.g, contact=skin, batch=opts.batch,
+        runs, secs = [], 0.0
+        for k in range(opts.seeds):
+            mo = MCOptions(photons=per_seed, seed=opts.seed + k, g=opts.g, contact=skin, batch=opts.batch,
                            nee_points=opts.nee_points, nee_aperture=4)
             r = run_mc(scene, mo, progress=progress)
-            halves.append(np.asarray(r.counts, np.float64))
+            runs.append(np.asarray(r.counts, np.float64))
             secs += r.seconds
-        ref = 0.5 * (halves[0] + halves[1])
-        noise = float(np.linalg.norm(halves[0] - halves[1]) / max(np.linalg.norm(ref), 1e-300) / 2.0)
-        result["reference"][case] = {"scene": scene.name, "photons_per_sensor": 2 * (opts.photons // 2),
-                                     "seconds": secs, "relative_noise": noise,
+        ref, noise = reference_noise(runs)
+        runs_of[case] = np.asarray(runs)
+        result["reference"][case] = {"scene": scene.name, "photons_per_sensor": opts.seeds * per_seed,
+                                     "seeds": opts.seeds, "seconds": secs, "relative_noise": noise,
                                      "contact_model": None if skin is None else dataclasses.asdict(skin)}
         (fd, pd), (fg, pg) = _models(scene, opts, comps)
         for name, f, p in (("default", fd, pd), ("guided", fg, pg)):
-            err, scale = profiled_relative_l2(ref, np.asarray(f(p), np.float64))
+            y = np.asarray(f(p), np.float64)
+            err, scale = profiled_relative_l2(ref, y)
             result["analytic_vs_mc_relative_l2"][name][case] = err
+            result["analytic_vs_mc_relative_l2_noise_removed"][name][case] = noise_removed(runs, y)
             result["gain_scale"][name][case] = [float(s) for s in scale]
+            if name == "guided":
+                guided_of[case] = y
         (fd, pd), (fg, pg) = _models(scene, opts, scene.components())  # the whole model, as calibration runs it
         result["forward_cost"][case] = _pair_timing(fd, pd, fg, pg, opts.repeats)
+    # what the contacts do: touch minus baseline (same seeds), transported light
+    if base.sensors == touch.sensors:
+        d_mc = runs_of["touch"] - runs_of["baseline"]  # (seeds, S, Z, B)
+        result["touch_signal"] = {
+            "monte_carlo": _signal(d_mc.mean(0)), "guided": _signal(guided_of["touch"] - guided_of["baseline"]),
+            "monte_carlo_net_per_seed": [[float(x) for x in dk.sum((1, 2))] for dk in d_mc]}
     result["compared_components"] = {case: [c for c in sc.components() if c not in NOT_TRANSPORTED]
                                      for case, sc in (("baseline", base), ("touch", touch))}
     result["forward_cost_ratio"] = max(v["ratio_guided_over_default"] for v in result["forward_cost"].values())
@@ -189,6 +260,9 @@ def summary(result: dict) -> str:
         lines.append(f"analytic_vs_mc_relative_l2 {optics:8s} " + "  ".join(f"{k} {e:.3f}" for k, e in v.items()))
     noise = "  ".join(f"{k} {v['relative_noise']:.3f}" for k, v in result["reference"].items())
     lines.append(f"Monte Carlo reference noise           {noise}")
+    for optics, v in result.get("analytic_vs_mc_relative_l2_noise_removed", {}).items():
+        lines.append(f"noise removed (quadrature/extrap.) {optics:8s} "
+                     + "  ".join(f"{k} {e['quadrature']:.3f}/{e['extrapolated']:.3f}" for k, e in v.items()))
     cost = "  ".join(f"{k} {v['ratio_guided_over_default']:.2f}x "
                      f"({v['default_s'] * 1e6:.0f} -> {v['guided_s'] * 1e6:.0f} us)"
                      for k, v in result["forward_cost"].items())

@@ -92,8 +92,8 @@ def _cmd_bench_tradeoff(a) -> int:
 
     if a.json is None:
         raise ConfigError("--json: required (the output file)")
-    opts = BenchOptions(scene=a.scene, touch_scene=a.touch_scene, photons=a.photons, seed=a.seed, g=a.g,
-                        nee_points=a.nee_points, repeats=a.repeats, elevations=a.elevations, batch=a.batch)
+    opts = BenchOptions(scene=a.scene, touch_scene=a.touch_scene, photons=a.photons, seed=a.seed, seeds=a.seeds,
+                        g=a.g, nee_points=a.nee_points, repeats=a.repeats, elevations=a.elevations, batch=a.batch)
     result = run_bench_tradeoff(opts, progress=True)
     atomic_write_text(a.json, json.dumps(result, indent=1), overwrite=a.overwrite)
     print(summary(result))
@@ -138,6 +138,7 @@ def register(sub) -> None:
     t.add_argument("--touch-scene", default="touch-three-line", help="scene with contacts (default touch-three-line)")
     t.add_argument("--photons", type=int, default=100_000, help="Monte Carlo packets per sensor and scene")
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seeds", type=int, default=4, help="independent runs the photons are split over (their spread: the noise)")
     t.add_argument("--g", type=float, default=0.0, help="Henyey-Greenstein anisotropy of the Monte Carlo (default 0)")
     t.add_argument("--nee-points", type=int, default=24, help="Monte Carlo elevation nodes (default 24)")
     t.add_argument("--elevations", type=int, default=8, help="guided optics' elevation nodes (default 8)")

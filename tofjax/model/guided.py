@@ -29,6 +29,10 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   skin model the guided optics keep the free touch strength and shadow opacity, with the
   guided timing and ``1/D^2`` falloff.
 
+* **second far-edge bounce** (``EDGE_SECOND``): light the lit wall footprint sends diffusely to another
+  part of it (across a corner) and that part returns, from the same Lambertian law, no free
+  parameter (:func:`_edge_second`).
+
 Multiple scattering keeps its phenomenological coupling (``multiple_scattering``) with the
 guided falloff and timing. See docs/tradeoff.md for the comparison with the Monte Carlo.
 """
@@ -60,6 +64,15 @@ NEAR_FIELD_PER_THICKNESS = 0.3
 #: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
 #: 2.4x the default optics on the touch scene instead of 1.5x (docs/tradeoff.md).
 SECOND_ORDER = False
+#: Add the far edge's second diffuse bounce (:func:`_edge_second`: light the lit wall footprint sends to
+#: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE``: every how
+#: many-th ray of a zone is a source (its power times the stride).
+EDGE_SECOND = True
+EDGE_SECOND_STRIDE = 4
+#: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
+#: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
+#: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
+DISCRETE_HITS = False
 
 
 def hg_backward_fraction(g: float) -> float:
@@ -177,6 +190,22 @@ def _weighted_step(times, weights, nodes: Nodes):
     return jnp.cumsum(w, axis=-1) - 0.5 * w
 
 
+def _frustrated(hits, q):
+    """Share of light frustrated over a chord with ``hits`` expected top-face hits (``chord |mu| / (2 h
+    cos)``), each frustrating ``q`` (``coupling (1 - R_Fresnel)``).
+
+    With ``DISCRETE_HITS`` (see there) the hits are discrete, spaced ``2 h cos / |mu|`` along the chord
+    from a uniformly random first one: ``floor(x)`` or ``floor(x) + 1`` of them, so the transmission is
+    ``(1 - q)^floor(x) (1 - frac(x) q)``, the straight line between the integers; otherwise
+    ``(1 - q)^x``, which frustrates up to ``-ln(1 - q) / q`` times (1.19 at ``q = 0.3``) too much below
+    one hit (Jensen), as the Monte Carlo's next-event estimation does."""
+    lq = jnp.log1p(-q)
+    if not DISCRETE_HITS:
+        return -jnp.expm1(hits * lq)
+    k = jnp.floor(hits)
+    return 1.0 - jnp.exp(k * lq) * (1.0 - (hits - k) * q)
+
+
 def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
     """Skin contacts crossed by each ray: (P_out (S, Z, A, N), P_ret (S, Z, A, N, J), behind (S, Z, A, N),
     dist (S, N)): the share of light entering the skin on the way out and back along the ray's chord,
@@ -194,10 +223,10 @@ def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
     fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
     Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
     hits_out = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
-    P_out = -jnp.expm1(hits_out * jnp.log1p(-fc * (1.0 - Rs_out)))  # share frustrated over the chord
+    P_out = _frustrated(hits_out, fc * (1.0 - Rs_out))  # share frustrated over the chord
     Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
     hits_ret = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
-    P_ret = -jnp.expm1(hits_ret * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))
+    P_ret = _frustrated(hits_ret, fc[:, None] * (1.0 - Rs_ret))
     behind = jax.nn.sigmoid((geom.ray_length[..., None] - along) / rad)  # contact before the far edge
     return P_out * behind, P_ret * behind[..., None], along
 
@@ -224,7 +253,49 @@ def _edge(ctx, gg, el, frus):
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
-    return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
+    out = deposit(t, amp.reshape(S, Z, -1), nodes)
+    if EDGE_SECOND:
+        out = out + _edge_second(ctx, gg, el, amp, frus)
+    return p.gain[:, None, None] * out
+
+
+def _edge_second(ctx, gg, el, amp1, frus):
+    """The far edge's second diffuse bounce inside the lit footprint (before the gain).
+
+    Each ray's wall segment (length ``L dphi / cos_wall``) is lit by the beam with power
+    ``P_i = dphi / fov exp(-mu_t L / c_out)`` and reflects ``R P_i`` diffusely; the guided share ``G``
+    (``(2/pi) int |mu|<mu_g sqrt(1 - mu^2) dmu``) spreads in the plane as ``cos(psi) / 2`` per radian,
+    so segment ``j`` receives ``R P_i G cos_i cos_j len_j / (2 r_ij)`` (attenuated over ``r_ij`` at
+    the band's mean ``1 / cos``) and returns it like its first bounce: the first-bounce amplitude
+    ``amp1_j`` times ``P2_j / P_j``, delayed by the middle leg. The same wall exchanges nothing
+    (``cos = 0``); near a corner it is the main part. Sources: every ``EDGE_SECOND_STRIDE``-th ray."""
+    p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
+    L = geom.ray_length  # (S, Z, A)
+    S, Z, A = L.shape
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    u = jnp.stack([jnp.cos(geom.ray_angle), jnp.sin(geom.ray_angle)], -1)
+    W = geom.sensor_xy[:, None, None, :] + L[..., None] * u  # (S, Z, A, 2) wall points
+    k = max(1, min(int(EDGE_SECOND_STRIDE), A))
+    Ws, ns, Ls = W[:, :, ::k].reshape(S, -1, 2), gg.wall_normal[:, :, ::k].reshape(S, -1, 2), L[:, :, ::k].reshape(S, -1)
+    Ps = (k * gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out))[:, :, ::k]  # (S, Z, A/k)
+    if frus is not None:
+        Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, ::k]
+    Ps = Ps.reshape(S, -1)
+    d = W[:, :, :, None, :] - Ws[:, None, None, :, :]  # (S, Z, A, I, 2): from source i to receiver j
+    r2 = jnp.sum(d**2, -1) + gg.thickness_m**2
+    r = jnp.sqrt(r2)
+    cos_i = jnp.clip(jnp.sum(d * ns[:, None, None], -1) / r, 0.0, 1.0)
+    cos_j = jnp.clip(-jnp.sum(d * gg.wall_normal[:, :, :, None, :], -1) / r, 0.0, 1.0)
+    G = jnp.sum(el.dmu * el.c) * (2.0 / math.pi)  # guided share of a Lambertian wall's emission
+    inv_c = jnp.sum(el.dmu * el.c / el.c) / jnp.sum(el.dmu * el.c)  # mean 1 / cos of it (flux-weighted)
+    seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1)  # (S, Z, A) receiving segment length
+    P1 = jnp.maximum(gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 1e-300)
+    ratio = (p.end_reflectance * G * 0.5 * Ps[:, None, None, :] * cos_i * cos_j * (seg / P1)[..., None] / r
+             * jnp.exp(-mu_t * r * inv_c))  # (S, Z, A, I)
+    a1 = jnp.sum(amp1, -1)  # (S, Z, A) first-bounce amplitude, all return elevations
+    amp = a1[..., None] * ratio
+    t = p.emission_time_s + (Ls[:, None, None, :] / el.c_out + r * inv_c + L[..., None] * inv_c) / nodes.c1
+    return deposit(t.reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
 
 
 def _touch(ctx, gg, el):
@@ -244,10 +315,10 @@ def _touch(ctx, gg, el):
     Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
     chord = 0.5 * math.pi * rad  # mean chord of a disk seen from afar
     hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
-    P_out = -jnp.expm1(hits * jnp.log1p(-fc * (1.0 - Rs_out)))  # (N,)
+    P_out = _frustrated(hits, fc * (1.0 - Rs_out))  # (N,)
     Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
     hits_ret = chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)
-    P_ret = -jnp.expm1(hits_ret * jnp.log1p(-fc[:, None] * (1.0 - Rs_ret)))  # (N, J)
+    P_ret = _frustrated(hits_ret, fc[:, None] * (1.0 - Rs_ret))  # (N, J)
     albedo = skin.diffuse_albedo_jax(p.n1)
     width = 2.0 * jnp.arctan(rad / cg.distance)  # (S, N) the contact's angular width
     ncos = gg.sensor_normal  # (S, 2)
