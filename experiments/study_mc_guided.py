@@ -26,8 +26,10 @@ detection is not scored twice. A contact *mirror* (the packet reflected under a 
 mark (``diffuse = jnp.where(cn, into, diffuse)`` in ``tofjax/mc/transport.py``), so a packet that
 scattered (or left a diffuse edge), then mirrored under a contact and reached the aperture is scored
 twice: once by next-event estimation, once directly. The fix keeps the mark on a mirror
-(``jnp.where(cn & into, True, diffuse)``); :func:`fixed_transport` applies it to a copy of the module
-(transport.py is another helper's file: the fix is proposed there, not made here).
+(``jnp.where(cn & into, True, diffuse)``), now in transport.py itself (regression test
+``tests/test_mc.py::test_mirror_under_a_contact_is_not_scored_twice``); :func:`fixed_transport` returns
+the module, and ``--transport as-is`` rebuilds the old line in a copy of it to reproduce the figures made
+before the fix.
 """
 
 from __future__ import annotations
@@ -46,25 +48,29 @@ FLAG_NEW = "diffuse = jnp.where(cn & into, True, diffuse)"
 
 
 def fixed_transport():
-    """A copy of :mod:`tofjax.mc.transport` with the contact flag fixed (see the module docstring);
-    the module itself if it has the fix already."""
+    """:mod:`tofjax.mc.transport`, which has the contact flag fixed (see the module docstring)."""
+    import tofjax.mc.transport as T
+
+    if FLAG_NEW not in open(T.__file__).read():
+        raise RuntimeError("tofjax/mc/transport.py changed: the contact flag line was not found")
+    return T
+
+
+def transport_before_fix():
+    """A copy of :mod:`tofjax.mc.transport` with the contact flag as it was before the fix (a mirror
+    under a contact cleared the next-event mark): reproduces the figures made before it."""
     import sys
     import types
 
-    import tofjax.mc.transport as T
-
-    src = open(T.__file__).read()
-    if src.count(FLAG_OLD) != 1:
-        if FLAG_NEW in src:
-            return T
-        raise RuntimeError("tofjax/mc/transport.py changed: the contact flag line was not found")
-    name = "tofjax.mc._transport_contact_flag_fixed"
+    T = fixed_transport()
+    name = "tofjax.mc._transport_before_contact_flag_fix"
     if name in sys.modules:
         return sys.modules[name]
+    src = open(T.__file__).read()
     m = types.ModuleType(name)
     m.__package__, m.__file__ = "tofjax.mc", T.__file__
     sys.modules[name] = m
-    exec(compile(src.replace(FLAG_OLD, FLAG_NEW), T.__file__, "exec"), m.__dict__)
+    exec(compile(src.replace(FLAG_NEW, FLAG_OLD), T.__file__, "exec"), m.__dict__)
     return m
 
 
@@ -281,14 +287,12 @@ def main(argv=None) -> int:
         from tofjax.mc.bench import BenchOptions, run_bench_tradeoff, summary
 
         tofjax.enable_x64()
-        import tofjax.mc.transport as T
-
-        mod = fixed_transport() if a.transport == "fixed" else T
+        mod = fixed_transport() if a.transport == "fixed" else transport_before_fix()
         if a.cache:
             mod = CachedTransport(mod, a.cache)
         r = run_bench_tradeoff(BenchOptions(photons=a.photons, seeds=a.seeds, repeats=a.repeats, touch_scene=a.touch_scene), transport=mod)
-        r["monte_carlo_note"] = ("tofjax.mc.transport" if a.transport == "as-is" else
-                                 "tofjax.mc.transport with the contact flag fixed (experiments/study_mc_guided.py)")
+        r["monte_carlo_note"] = ("tofjax.mc.transport as it was before the contact flag fix" if a.transport == "as-is" else
+                                 "tofjax.mc.transport (contact flag fixed)")
         atomic_write_text(a.json, json.dumps(r, indent=1), overwrite=a.overwrite)
         print(summary(r))
         return 0

@@ -331,17 +331,17 @@ def test_bench_noise_split_recovers_the_model_error():
 
 
 def test_contact_flag_fix_is_one_line():
-    """experiments/study_mc_guided.py's copy of the transport differs from it in the contact flag only
-    (or is the module itself once transport.py has the fix)."""
+    """experiments/study_mc_guided.py's copy of the transport before the contact flag fix differs from
+    tofjax.mc.transport in that line only."""
     from test_studies import load
 
     import tofjax.mc.transport as T
 
     study = load("study_mc_guided")
     src = Path(T.__file__).read_text()
-    F = study.fixed_transport()
-    assert (F is T) == (study.FLAG_OLD not in src)
-    assert callable(F.run_mc) and F.MCOptions is not None
+    assert study.fixed_transport() is T and src.count(study.FLAG_NEW) == 1 and study.FLAG_OLD not in src
+    old = study.transport_before_fix()
+    assert old is not T and callable(old.run_mc) and old.MCOptions is not None
 
 
 @pytest.mark.slow
@@ -349,8 +349,8 @@ def test_skin_contact_signal_agrees_with_the_analog_monte_carlo():
     """One skin contact 5 cm in front of S0 (optoskin slab, S0 alone, diffuse edges): the contact's net
     signal (touch minus bare slab, same seeds) of the next-event Monte Carlo with the contact flag fixed
     agrees with the analog Monte Carlo (no next-event estimation: unbiased), and the guided optics with
-    both within 35%. The transport as it is (a mirror under a contact clears the next-event flag) adds
-    far-edge light twice and fails this."""
+    both within 35%. The transport before the contact flag fix (a mirror under a contact cleared the
+    next-event mark) added far-edge light twice and failed this."""
     import dataclasses
 
     from test_studies import load

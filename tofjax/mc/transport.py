@@ -930,7 +930,10 @@ def _transport(st: _View, idx, valid, seed_key, dtype, lanes: int):
         if st.nee:
             diffuse = jnp.where(sc | (refl & (st.edge_mode == "diffuse")), True, p["diffuse"])
             if has_contacts:
-                diffuse = jnp.where(cn, into, diffuse)
+                # a packet that enters the skin comes back diffuse (its direct flight is scored above);
+                # one mirrored under the contact keeps its mark: the next-event scores of its last
+                # diffuse event already counted that mirror (fc Rs + (1 - fc) R_air per top-face hit)
+                diffuse = jnp.where(cn & into, True, diffuse)
             diffuse = jnp.where(refl & (st.edge_mode == "specular"), False, diffuse)
         else:
             diffuse = p["diffuse"]
