@@ -51,6 +51,7 @@ def run(out: Path, small=None) -> dict:
     ld = log_density(cal, cap, fit)
     pb = cal.problem
     base, data, sigma, prior, widths, held, _ = ld.args
+
     _, unravel = jax.flatten_util.ravel_pytree(ld.template)
 
     @jax.jit
@@ -65,7 +66,7 @@ def run(out: Path, small=None) -> dict:
     v = V[:, -1] * np.sqrt(w[-1])
     v = v * np.sign(v[list(ld.coords).index("albedo")]) if "albedo" in ld.coords else v
     t = np.linspace(-2.0, 2.0, 17)
-    rows = np.array([np.asarray(parts(jnp.asarray(ld.flat0 + ti * v))) for ti in t])
+    rows = np.array([np.asarray(parts(jnp.asarray(ld.to_fit(ld.flat0 + ti * v)))) for ti in t])
     rows[:, :4] -= rows[np.argmin(np.abs(t)), :4]  # relative to the fit
     flat = rows[:, 0] + rows[:, 1] + rows[:, 3]
     logu = flat + rows[:, 2]

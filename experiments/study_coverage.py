@@ -61,6 +61,7 @@ class CoverageConfig:
     nuisance_width: float = 0.3
     pilot: bool = True
     target_accept: float = 0.8
+    gain_prior: str = "log-uniform"
 
     def __post_init__(self):
         if self.sampler not in ("nuts", "emcee"):
@@ -174,11 +175,13 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         t = time.perf_counter()
         if config.sampler == "nuts":
             opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
-                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept)
+                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept,
+                               gain_prior=config.gain_prior)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
-                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width))
+                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width,
+                gain_prior=config.gain_prior))
         post_s += time.perf_counter() - t
         row = rows[k]
         row["posterior"] = {

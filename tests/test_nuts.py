@@ -89,7 +89,7 @@ def test_diagnostics_properties():
 
 
 @pytest.mark.parametrize("kw", [{"chains": 0}, {"warmup": 5}, {"draws": -1}, {"draws": 1.5}, {"target_accept": 1.0},
-                                {"max_tree_depth": 0}, {"chains": True}])
+                                {"max_tree_depth": 0}, {"chains": True}, {"gain_prior": "jeffreys"}])
 def test_bad_options_are_one_line_errors(kw):
     with pytest.raises(UserError, match=next(iter(kw))):
         NutsOptions(**kw)
@@ -161,7 +161,7 @@ def test_log_density_gain_prior_and_gradient(fitted):
     flat = log_density(cal, cap, res, gain_prior="flat")
     base, data, sigma = ld.args[:3]
     _, unravel = jax.flatten_util.ravel_pytree(ld.template)
-    u = {**ld.args[5], **unravel(jnp.asarray(ld.flat0))}
+    u = {**ld.args[5], **unravel(jnp.asarray(ld.to_fit(ld.flat0)))}
     _, _, _, lin = cal.problem.profile(cal.problem.unpack(u, base), data, sigma)
     assert np.shape(lin["gain"]) == (3, 3)
     assert float(ld.fn(ld.flat0)) - float(flat.fn(flat.flat0)) == pytest.approx(-float(np.sum(np.log(lin["gain"]))), abs=1e-8)
@@ -172,3 +172,28 @@ def test_log_density_gain_prior_and_gradient(fitted):
         assert fd == pytest.approx(float(g @ d), rel=0.02, abs=0.05)
     with pytest.raises(UserError, match="gain_prior"):
         log_density(cal, cap, res, gain_prior="jeffreys")
+
+
+def test_log_fraction_coordinates_round_trip_and_jacobian():
+    """The samplers' coordinates for albedo and end reflectance (w, with log p = -softplus(-k w)/k):
+    the inverse maps back, ``log |d logit p / d w|`` is the derivative's log (finite differences),
+    and w = log p away from p = 1 (so the ridge, straight in log p, stays straight)."""
+    import jax.numpy as jnp
+
+    from tofjax.fit.posterior import STEEP, _to_fit, _to_sampler_np
+
+    u = np.array([-3.0, 0.0, 0.3, 2.5, 4.0])
+    idx = (0, 1, 2, 3)
+    w = _to_sampler_np(u, idx)
+    back, _ = _to_fit(jnp.asarray(w), idx)
+    np.testing.assert_allclose(np.asarray(back), u, atol=1e-9)
+    assert w[4] == u[4]
+    p = 1 / (1 + np.exp(-u[:4]))
+    far = p < 0.8
+    np.testing.assert_allclose(w[:4][far], np.log(p[far]), atol=1e-6 * STEEP)
+    h = 1e-6
+    for i in idx:
+        e = np.zeros_like(w)
+        e[i] = h
+        du = (float(_to_fit(jnp.asarray(w + e), (i,))[0][i]) - float(_to_fit(jnp.asarray(w - e), (i,))[0][i])) / (2 * h)
+        assert float(_to_fit(jnp.asarray(w), (i,))[1]) == pytest.approx(np.log(du), rel=1e-5, abs=1e-6)
