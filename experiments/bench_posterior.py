@@ -1,18 +1,25 @@
 """Benchmark: NUTS against emcee on the same calibration posterior, in one run.
 
 Simulates the default OptoSkin baseline (100 frames), fits it, builds the posterior once
-(:func:`tofjax.fit.posterior.log_density`: the linear parameters integrated out, the fit's
-weak prior, the nuisance prior of width ``--nuisance-width``) and samples it with both:
+(:func:`tofjax.fit.posterior.log_density`: the linear parameters integrated out with the
+log-uniform gain prior (``--gain-prior``), the fit's weak prior, the nuisance prior of width
+``--nuisance-width``), measures the cost of one value and gradient (a NUTS leapfrog step)
+and of one batch of ``--walkers`` values (an emcee step) side by side, and samples it with both:
 
-- NUTS (:func:`tofjax.fit.nuts.sample_nuts`): ``--chains`` x (``--warmup`` + ``--draws``);
-  compiled ahead of time, so ``wall_s`` is the warm sampling time (``compile_s`` beside it).
+- NUTS (:func:`tofjax.fit.nuts.sample_nuts`): started at the log-density's mode,
+  ``--chains`` x (``--warmup`` + ``--draws``), target acceptance ``--target-accept``;
+  compiled ahead of time, so ``wall_s`` is warm (finding the mode, warm-up and draws;
+  ``compile_s`` beside it). ``gradient_evaluations`` counts every one (mode included).
 - emcee (:func:`tofjax.fit.posterior.sample_posterior`'s sampler): ``--walkers`` walkers for
   ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in.
 
 Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-normalised
 split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
-burn-in included). Writes ``posterior.json`` in ``--out``.
+burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
+load-independent figures. Writes ``posterior.json`` in ``--out``; the defaults (4 x (250 +
+800), 32 walkers x 3000 steps) take about 3 minutes on an idle 2-core machine (estimated
+from the loaded one's gradient counts).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
@@ -115,7 +122,7 @@ def small_scene_of(scene_name: str, small=None):
 
 
 def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
-        gain_prior: str = GAIN_PRIOR) -> dict:
+        gain_prior: str = GAIN_PRIOR, note: str = "") -> dict:
     scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
@@ -167,6 +174,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "nuts_over_emcee_ess_per_s_ge_10": ratio >= 10,
     }
     result = {
+        **({"note": note} if note else {}),
         "benchmark": "calibration posterior: NUTS (blackjax) against emcee on the same log-density",
         "data": f"simulated {label}, {frames} frames (seed 1)",
         "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
@@ -193,10 +201,10 @@ def main(argv=None):
     ap.add_argument("--scene", default="optoskin")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--chains", type=int, default=4)
-    ap.add_argument("--warmup", type=int, default=500)
-    ap.add_argument("--draws", type=int, default=1000)
+    ap.add_argument("--warmup", type=int, default=250)
+    ap.add_argument("--draws", type=int, default=800)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
-    ap.add_argument("--target-accept", type=float, default=0.8)
+    ap.add_argument("--target-accept", type=float, default=0.9)
     ap.add_argument("--max-tree-depth", type=int, default=10)
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
@@ -205,6 +213,7 @@ def main(argv=None):
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
                     help="a reduced scene instead of the default baseline (e.g. 3 3 96)")
+    ap.add_argument("--note", default="", help="a line stored as the JSON's 'note' (how and where it was run)")
     ap.add_argument("--out", default="out/bench_posterior")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -217,7 +226,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
                        target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})

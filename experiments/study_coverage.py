@@ -59,7 +59,7 @@ class CoverageConfig:
     warmup: int = 200
     draws: int = 300
     nuisance_width: float = 0.3
-    pilot: bool = True
+    pilot: bool = False
     target_accept: float = 0.8
     gain_prior: str = "log-uniform"
 

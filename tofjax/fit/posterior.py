@@ -88,6 +88,7 @@ STEEP = 30.0
 def _to_fit(flat, idx):
     """The fit's coordinates (logit) of the samplers' ``flat`` (``idx``: the flat indices of the
     :data:`LOG_FRACTIONS` there) and ``log |d fit / d sampler|``."""
+    flat = jnp.asarray(flat)
     if not idx:
         return flat, jnp.zeros((), flat.dtype)
     ii = jnp.asarray(idx)
