@@ -216,7 +216,8 @@ def merge(parts: list[dict]) -> dict:
             if row["seed"] not in by_seed or (row.get("posterior") and not by_seed[row["seed"]].get("posterior")):
                 by_seed[row["seed"]] = row
     rows = [by_seed[k] for k in sorted(by_seed)]
-    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept")
+    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept",
+            "gain_prior")
     for r in parts[1:]:
         if any(r["config"].get(k) != parts[0]["config"].get(k) for k in keys):
             raise ValueError("merge: the parts differ in their settings")

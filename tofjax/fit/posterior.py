@@ -11,7 +11,7 @@ sampler: they are integrated out analytically. Their prior:
   wide range ``[g_lo, g_hi]``, proper), the scale-invariant prior of a scale. With a flat
   prior instead, the marginal carries ``-log ||R||`` per zone (``R`` the model per unit
   gain): an arbitrary prior on the nonlinear parameters (it depends on how ``R`` is
-  normalised) that on the default baseline's 42 zones pulls by about 4 nats per Laplace
+  normalised) that on the default baseline's 42 zones pulls by 3.9 nats per Laplace
   standard error along the ridge where albedo, end reflectance and interface backscatter
   trade against the gain (``GAIN_PRIOR``; README "Posterior speed").
 - **crosstalk and ambient counts**: uniform on a wide range (they are locations).
