@@ -67,6 +67,10 @@ def test_nuts_short_run(fitted, tmp_path):
     assert s["wall_s"] > 0 and s["ess_min_per_s"] == pytest.approx(s["ess_min"] / s["wall_s"])
     assert 0 < s["ess_min"] and 0.9 < s["rhat_max"]
     assert r.gradient_evaluations >= 2 * 120
+    assert s["start"] == "mode" and s["start_info"]["used"] == "mode"
+    import json
+
+    json.dumps(s)  # the CLI writes it into the calibration JSON
     n1 = s["parameters"]["n1"]
     assert n1["interval95"][0] < n1["median"] < n1["interval95"][1]
     assert abs(n1["median"] - small.waveguide.n1) < 0.01

@@ -64,7 +64,7 @@ class NutsOptions:
     draws: int = 1000
     start: str = "mode"
     seed: int = 0
-    target_accept: float = 0.8
+    target_accept: float = 0.9
     max_tree_depth: int = 10
     dense: bool = True
     pilot: bool = False
