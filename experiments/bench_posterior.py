@@ -18,8 +18,8 @@ split R-hat; emcee's walkers count as chains, which they are not quite: they are
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
 load-independent figures. Writes ``posterior.json`` in ``--out``; the defaults (4 x (250 +
-800), 32 walkers x 3000 steps) take about 3 minutes on an idle 2-core machine (estimated
-from the loaded one's gradient counts).
+1000), 32 walkers x 3000 steps) should take about 3-4 minutes on an idle 2-core machine
+(estimated from the loaded one's gradient counts and a 1 ms gradient; not measured idle).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
@@ -202,7 +202,7 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--chains", type=int, default=4)
     ap.add_argument("--warmup", type=int, default=250)
-    ap.add_argument("--draws", type=int, default=800)
+    ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
     ap.add_argument("--target-accept", type=float, default=0.9)
     ap.add_argument("--max-tree-depth", type=int, default=10)
