@@ -159,6 +159,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
         "pilot": nuts.pilot,
+        "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
         "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
         "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
