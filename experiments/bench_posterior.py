@@ -1,18 +1,25 @@
 """Benchmark: NUTS against emcee on the same calibration posterior, in one run.
 
 Simulates the default OptoSkin baseline (100 frames), fits it, builds the posterior once
-(:func:`tofjax.fit.posterior.log_density`: the linear parameters integrated out, the fit's
-weak prior, the nuisance prior of width ``--nuisance-width``) and samples it with both:
+(:func:`tofjax.fit.posterior.log_density`: the linear parameters integrated out with the
+log-uniform gain prior (``--gain-prior``), the fit's weak prior, the nuisance prior of width
+``--nuisance-width``), measures the cost of one value and gradient (a NUTS leapfrog step)
+and of one batch of ``--walkers`` values (an emcee step) side by side, and samples it with both:
 
-- NUTS (:func:`tofjax.fit.nuts.sample_nuts`): ``--chains`` x (``--warmup`` + ``--draws``);
-  compiled ahead of time, so ``wall_s`` is the warm sampling time (``compile_s`` beside it).
+- NUTS (:func:`tofjax.fit.nuts.sample_nuts`): started at the log-density's mode,
+  ``--chains`` x (``--warmup`` + ``--draws``), target acceptance ``--target-accept``;
+  compiled ahead of time, so ``wall_s`` is warm (finding the mode, warm-up and draws;
+  ``compile_s`` beside it). ``gradient_evaluations`` counts every one (mode included).
 - emcee (:func:`tofjax.fit.posterior.sample_posterior`'s sampler): ``--walkers`` walkers for
   ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in.
 
 Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-normalised
 split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
-burn-in included). Writes ``posterior.json`` in ``--out``.
+burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
+load-independent figures. Writes ``posterior.json`` in ``--out``; the defaults (4 x (250 +
+1000), 32 walkers x 3000 steps) should take about 3-4 minutes on an idle 2-core machine
+(estimated from the loaded one's gradient counts and a 1 ms gradient; not measured idle).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
@@ -31,7 +38,7 @@ import numpy as np
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
 from tofjax.fit.nuts import NutsOptions, diagnostics, sample_nuts
-from tofjax.fit.posterior import HELD, NUISANCE_WIDTH, log_density
+from tofjax.fit.posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
@@ -70,7 +77,33 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
         "steps_over_tau": float(steps / np.nanmax(tau)),
         "ess_emcee_tau": float(keep.shape[0] * walkers / np.nanmax(tau)),
         "log_prob_calls": steps,
+        "log_density_evaluations": steps * walkers,
+        "ess_min_per_evaluation": d["ess_min"] / (steps * walkers),
     }
+
+
+def evaluation_cost(ld, walkers: int, repeats: int = 20) -> dict:
+    """Median seconds of one log-density value and gradient (what a NUTS leapfrog step costs)
+    and of one batched call of ``walkers`` values (one emcee step), measured side by side."""
+    import jax
+    import jax.numpy as jnp
+
+    vg = jax.jit(jax.value_and_grad(ld.fn))
+    f0 = jnp.asarray(ld.flat0)
+    rng = np.random.default_rng(0)
+    pts = ld.flat0[None, :] + 0.1 * np.sqrt(np.diag(ld.laplace_cov))[None, :] * rng.normal(size=(walkers, ld.flat0.size))
+    jax.block_until_ready(vg(f0))
+    ld.batch(pts)
+    tg, tb = [], []
+    for i in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(vg(jnp.asarray(pts[i % walkers])))
+        tg.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        ld.batch(pts)
+        tb.append(time.perf_counter() - t)
+    return {"value_and_gradient_s": float(np.median(tg)), "batch_of_walkers_values_s": float(np.median(tb)),
+            "value_per_point_in_batch_s": float(np.median(tb)) / walkers, "walkers": walkers, "repeats": repeats}
 
 
 def small_scene_of(scene_name: str, small=None):
@@ -88,7 +121,8 @@ def small_scene_of(scene_name: str, small=None):
     return scene, f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None) -> dict:
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
+        gain_prior: str = GAIN_PRIOR, note: str = "") -> dict:
     scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
@@ -96,7 +130,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
     fit = cal.fit(cap)
     fit_s = time.perf_counter() - t
     print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
-    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold)
+    load_start = os.getloadavg()[0]
+    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold, gain_prior)
+    cost = evaluation_cost(ld, walkers)
+    print(f"value+gradient {1e3 * cost['value_and_gradient_s']:.2f} ms, {walkers} values batched "
+          f"{1e3 * cost['batch_of_walkers_values_s']:.2f} ms", flush=True)
     t = time.perf_counter()
     warm = sample_nuts(cal, cap, fit, nuts, density=ld)
     warm_total = time.perf_counter() - t
@@ -120,7 +158,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "step_size": s["step_size"],
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
+        "pilot": nuts.pilot,
+        "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
+        "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
+        "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
     }
     print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
     em = run_emcee(ld, walkers, emcee_steps)
@@ -133,15 +175,22 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "nuts_over_emcee_ess_per_s_ge_10": ratio >= 10,
     }
     result = {
+        **({"note": note} if note else {}),
         "benchmark": "calibration posterior: NUTS (blackjax) against emcee on the same log-density",
         "data": f"simulated {label}, {frames} frames (seed 1)",
         "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
-        f"(load average at the end {os.getloadavg()[0]:.1f}); JAX {__import__('jax').__version__}",
+        f"(load average {load_start:.1f} before sampling, {os.getloadavg()[0]:.1f} at the end); JAX {__import__('jax').__version__}",
+        "load_average": {"before_sampling": load_start, "end": os.getloadavg()[0]},
         "posterior": {"coordinates": list(ld.coords), "parameters": ld.names, "nuisance_width": nuts.nuisance_width,
-                      "held_at_fit": list(nuts.hold), "linear_parameters": "integrated out analytically"},
+                      "held_at_fit": list(nuts.hold), "gain_prior": gain_prior,
+                      "linear_parameters": "integrated out analytically (gain: log-uniform prior; counts: uniform)"
+                      if gain_prior == "log-uniform" else "integrated out analytically (flat priors)"},
         "fit_s": fit_s,
+        "evaluation_cost": cost,
         "samplers": {"nuts": nuts_row, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
+        "nuts_over_emcee_ess_min_per_evaluation": nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"]
+        if em["ess_min_per_evaluation"] > 0 else float("inf"),
         "targets": targets,
     }
     atomic_write_text(out / "posterior.json", json.dumps(result, indent=1))
@@ -153,16 +202,19 @@ def main(argv=None):
     ap.add_argument("--scene", default="optoskin")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--chains", type=int, default=4)
-    ap.add_argument("--warmup", type=int, default=500)
+    ap.add_argument("--warmup", type=int, default=250)
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
-    ap.add_argument("--target-accept", type=float, default=0.8)
+    ap.add_argument("--target-accept", type=float, default=0.9)
     ap.add_argument("--max-tree-depth", type=int, default=10)
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
+    ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
+    ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
                     help="a reduced scene instead of the default baseline (e.g. 3 3 96)")
+    ap.add_argument("--note", default="", help="a line stored as the JSON's 'note' (how and where it was run)")
     ap.add_argument("--out", default="out/bench_posterior")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -174,8 +226,8 @@ def main(argv=None):
     check_output(out / "posterior.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
-                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold))
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small)
+                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})

@@ -1,15 +1,20 @@
-"""Why NUTS mixes slowly on the calibration posterior: where its draws lie against the point fit.
+"""Why the calibration posterior had its bulk away from the point fit: the gain prior's volume term.
 
-Simulates the reduced OptoSkin baseline of ``bench_posterior.py --small 3 3 96`` (100 frames,
-seed 1), fits it, samples the posterior with NUTS (slow pulse tail held at the fit; the
-default nuisance prior), then reports, on that posterior's own coordinates:
+Simulates the default OptoSkin baseline (or ``--small S Z B``, the reduced scene of
+``bench_posterior.py``; 100 frames, seed 1), fits it, builds the posterior's log-density
+(:func:`tofjax.fit.posterior.log_density`: slow pulse tail held at the fit, the default
+nuisance prior) and walks from the fit along the Laplace covariance's widest direction (the
+ridge where albedo, end reflectance and interface backscatter trade against the zone gains),
+``t`` in Laplace standard errors. At each point it splits the log-density into its parts:
 
-- per coordinate: the draws' mean minus the fit, in Laplace standard errors, and the draws'
-  standard deviation over the Laplace one;
-- the eigenvalues of the draws' covariance in coordinates whitened by the Laplace covariance
-  (all 1 if the Laplace approximation were the posterior);
-- the log-density along the straight line from the fit (t = 0) through the draws' mean
-  (t = 1): a second maximum and the valley between them mean two modes (or a curved ridge).
+- ``profile``: ``-chi2/2`` at the profiled linear parameters (the point fit's objective);
+- ``half_logdet``: ``-1/2 log det(A^T W A)``, the Gaussian volume of the linear parameters;
+- ``log_gain``: ``-sum log g*`` over the profiled zone gains, the log-uniform gain prior's term;
+- ``prior``: the fit's weak prior and the nuisance prior;
+
+and the totals with the flat gain prior (``profile + half_logdet + prior``, the log-density
+before issue 16's rework) and with the log-uniform one (``+ log_gain``, the default now). A
+volume term that changes along the ridge moves the posterior's mass away from the fit.
 
 Writes ``posterior_geometry.json`` in ``--out``. Simulated data.
 
@@ -30,46 +35,61 @@ import tofjax
 from tofjax.outputs import atomic_write_text, check_output
 
 
-def run(out: Path, chains: int = 4, warmup: int = 300, draws: int = 500) -> dict:
-    from bench_posterior import small_scene_of  # noqa: PLC0415 (the benchmark's reduced scene)
+def run(out: Path, small=None) -> dict:
+    import jax
+    import jax.numpy as jnp
+    from bench_posterior import small_scene_of  # noqa: PLC0415 (the benchmark's scenes)
 
     from tofjax.fit.calibrate import Calibrator, FitConfig
-    from tofjax.fit.nuts import NutsOptions, sample_nuts
     from tofjax.fit.posterior import log_density
     from tofjax.simulate import simulate
 
-    scene, label = small_scene_of("optoskin", (3, 3, 96))
+    scene, label = small_scene_of("optoskin", small)
     cap = simulate(scene, 100, seed=1)
     cal = Calibrator(scene, FitConfig())
     fit = cal.fit(cap)
-    opts = NutsOptions(chains=chains, warmup=warmup, draws=draws, pilot=False)  # bench_posterior's program, one run
-    ld = log_density(cal, cap, fit, opts.nuisance_width, opts.hold)
-    r = sample_nuts(cal, cap, fit, opts, density=ld)
-    x = r.chains_unconstrained.reshape(-1, ld.flat0.size)
-    sd = np.sqrt(np.diag(ld.laplace_cov))
-    mean = x.mean(0)
-    L = np.linalg.cholesky(ld.laplace_cov)
-    Li = np.linalg.inv(L)
-    eig = np.linalg.eigvalsh(Li @ np.cov(x.T) @ Li.T)
-    t = np.linspace(-0.2, 1.4, 33)
-    lp = ld.batch(ld.flat0[None] + t[:, None] * (mean - ld.flat0)[None])
-    inner = (t > 0) & (t < 1)
+    ld = log_density(cal, cap, fit)
+    pb = cal.problem
+    base, data, sigma, prior, widths, held, _ = ld.args
+
+    _, unravel = jax.flatten_util.ravel_pytree(ld.template)
+
+    @jax.jit
+    def parts(flat):
+        u = {**held, **unravel(flat)}
+        _, m, logdet, lin = pb.profile(pb.unpack(u, base), data, sigma)
+        pr = jnp.sum(pb.prior_residuals(u, prior) ** 2) + sum(jnp.sum(((u[k] - prior[k]) / w) ** 2) for k, w in widths.items())
+        return jnp.stack([-0.5 * jnp.sum(((m - data) / sigma) ** 2), -0.5 * logdet, -jnp.sum(jnp.log(lin["gain"])),
+                          -0.5 * pr, jnp.mean(lin["gain"])])
+
+    w, V = np.linalg.eigh(ld.laplace_cov)
+    v = V[:, -1] * np.sqrt(w[-1])
+    v = v * np.sign(v[list(ld.coords).index("albedo")]) if "albedo" in ld.coords else v
+    t = np.linspace(-2.0, 2.0, 17)
+    rows = np.array([np.asarray(parts(jnp.asarray(ld.to_fit(ld.flat0 + ti * v)))) for ti in t])
+    rows[:, :4] -= rows[np.argmin(np.abs(t)), :4]  # relative to the fit
+    flat = rows[:, 0] + rows[:, 1] + rows[:, 3]
+    logu = flat + rows[:, 2]
+
+    def slope(y):  # nats per Laplace standard error, fitted over |t| <= 1
+        k = np.abs(t) <= 1 + 1e-9
+        return float(np.polyfit(t[k], y[k], 1)[0])
+
     result = {
-        "study": "geometry of the calibration posterior (NUTS draws against the point fit's Laplace approximation)",
+        "study": "geometry of the calibration posterior along its ridge: the parts of the log-density",
         "data": f"simulated {label}, 100 frames (seed 1)",
         "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores shared with other jobs "
         f"(load average at the end {os.getloadavg()[0]:.1f})",
-        "nuts": {"chains": chains, "warmup": warmup, "draws": draws, "pilot": opts.pilot, "held_at_fit": list(opts.hold),
-                 "divergences": r.divergences, "rhat_max": r.diagnostics["rhat_max"], "ess_bulk": r.diagnostics["ess_bulk"]},
+        "zones": int(np.prod(np.shape(fit.params.crosstalk_counts))),
         "coordinates": list(ld.coords),
-        "draws_mean_minus_fit_in_laplace_sd": dict(zip(ld.coords, ((mean - ld.flat0) / sd).tolist())),
-        "draws_sd_over_laplace_sd": dict(zip(ld.coords, (x.std(0) / sd).tolist())),
-        "whitened_covariance_eigenvalues": eig.tolist(),
-        "line_from_fit_to_draws_mean": {"t": t.tolist(), "log_density": lp.tolist()},
-        "log_density_at_fit": float(lp[np.argmin(np.abs(t))]),
-        "log_density_max_on_line": float(lp.max()),
-        "t_of_max": float(t[np.argmax(lp)]),
-        "log_density_min_between": float(lp[inner].min()),
+        "direction_per_laplace_sd": dict(zip(ld.coords, v.tolist())),
+        "t_laplace_sd": t.tolist(),
+        "relative_to_fit": {"profile": rows[:, 0].tolist(), "half_logdet": rows[:, 1].tolist(), "log_gain": rows[:, 2].tolist(),
+                            "prior": rows[:, 3].tolist(), "total_flat_gain_prior": flat.tolist(),
+                            "total_log_uniform_gain_prior": logu.tolist()},
+        "mean_zone_gain": rows[:, 4].tolist(),
+        "slope_nats_per_sd": {"half_logdet": slope(rows[:, 1]), "log_gain": slope(rows[:, 2]),
+                              "volume_flat": slope(rows[:, 1]), "volume_log_uniform": slope(rows[:, 1] + rows[:, 2])},
     }
     atomic_write_text(out / "posterior_geometry.json", json.dumps(result, indent=1))
     return result
@@ -77,6 +97,7 @@ def run(out: Path, chains: int = 4, warmup: int = 300, draws: int = 500) -> dict
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"), help="a reduced scene (e.g. 3 3 96)")
     ap.add_argument("--out", default="out/posterior_geometry")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -87,8 +108,8 @@ def main(argv=None):
     out = Path(a.out)
     check_output(out / "posterior_geometry.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    r = run(out)
-    print(json.dumps({k: v for k, v in r.items() if k != "line_from_fit_to_draws_mean"}, indent=1))
+    r = run(out, a.small)
+    print(json.dumps({k: r[k] for k in ("data", "zones", "slope_nats_per_sd", "relative_to_fit")}, indent=1))
 
 
 if __name__ == "__main__":

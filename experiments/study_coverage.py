@@ -59,8 +59,9 @@ class CoverageConfig:
     warmup: int = 200
     draws: int = 300
     nuisance_width: float = 0.3
-    pilot: bool = True
+    pilot: bool = False
     target_accept: float = 0.8
+    gain_prior: str = "log-uniform"
 
     def __post_init__(self):
         if self.sampler not in ("nuts", "emcee"):
@@ -174,11 +175,13 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
         t = time.perf_counter()
         if config.sampler == "nuts":
             opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
-                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept)
+                               nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept,
+                               gain_prior=config.gain_prior)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
-                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width))
+                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width,
+                gain_prior=config.gain_prior))
         post_s += time.perf_counter() - t
         row = rows[k]
         row["posterior"] = {
@@ -213,7 +216,8 @@ def merge(parts: list[dict]) -> dict:
             if row["seed"] not in by_seed or (row.get("posterior") and not by_seed[row["seed"]].get("posterior")):
                 by_seed[row["seed"]] = row
     rows = [by_seed[k] for k in sorted(by_seed)]
-    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept")
+    keys = ("sensors", "zones", "bins", "frames", "sampler", "chains", "warmup", "draws", "nuisance_width", "pilot", "target_accept",
+            "gain_prior")
     for r in parts[1:]:
         if any(r["config"].get(k) != parts[0]["config"].get(k) for k in keys):
             raise ValueError("merge: the parts differ in their settings")

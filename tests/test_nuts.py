@@ -67,6 +67,10 @@ def test_nuts_short_run(fitted, tmp_path):
     assert s["wall_s"] > 0 and s["ess_min_per_s"] == pytest.approx(s["ess_min"] / s["wall_s"])
     assert 0 < s["ess_min"] and 0.9 < s["rhat_max"]
     assert r.gradient_evaluations >= 2 * 120
+    assert s["start"] == "mode" and s["start_info"]["used"] == "mode"
+    import json
+
+    json.dumps(s)  # the CLI writes it into the calibration JSON
     n1 = s["parameters"]["n1"]
     assert n1["interval95"][0] < n1["median"] < n1["interval95"][1]
     assert abs(n1["median"] - small.waveguide.n1) < 0.01
@@ -89,7 +93,7 @@ def test_diagnostics_properties():
 
 
 @pytest.mark.parametrize("kw", [{"chains": 0}, {"warmup": 5}, {"draws": -1}, {"draws": 1.5}, {"target_accept": 1.0},
-                                {"max_tree_depth": 0}, {"chains": True}])
+                                {"max_tree_depth": 0}, {"chains": True}, {"gain_prior": "jeffreys"}])
 def test_bad_options_are_one_line_errors(kw):
     with pytest.raises(UserError, match=next(iter(kw))):
         NutsOptions(**kw)
@@ -102,3 +106,95 @@ def test_cli_nuts_options_need_nuts(tmp_path, capsys):
     assert rc != 0 and "--chains: only for --mcmc nuts" in err and "Traceback" not in err
     with pytest.raises(SystemExit):  # argparse: an unknown sampler
         main(["calibrate", str(tmp_path / "none.h5"), "--out", str(tmp_path / "c.json"), "--mcmc", "hmc"])
+
+
+def test_gain_prior_marginal_against_numerical_integral():
+    """The analytic marginal over a zone's linear parameters (gain g, light entry x, ambient a)
+    that the log-density uses, ``-chi2_min/2 - log det(A^T W A)/2 - log g*`` (log-uniform gain)
+    or without ``log g*`` (flat), against a numerical integral over (g, x, a) on a toy zone with
+    a loosely pinned gain (sd(g)/g ~ 6%, so the 1/g factor is not trivially constant). And why
+    the log-uniform prior: it does not depend on how the model per unit gain R is normalised
+    (R -> s R), the flat one moves by -log s."""
+    t = np.linspace(0, 1, 24)
+    R, P, one = np.exp(-3 * t) * (1 + 2 * t), np.exp(-0.5 * ((t - 0.2) / 0.05) ** 2), np.ones_like(t)
+    A = np.stack([R, P, one], 1)
+    truth = np.array([2.0, 1.5, 0.4])
+    sigma = (0.4 + 0.1 * t) / 3
+    y = A @ truth + sigma * np.random.default_rng(1).normal(size=t.size)
+
+    def analytic(A, log_gain):
+        W = 1 / sigma**2
+        G = A.T @ (A * W[:, None])
+        c = np.linalg.solve(G, A.T @ (W * y))
+        chi2 = np.sum(W * (y - A @ c) ** 2)
+        return -0.5 * chi2 - 0.5 * np.linalg.slogdet(G)[1] - (np.log(c[0]) if log_gain else 0.0) + 1.5 * np.log(2 * np.pi), c
+
+    def numerical(A, log_gain):
+        """Brute force: the integrand on a regular grid over +-8 standard errors of each."""
+        lp0, c = analytic(A, log_gain)
+        W = 1 / sigma**2
+        sd = np.sqrt(np.diag(np.linalg.inv(A.T @ (A * W[:, None]))))
+        axes = [np.linspace(ci - 8 * s, ci + 8 * s, 61) for ci, s in zip(c, sd)]
+        assert axes[0][0] > 0  # the gain's integral kept to g > 0 (the prior's support)
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        chi2 = np.sum(W * (y[None] - grid @ A.T) ** 2, axis=1)
+        f = np.exp(-0.5 * chi2 - lp0) / (grid[:, 0] if log_gain else 1.0)
+        return lp0 + np.log(f.sum() * np.prod([a[1] - a[0] for a in axes]))
+
+    for log_gain in (True, False):
+        lp, c = analytic(A, log_gain)
+        sd_g = np.sqrt(np.linalg.inv(A.T @ (A / sigma[:, None] ** 2))[0, 0])
+        assert 0.03 < sd_g / c[0] < 0.1
+        # the 1/g factor taken at g*: off by ~(sd/g)^2, here < 1%; exact for the flat prior
+        assert numerical(A, log_gain) == pytest.approx(lp, abs=0.01 if log_gain else 1e-4)
+    s = 7.0
+    As = A * np.array([s, 1, 1])
+    assert analytic(As, True)[0] == pytest.approx(analytic(A, True)[0], abs=1e-9)
+    assert analytic(As, False)[0] - analytic(A, False)[0] == pytest.approx(-np.log(s), abs=1e-9)
+
+
+def test_log_density_gain_prior_and_gradient(fitted):
+    """The log-uniform gain prior adds exactly -sum log g* (the profiled zone gains) to the flat
+    one (at the fit: the fit's own profiled gains); the gradient (what NUTS follows) agrees
+    with central finite differences along a random direction in Laplace-scaled units; an unknown gain prior is a one-line error."""
+    import jax.numpy as jnp
+
+    _, cal, res, cap = fitted
+    ld = log_density(cal, cap, res)
+    flat = log_density(cal, cap, res, gain_prior="flat")
+    gains = np.asarray(res.values["gain"])  # the fit's profiled zone gains, at the same point
+    assert gains.shape == (3, 3)
+    assert float(ld.batch(ld.flat0[None])[0]) - float(flat.batch(flat.flat0[None])[0]) == pytest.approx(
+        -float(np.sum(np.log(gains))), abs=1e-6)
+    from tofjax.fit.posterior import _value_and_grad
+
+    d = np.sqrt(np.diag(ld.laplace_cov)) * np.random.default_rng(0).normal(size=ld.flat0.size)
+    _, g = _value_and_grad(ld.problem, ld.template, ld.args, jnp.asarray(ld.flat0), ld.idx)
+    hs = np.array([0.05, 0.025])
+    v = np.array([ld.batch((ld.flat0 + x)[None])[0] for x in (*(hs[:, None] * d), *(-hs[:, None] * d))])  # one shape: one program
+    for fd in (v[:2] - v[2:]) / (2 * hs):
+        assert fd == pytest.approx(float(np.asarray(g) @ d), rel=0.02, abs=0.05)
+    with pytest.raises(UserError, match="gain_prior"):
+        log_density(cal, cap, res, gain_prior="jeffreys")
+
+
+def test_log_fraction_coordinates_round_trip_and_jacobian():
+    """The samplers' coordinates for albedo and end reflectance (w, with log p = -softplus(-k w)/k):
+    the inverse maps back, ``log |d logit p / d w|`` is the derivative's log (finite differences),
+    and w = log p away from p = 1 (so the ridge, straight in log p, stays straight)."""
+    import jax.numpy as jnp
+
+    from tofjax.fit.posterior import STEEP, _to_fit, _to_sampler_np
+
+    u = np.array([-3.0, 0.0, 0.3, 2.5, 4.0])
+    idx = (0, 1, 2, 3)
+    w = _to_sampler_np(u, idx)
+    back, _ = _to_fit(jnp.asarray(w), idx)
+    np.testing.assert_allclose(np.asarray(back), u, atol=1e-9)
+    assert w[4] == u[4]
+    p = 1 / (1 + np.exp(-u[:4]))
+    far = p < 0.8
+    np.testing.assert_allclose(w[:4][far], np.log(p[far]), atol=1e-6 * STEEP)
+    h = 1e-6
+    du = (np.asarray(_to_fit(jnp.asarray(w + h), idx)[0]) - np.asarray(_to_fit(jnp.asarray(w - h), idx)[0]))[:4] / (2 * h)
+    assert float(_to_fit(jnp.asarray(w), idx)[1]) == pytest.approx(np.sum(np.log(du)), rel=1e-5, abs=1e-5)

@@ -1,28 +1,29 @@
 """Posterior of the calibration parameters with NUTS (blackjax), diagnosed with ArviZ.
 
 The target is :func:`tofjax.fit.posterior.log_density`, the same log-density emcee samples:
-the nonlinear parameters in the fit's unconstrained space, the linear ones integrated out.
-NUTS starts at the point fit and works in coordinates whitened by its Laplace covariance,
-``u = u_fit + L z`` with ``L L^T = (J^T J)^-1``: there most coordinates are close to a unit
-normal, so the initial step size and an identity mass matrix are already good, and the
-strong correlations of the nuisance parameters (interface backscatter, end reflectance and
-albedo move together) no longer slow the sampler. Stan's window adaptation then tunes the
-step size and a dense mass matrix on top. Chains start at independent draws from the
-Laplace approximation, so R-hat compares chains that began apart.
+the nonlinear parameters in the fit's unconstrained space, the linear ones integrated out
+(log-uniform gain prior). NUTS starts at the log-density's mode, not at the point fit
+(:func:`tofjax.fit.posterior.posterior_mode`: BFGS from the fit, then the Hessian there by
+differences of the gradient): the nuisance prior, which the fit does not have, moves the
+mode 1.5-2.5 of the fit's Laplace standard errors along the ridge (albedo, end reflectance
+and interface backscatter), where the fit's ``J^T J`` is also the wrong curvature. NUTS works
+in coordinates whitened by the Laplace covariance at the mode, ``u = u_mode + L z`` with
+``L L^T = H^-1``: there the posterior is close to a unit normal, so the initial step size and
+an identity mass matrix are already good, and the strong correlations (the ridge; n1, pulse
+and emission time) no longer slow the sampler. Stan's window adaptation then tunes the step
+size and a dense mass matrix on top. Chains start at independent draws from that Laplace
+approximation, so R-hat compares chains that began apart. ``start="fit"`` and ``pilot``
+(a first run whose draws whiten the kept one) remain as options.
 
-The fit is not where the posterior's mass is (the ridge of albedo, end reflectance and
-interface backscatter has a second, sharper mode at the point fit and its bulk several
-Laplace standard errors away; README "Posterior speed"), so by default a pilot run of the
-same chains goes first: its draws' mean and covariance whiten the kept run, which starts
-where the pilot ended (``NutsOptions.pilot``).
-
-Warm-up and sampling of every chain are one compiled, vmapped program with one NUTS kernel
-(the window adaptation is driven by hand, so the kernel is not compiled twice), compiled once
-per problem shape (not per capture): a study's replicates and the pilot reuse it.
+Warm-up and sampling of one chain are one compiled program with one NUTS kernel (the window
+adaptation is driven by hand, so the kernel is not compiled twice), compiled once per problem
+shape (not per capture): the chains, a study's replicates and the pilot reuse it. The chains
+run one after the other (vmapped, each NUTS step would last as long as the longest chain's).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass
@@ -35,7 +36,7 @@ import numpy as np
 
 from ..capture import Capture
 from .calibrate import CalibrationError, CalibrationResult, Calibrator
-from .posterior import HELD, NUISANCE_WIDTH, LogDensity, log_density, log_prob, summarise
+from .posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, LogDensity, _value_and_grad, log_density, log_prob, posterior_mode, summarise
 
 __all__ = ["NutsOptions", "NutsResult", "sample_nuts", "diagnostics"]
 
@@ -46,25 +47,30 @@ class NutsOptionsError(CalibrationError):
 
 @dataclass(frozen=True)
 class NutsOptions:
-    """``chains`` (run in parallel, vmapped), ``warmup`` steps of window adaptation per chain,
-    ``draws`` kept per chain, ``seed``, ``target_accept`` (the adaptation's target acceptance),
+    """``chains`` (run one after the other), ``warmup`` steps of window adaptation per chain,
+    ``draws`` kept per chain, ``start`` ("mode": the chains start at draws from the Laplace
+    approximation at the log-density's mode, found first by BFGS, and work in coordinates
+    whitened by it; "fit": at the point fit and its Laplace covariance), ``seed``, ``target_accept`` (the adaptation's target acceptance),
     ``max_tree_depth`` (at most 2^depth leapfrog steps per draw), ``dense`` (a dense mass
     matrix; False: diagonal), ``pilot`` (run the same chains twice: the first run, from the
     Laplace approximation at the fit, only finds the posterior's bulk and its covariance; the
     second, the one reported, works in coordinates whitened by them and starts where the
     first ended; wall time and gradient evaluations count both), ``nuisance_width`` (the prior of
-    :func:`~tofjax.fit.posterior.log_density`), ``hold`` (its coordinates held at the fit)."""
+    :func:`~tofjax.fit.posterior.log_density`), ``hold`` (its coordinates held at the fit),
+    ``gain_prior`` (its prior of the integrated-out gains)."""
 
     chains: int = 4
     warmup: int = 500
     draws: int = 1000
+    start: str = "mode"
     seed: int = 0
-    target_accept: float = 0.8
+    target_accept: float = 0.9
     max_tree_depth: int = 10
     dense: bool = True
-    pilot: bool = True
+    pilot: bool = False
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
+    gain_prior: str = GAIN_PRIOR
 
     def __post_init__(self):
         for k, lo in (("chains", 1), ("warmup", 10), ("draws", 10), ("max_tree_depth", 1)):
@@ -73,6 +79,10 @@ class NutsOptions:
                 raise NutsOptionsError(f"{k}: must be an integer >= {lo}, got {v!r}")
         if not 0.5 <= self.target_accept < 1:
             raise NutsOptionsError(f"target_accept: must be in [0.5, 1), got {self.target_accept!r}")
+        if self.start not in ("mode", "fit"):
+            raise NutsOptionsError(f"start: mode or fit, got {self.start!r}")
+        if self.gain_prior not in GAIN_PRIORS:
+            raise NutsOptionsError(f"gain_prior: one of {', '.join(GAIN_PRIORS)}, got {self.gain_prior!r}")
 
 
 @dataclass
@@ -80,17 +90,18 @@ class NutsResult:
     names: list[str]  # physical parameters, the columns of ``samples``
     samples: np.ndarray  # (chains x draws, P) physical units
     chains_physical: np.ndarray  # (chains, draws, P) physical units, for traces and diagnostics
-    chains_unconstrained: np.ndarray  # (chains, draws, coordinates) the sampler's space
+    chains_unconstrained: np.ndarray  # (chains, draws, coordinates) the fit's unconstrained space
     coords: tuple[str, ...]
     divergences: int
     step_size: np.ndarray  # (chains,) adapted
     mean_tree_depth: float
     mean_accept: float
     gradient_evaluations: int  # leapfrog steps, all chains, warm-up included
-    wall_s: float  # warm-up and sampling (compilation excluded)
+    wall_s: float  # finding the mode, warm-up and sampling (compilation excluded)
     compile_s: float  # tracing and compiling (or reading the compilation cache); ~0 when reused
     diagnostics: dict[str, Any]
     options: NutsOptions
+    start_info: dict = dataclasses.field(default_factory=dict)  # posterior_mode's info (start "mode")
 
     def summary(self) -> dict[str, Any]:
         d = self.diagnostics
@@ -101,9 +112,12 @@ class NutsResult:
             "warmup": self.options.warmup,
             "draws": self.options.draws,
             "pilot": self.options.pilot,
+            "start": self.options.start,
+            "start_info": self.start_info,
             "target_accept": self.options.target_accept,
             "nuisance_width": self.options.nuisance_width,
             "held_at_fit": list(self.options.hold),
+            "gain_prior": self.options.gain_prior,
             "divergences": self.divergences,
             "step_size": self.step_size.tolist(),
             "mean_tree_depth": self.mean_tree_depth,
@@ -151,17 +165,20 @@ def diagnostics(names: list[str], chains: np.ndarray) -> dict[str, Any]:
 
 
 @eqx.filter_jit
-def _run(problem, template, args, flat0, chol, keys, z0, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
-    """Warm-up and draws of every chain (vmapped) as one scan over one NUTS kernel: Stan's
-    window adaptation (blackjax's ``window_adaptation.base`` and schedule) updates the step
-    size and mass matrix during the first ``warmup`` steps and is frozen after, at its final
-    values. One kernel in the program, not blackjax's two (adaptation and sampling), halves
-    what XLA compiles."""
+def _run(problem, template, args, idx, flat0, chol, key, z_start, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
+    """Warm-up and draws of one chain as one scan over one NUTS kernel: Stan's window
+    adaptation (blackjax's ``window_adaptation.base`` and schedule) updates the step size and
+    mass matrix during the first ``warmup`` steps and is frozen after, at its final values.
+    One kernel in the program, not blackjax's two (adaptation and sampling), halves what XLA
+    compiles. One chain per call, not the chains vmapped: a vmapped NUTS step runs every
+    chain's trajectory as long as the longest one, the batched model's gradient compiles
+    separately and costs as much per chain on a CPU (measured on the default baseline: 1.0 ms
+    for one gradient, 4.1 ms for four vmapped)."""
     import blackjax
     from blackjax.adaptation.window_adaptation import base, build_schedule
 
     def logdensity(z):
-        return log_prob(problem, template, args, flat0 + chol @ z)
+        return log_prob(problem, template, args, flat0 + chol @ z, idx)
 
     with warnings.catch_warnings():  # blackjax 1.7 marks base() deprecated (staged_adaptation is its successor)
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -174,24 +191,21 @@ def _run(problem, template, args, flat0, chol, keys, z0, warmup: int, draws: int
     window_end = jnp.asarray(np.concatenate([schedule[:, 1], np.zeros(draws, np.int32)]).astype(bool))
     warming = jnp.arange(n) < warmup
 
-    def one_chain(key, z_start):
-        def step(carry, x):
-            state, adapt = carry
-            k, st, end, warm = x
-            final_step, final_imm = adapt_final(adapt)
-            step_size = jnp.where(warm, adapt.step_size, final_step)
-            imm = jnp.where(warm, adapt.inverse_mass_matrix, final_imm)
-            state, info = kernel(k, state, logdensity, step_size, imm, depth)
-            updated = adapt_update(adapt, (st, end), state.position, info.acceptance_rate)
-            adapt = jax.tree_util.tree_map(lambda u, a: jnp.where(warm, u, a), updated, adapt)
-            return (state, adapt), (state.position, info.is_divergent, info.num_integration_steps, info.acceptance_rate,
-                                    info.num_trajectory_expansions, step_size)
+    def step(carry, x):
+        state, adapt = carry
+        k, st, end, warm = x
+        final_step, final_imm = adapt_final(adapt)
+        step_size = jnp.where(warm, adapt.step_size, final_step)
+        imm = jnp.where(warm, adapt.inverse_mass_matrix, final_imm)
+        state, info = kernel(k, state, logdensity, step_size, imm, depth)
+        updated = adapt_update(adapt, (st, end), state.position, info.acceptance_rate)
+        adapt = jax.tree_util.tree_map(lambda u, a: jnp.where(warm, u, a), updated, adapt)
+        return (state, adapt), (state.position, info.is_divergent, info.num_integration_steps, info.acceptance_rate,
+                                info.num_trajectory_expansions, step_size)
 
-        carry = (blackjax.nuts.init(z_start, logdensity), adapt_init(z_start, 0.5))
-        _, (zs, div, nsteps, acc, depth_used, steps) = jax.lax.scan(step, carry, (jax.random.split(key, n), stage, window_end, warming))
-        return zs[warmup:], div[warmup:], nsteps[warmup:], acc[warmup:], depth_used[warmup:], steps[-1], jnp.sum(nsteps[:warmup])
-
-    return jax.vmap(one_chain)(keys, z0)
+    carry = (blackjax.nuts.init(z_start, logdensity), adapt_init(z_start, 0.5))
+    _, (zs, div, nsteps, acc, depth_used, steps) = jax.lax.scan(step, carry, (jax.random.split(key, n), stage, window_end, warming))
+    return zs[warmup:], div[warmup:], nsteps[warmup:], acc[warmup:], depth_used[warmup:], steps[-1], jnp.sum(nsteps[:warmup])
 
 
 _COMPILED: dict = {}
@@ -237,27 +251,40 @@ def sample_nuts(
     ``density``: a :func:`~tofjax.fit.posterior.log_density` already built for these
     (saves rebuilding it). Returns draws in physical units and ArviZ's diagnostics.
     """
-    ld = density if density is not None else log_density(calibrator, capture, fit, options.nuisance_width, options.hold)
+    ld = density if density is not None else log_density(calibrator, capture, fit, options.nuisance_width, options.hold, options.gain_prior)
     P = ld.flat0.size
     dtype = ld.args[1].dtype
     key = jax.random.PRNGKey(options.seed)
     k_start, k_chains, k_main = jax.random.split(key, 3)
     z0 = jax.random.normal(k_start, (options.chains, P), dtype)  # draws from the Laplace approximation
     statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth)
-    centre, chol = ld.flat0, _whitening(ld.laplace_cov)
     compile_s = wall = 0.0
-    grads = 0
-    runs = [k_chains, k_main] if options.pilot else [k_chains]
-    for i, k in enumerate(runs):
-        run_args = (ld.problem, ld.template, ld.args, jnp.asarray(centre, dtype), jnp.asarray(chol, dtype),
-                    jax.random.split(k, options.chains), jnp.asarray(z0, dtype))
+    if options.start == "mode":
         t = time.perf_counter()
-        compiled = _compiled(run_args, statics)  # the same program for the pilot and the run
+        jax.block_until_ready(_value_and_grad(ld.problem, ld.template, ld.args, jnp.asarray(ld.flat0, dtype), ld.idx))
         compile_s += time.perf_counter() - t
         t = time.perf_counter()
-        out = jax.block_until_ready(compiled(*run_args, *statics))
+        centre, cov, mode_info = posterior_mode(ld)
         wall += time.perf_counter() - t
-        zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.asarray(x) for x in out)
+        mode_info["seconds"] = time.perf_counter() - t
+        grads = mode_info["gradient_evaluations"]
+    else:
+        centre, cov, mode_info, grads = ld.flat0, ld.laplace_cov, {"used": "fit"}, 0
+    chol = _whitening(cov)
+    runs = [k_chains, k_main] if options.pilot else [k_chains]
+    for i, k in enumerate(runs):
+        keys = jax.random.split(k, options.chains)
+        outs = []
+        for c in range(options.chains):  # one compiled program serves every chain, the pilot and the run
+            run_args = (ld.problem, ld.template, ld.args, ld.idx, jnp.asarray(centre, dtype), jnp.asarray(chol, dtype),
+                        keys[c], jnp.asarray(z0[c], dtype))
+            t = time.perf_counter()
+            compiled = _compiled(run_args, statics)
+            compile_s += time.perf_counter() - t
+            t = time.perf_counter()
+            outs.append([np.asarray(x) for x in jax.block_until_ready(compiled(*run_args, *statics))])
+            wall += time.perf_counter() - t
+        zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.stack(x) for x in zip(*outs))
         grads += int(nsteps.sum() + warm_steps.sum())
         if i + 1 < len(runs):  # the pilot: whiten the run by its draws' mean and covariance
             flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
@@ -274,7 +301,7 @@ def sample_nuts(
         names=ld.names,
         samples=phys.reshape(C * N, -1),
         chains_physical=phys,
-        chains_unconstrained=flats,
+        chains_unconstrained=ld.to_fit(flats),
         coords=ld.coords,
         divergences=int(div.sum()),
         step_size=np.asarray(step_size, np.float64),
@@ -285,6 +312,7 @@ def sample_nuts(
         compile_s=compile_s,
         diagnostics=diag,
         options=options,
+        start_info=mode_info,
     )
 
 

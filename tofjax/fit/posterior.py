@@ -5,9 +5,24 @@
 parameters (n1, mu_s, mu_a, pulse, emission time, reflectances) in the fit's
 unconstrained space (:mod:`tofjax.fit.transforms`; mu_s and mu_a as log extinction and
 logit albedo). The linear ones (gain, light-entry and ambient counts) never reach the
-sampler: for the Gaussian (Poisson-weighted) likelihood with flat priors on them they are
-integrated out analytically, which adds ``-1/2 log det(A^T W A)`` to the profiled
-log-likelihood. The rest is the fit's own objective: the same noise (photon noise and
+sampler: they are integrated out analytically. Their prior:
+
+- **gain** (per zone with ``zone_gain``, else per sensor): log-uniform (``p(g) ~ 1/g`` on a
+  wide range ``[g_lo, g_hi]``, proper), the scale-invariant prior of a scale. With a flat
+  prior instead, the marginal carries ``-log ||R||`` per zone (``R`` the model per unit
+  gain): an arbitrary prior on the nonlinear parameters (it depends on how ``R`` is
+  normalised) that on the default baseline's 42 zones pulls by 3.9 nats per Laplace
+  standard error along the ridge where albedo, end reflectance and interface backscatter
+  trade against the gain (``GAIN_PRIOR``; README "Posterior speed").
+- **crosstalk and ambient counts**: uniform on a wide range (they are locations).
+
+For the Gaussian (Poisson-weighted) likelihood the integral over the linear parameters
+``c`` is then ``exp(-chi2_min / 2) (2 pi)^(k/2) det(A^T W A)^(-1/2) p(c*)``: the log-density
+adds ``-1/2 log det(A^T W A) - sum log g*`` to the profiled log-likelihood. Exact for the
+flat parts (the range's edges, and the non-negativity of the counts, are many standard
+errors away: the profiled values are used); for the ``1/g`` factor the error is of the
+order of ``(sd(g) / g)^2``, about 1e-6 on the baselines (each zone's gain is pinned to
+0.1%). The rest is the fit's own objective: the same noise (photon noise and
 ``model_error``), the fit config's weak Gaussian prior in the unconstrained space, and the
 timing anchor on n1 where the fit had one.
 """
@@ -33,7 +48,8 @@ from ._laplace import normal_covariance
 from .calibrate import CalibrationError, CalibrationResult, Calibrator, _anchor, _data, scene_fingerprint
 from .transforms import FITTABLE
 
-__all__ = ["HELD", "LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "sample_posterior", "summarise"]
+__all__ = ["GAIN_PRIOR", "GAIN_PRIORS", "HELD", "LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "posterior_mode",
+           "sample_posterior", "summarise"]
 
 
 #: Nuisance parameters the default baseline barely identifies: with only the fit's weak prior
@@ -53,19 +69,70 @@ NUISANCE_WIDTH = 0.3
 #: errors from the fit), the Laplace whitening is off by a factor of 8 in the fast tail, and
 #: the adapted step size collapses. They correlate with n1 and mu_s + mu_a by less than 0.1.
 HELD = ("pulse_slow_weight", "pulse_slow_tail_s")
+#: Prior of the profiled gains: "log-uniform" (default, ``p(g) ~ 1/g``) or "flat" (before
+#: issue 16's rework; its volume term ``-log ||R||`` per zone moved the posterior's bulk
+#: away from the fit along the ridge).
+GAIN_PRIORS = ("log-uniform", "flat")
+GAIN_PRIOR = "log-uniform"
+#: Fractions (in [0, 1], logit in the fit's space) that the samplers see as ``w`` with
+#: ``log p = -softplus(-STEEP w) / STEEP``: ``w = log p`` away from p = 1, smoothly bounded
+#: there. Along the ridge the posterior is straight in (log albedo, log end reflectance, log
+#: interface backscatter), all three moving together against the gain (NUTS draws on the
+#: default baseline: the quadratic part of one against another is -0.02 to 0.00 in log and
+#: -0.14 to -0.07 in logit, where the ridge's width is ~0.23 of its length): the logit curves
+#: it into a banana that needs a step size a tenth of the ridge's length.
+LOG_FRACTIONS = ("albedo", "end_reflectance")
+STEEP = 30.0
 
 
-def log_prob(problem, template, args, flat):
+def _to_fit(flat, idx):
+    """The fit's coordinates (logit) of the samplers' ``flat`` (``idx``: the flat indices of the
+    :data:`LOG_FRACTIONS` there) and ``log |d fit / d sampler|``."""
+    flat = jnp.asarray(flat)
+    if not idx:
+        return flat, jnp.zeros((), flat.dtype)
+    ii = jnp.asarray(idx)
+    w = flat[ii]
+    v = -jax.nn.softplus(-STEEP * w) / STEEP  # log p < 0
+    one_minus = -jnp.expm1(v)
+    u = v - jnp.log(one_minus)
+    log_jac = jnp.sum(-jnp.log(one_minus) + jax.nn.log_sigmoid(-STEEP * w))
+    return flat.at[ii].set(u), log_jac
+
+
+def _to_sampler_np(flat, idx):
+    """Inverse of :func:`_to_fit` (NumPy): logit p -> w."""
+    out = np.array(flat, np.float64, copy=True)
+    if idx:
+        u = out[..., list(idx)]
+        v = -np.logaddexp(0.0, -u)  # log sigmoid(u) = log p
+        out[..., list(idx)] = -np.log(np.expm1(-STEEP * v)) / STEEP
+    return out
+
+
+def log_prob(problem, template, args, flat, idx=()):
+    """:func:`log_prob_fit` at the samplers' coordinates ``flat`` (``idx``: the
+    :data:`LOG_FRACTIONS`' flat indices, sampled as ``w``), with the change of variables'
+    log Jacobian: the same posterior, in coordinates where its ridge is straight."""
+    u, log_jac = _to_fit(flat, idx)
+    return log_prob_fit(problem, template, args, u) + log_jac
+
+
+def log_prob_fit(problem, template, args, flat):
     """The log posterior at the flat coordinates ``flat`` (module-level, so one compiled
     program serves every capture of the same shape). ``template``: the coordinates' pytree
-    (gives the flat order); ``args = (base, data, sigma, prior, widths, held)``: the fit's
-    residuals' arguments, the nuisance prior's widths and the coordinates held fixed."""
-    base, data, sigma, prior, widths, held = args
+    (gives the flat order); ``args = (base, data, sigma, prior, widths, held, log_gain)``: the
+    fit's residuals' arguments, the nuisance prior's widths, the coordinates held fixed and
+    1.0 for the log-uniform gain prior (0.0: flat)."""
+    base, data, sigma, prior, widths, held, log_gain = args
     _, unravel = jax.flatten_util.ravel_pytree(template)
     u = {**held, **unravel(flat)}
     params = problem.unpack(u, base)
     if problem.linear:
-        _, m, logdet, _ = problem.profile(params, data, sigma)
+        _, m, logdet, lin = problem.profile(params, data, sigma)
+        if "gain" in lin:  # the log-uniform prior's 1/g at the profiled gains
+            g = lin["gain"]
+            logdet = logdet + 2.0 * log_gain * jnp.sum(jnp.log(jnp.where(g > 0, g, jnp.nan)))
     else:
         m, logdet = problem.model(params), 0.0
     r = (m - data) / sigma
@@ -75,7 +142,7 @@ def log_prob(problem, template, args, flat):
     return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
 
-_log_prob_batch = eqx.filter_jit(eqx.filter_vmap(log_prob, in_axes=(None, None, None, 0)))
+_log_prob_batch = eqx.filter_jit(eqx.filter_vmap(log_prob, in_axes=(None, None, None, 0, None)))
 
 
 @eqx.filter_jit
@@ -89,11 +156,11 @@ def _jtj_flat(problem, template, fit_args, held, flat):
 
 
 @eqx.filter_jit
-def _to_physical_batch(problem, template, flats):
+def _to_physical_batch(problem, template, flats, idx=()):
     _, unravel = jax.flatten_util.ravel_pytree(template)
 
     def one(f):
-        x = problem.physical(unravel(f))  # the sampled coordinates only
+        x = problem.physical(unravel(_to_fit(f, idx)[0]))  # the sampled coordinates only
         return jnp.concatenate([jnp.ravel(x[k]) for k in sorted(x)])
 
     return jax.vmap(one)(flats)
@@ -101,12 +168,15 @@ def _to_physical_batch(problem, template, flats):
 
 @dataclass(frozen=True)
 class LogDensity:
-    """The calibration posterior in the sampler's flat coordinates.
+    """The calibration posterior in the samplers' flat coordinates.
 
     - ``problem``, ``template`` (the coordinates' pytree at the fit), ``args`` (data, noise,
       prior): :func:`log_prob`'s arguments; :meth:`fn` is it with them bound.
-    - ``flat0``: the point fit's coordinates; ``laplace_cov``: the Laplace covariance there,
-      ``(J^T J)^-1`` of the profiled residuals and the prior (P, P).
+    - ``idx``: the flat indices of the :data:`LOG_FRACTIONS` (sampled as ``w``, see there;
+      every other coordinate is the fit's own); :meth:`to_fit` maps back.
+    - ``flat0``: the point fit in the samplers' coordinates; ``laplace_cov``: the Laplace
+      covariance there, ``(J^T J)^-1`` of the profiled residuals and the prior (P, P),
+      carried to the samplers' coordinates.
     - ``coords``: the coordinates' names (``ravel_pytree``'s order: sorted).
     - ``names``: the physical parameters the samples report (sorted; arrays as ``k[i]``),
       the columns of :meth:`to_physical`.
@@ -119,17 +189,22 @@ class LogDensity:
     laplace_cov: np.ndarray
     coords: tuple[str, ...]
     names: list[str]
+    idx: tuple[int, ...] = ()
 
     def fn(self, flat):
-        return log_prob(self.problem, self.template, self.args, flat)
+        return log_prob(self.problem, self.template, self.args, flat, self.idx)
 
     def batch(self, flats) -> np.ndarray:
         """:meth:`fn` of many points (N, P) in one compiled call, as float64 NumPy."""
-        return np.asarray(_log_prob_batch(self.problem, self.template, self.args, jnp.asarray(flats)), np.float64)
+        return np.asarray(_log_prob_batch(self.problem, self.template, self.args, jnp.asarray(flats), self.idx), np.float64)
+
+    def to_fit(self, flats) -> np.ndarray:
+        """The fit's unconstrained coordinates (logit for the fractions) of samplers' ones (..., P)."""
+        return np.asarray(_to_fit(jnp.asarray(flats).T, self.idx)[0].T if self.idx else flats, np.float64)
 
     def to_physical(self, flats) -> np.ndarray:
         """Physical values (N, len(names)) of flat coordinates (N, P)."""
-        return np.asarray(_to_physical_batch(self.problem, self.template, jnp.asarray(flats)), np.float64)
+        return np.asarray(_to_physical_batch(self.problem, self.template, jnp.asarray(flats), self.idx), np.float64)
 
 
 def log_density(
@@ -138,6 +213,7 @@ def log_density(
     fit: CalibrationResult,
     nuisance_width: float | None = NUISANCE_WIDTH,
     hold: tuple[str, ...] = HELD,
+    gain_prior: str = GAIN_PRIOR,
 ) -> LogDensity:
     """The posterior of ``calibrator``'s nonlinear parameters given ``capture``, around the
     point fit ``fit`` (which must be of this scene).
@@ -173,17 +249,80 @@ def log_density(
     if nuisance_width is not None and not (0 < nuisance_width < np.inf):
         raise CalibrationError(f"nuisance_width: must be a positive number, got {nuisance_width!r}")
     widths = {k: jnp.asarray(nuisance_width, dtype) for k in NUISANCE if k in template and nuisance_width is not None}
-    args = (base, data, sigma, prior, widths, held)
+    if gain_prior not in GAIN_PRIORS:
+        raise CalibrationError(f"gain_prior: one of {', '.join(GAIN_PRIORS)}, got {gain_prior!r}")
+    args = (base, data, sigma, prior, widths, held, jnp.asarray(float(gain_prior == "log-uniform"), dtype))
     extra = {k: np.zeros(np.shape(v)) + (1.0 / float(widths[k]) ** 2 if k in widths else 0.0) for k, v in template.items()}
     cov = normal_covariance(_jtj_flat(problem, template, args[:4], held, flat0), np.concatenate([np.ravel(extra[k]) for k in sorted(extra)]))
+    # the fractions sampled as w (LOG_FRACTIONS); flat0 and the covariance carried there
+    sizes = {k: int(np.size(v)) for k, v in template.items()}
+    starts = np.cumsum([0] + [sizes[k] for k in sorted(template)])
+    log_fractions = [k for k in LOG_FRACTIONS if k in template and (k == "albedo" or (
+        problem.transform(k).kind == "sigmoid" and problem.transform(k).lo == 0.0 and problem.transform(k).hi == 1.0))]
+    idx = tuple(int(i) for k in log_fractions for i in range(starts[sorted(template).index(k)], starts[sorted(template).index(k) + 1]))
+    flat0 = np.asarray(flat0, np.float64)
+    w0 = _to_sampler_np(flat0, idx)
+    jac = np.asarray(jax.jacfwd(lambda f: _to_fit(f, idx)[0])(jnp.asarray(w0)), np.float64)  # d fit / d sampler (diagonal)
+    d = np.diag(jac)
+    cov = cov / d[:, None] / d[None, :]
     labels = []
     for k in sorted(problem.physical(template)):  # the columns of to_physical
         n = int(np.size(getattr(base, k)))
         labels += [k] if np.ndim(getattr(base, k)) == 0 else [f"{k}[{i}]" for i in range(n)]
     return LogDensity(
-        problem=problem, template=template, args=args, flat0=np.asarray(flat0, np.float64),
-        laplace_cov=cov, coords=tuple(sorted(template)), names=labels,
+        problem=problem, template=template, args=args, flat0=w0,
+        laplace_cov=0.5 * (cov + cov.T), coords=tuple(sorted(template)), names=labels, idx=idx,
     )
+
+
+_value_and_grad = eqx.filter_jit(lambda problem, template, args, flat, idx=(): jax.value_and_grad(
+    lambda f: log_prob(problem, template, args, f, idx))(flat))
+
+
+def posterior_mode(ld: LogDensity, max_steps: int = 200) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The log-density's mode and the Laplace covariance there: ``(mode, cov, info)``.
+
+    The point fit is not the posterior's mode: the nuisance prior (absent from the fit) and
+    the integrated linear parameters' volume term move it, on the default baseline by 1.5-2.5
+    of the fit's Laplace standard errors along the ridge (albedo, end reflectance, interface
+    backscatter), where the fit's ``J^T J`` is also the wrong curvature (the draws' covariance
+    in its whitened coordinates had eigenvalues 4e-4 to 4). BFGS (SciPy) on the compiled value
+    and gradient, in coordinates scaled by the fit's Laplace errors, from the fit; the Hessian
+    at the mode by central differences of the gradient (2 P gradients, no second program to
+    compile), symmetrised. Falls back to the fit and its Laplace covariance where the
+    optimisation fails or the Hessian is not negative definite (``info["used"]`` says which)."""
+    from scipy.optimize import minimize
+
+    scale = np.sqrt(np.clip(np.diag(ld.laplace_cov), 1e-300, None))
+    x0 = ld.flat0
+
+    def vg(y):
+        v, g = _value_and_grad(ld.problem, ld.template, ld.args, jnp.asarray(x0 + scale * y), ld.idx)
+        v, g = float(v), np.asarray(g, np.float64) * scale
+        if not np.isfinite(v) or not np.all(np.isfinite(g)):
+            return 1e300, np.zeros_like(g)
+        return -v, -g
+
+    f0 = -vg(np.zeros_like(x0))[0]
+    res = minimize(vg, np.zeros_like(x0), jac=True, method="BFGS", options={"maxiter": max_steps, "gtol": 1e-6})
+    y = res.x
+    info = {"log_density_fit": f0, "log_density_mode": -float(res.fun), "bfgs_iterations": int(res.nit),
+            "gradient_evaluations": int(res.njev), "mode_minus_fit_in_fit_sd": dict(zip(ld.coords, y.tolist()))}
+    h = 1e-3
+    H = np.empty((y.size, y.size))
+    for i in range(y.size):
+        e = np.zeros_like(y)
+        e[i] = h
+        H[i] = (vg(y + e)[1] - vg(y - e)[1]) / (2 * h)  # Hessian of -log p (scaled coordinates)
+    H = 0.5 * (H + H.T)
+    info["gradient_evaluations"] += 2 * y.size
+    ok = np.isfinite(res.fun) and -res.fun >= f0 and np.all(np.isfinite(H)) and np.linalg.eigvalsh(H).min() > 0
+    if not ok:
+        info["used"] = "fit"
+        return ld.flat0, ld.laplace_cov, info
+    cov = np.linalg.inv(H) * scale[:, None] * scale[None, :]
+    info["used"] = "mode"
+    return x0 + scale * y, 0.5 * (cov + cov.T), info
 
 
 def summarise(names: list[str], samples: np.ndarray) -> dict[str, Any]:
@@ -208,7 +347,7 @@ class PosteriorOptions:
     between autocorrelation checks, ``tau_factor`` (stop once the chain is longer than this
     many autocorrelation times and tau changed by less than ``tau_rtol``), ``seed``,
     ``chain`` (an HDF5 file: the run resumes from it), ``progress`` (a progress bar),
-    ``nuisance_width`` and ``hold`` (:func:`log_density`'s)."""
+    ``nuisance_width``, ``hold`` and ``gain_prior`` (:func:`log_density`'s)."""
 
     walkers: int | None = None
     max_steps: int = 5000
@@ -220,6 +359,7 @@ class PosteriorOptions:
     progress: bool = True
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
+    gain_prior: str = GAIN_PRIOR
 
 
 @dataclass
@@ -263,7 +403,7 @@ def sample_posterior(
     ``max_steps``; with ``chain`` set, an interrupted run resumes where it stopped (refused if
     the data or settings differ).
     """
-    ld = log_density(calibrator, capture, fit, options.nuisance_width, options.hold)
+    ld = log_density(calibrator, capture, fit, options.nuisance_width, options.hold, options.gain_prior)
     flat0, P = ld.flat0, ld.flat0.size
     W = options.walkers or max(32, 4 * P)
     if W < 2 * P:
@@ -276,7 +416,7 @@ def sample_posterior(
 
     backend = None
     start = flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(W, P))
-    fingerprint = _fingerprint(capture, (*ld.names, *ld.coords, f"nuisance {options.nuisance_width}", f"hold {sorted(options.hold)}"), W)  # coordinates too
+    fingerprint = _fingerprint(capture, (*ld.names, *ld.coords, f"nuisance {options.nuisance_width}", f"hold {sorted(options.hold)}", f"gain {options.gain_prior}"), W)  # coordinates too
     if options.chain:
         import h5py
 
@@ -325,6 +465,6 @@ def sample_posterior(
         steps=int(sampler.iteration),
         converged=converged,
         n_effective=float(n_samples_total / np.nanmax(tau)) if np.all(np.isfinite(tau)) else 0.0,
-        chain=sampler.get_chain(),
+        chain=ld.to_fit(sampler.get_chain()),
         chain_physical=ld.to_physical(sampler.get_chain().reshape(-1, P)).reshape(sampler.iteration, W, -1),
     )
