@@ -32,7 +32,10 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    counts), with the touch signal (touch minus baseline) of both; and the first-order contact return
    alone (one contact, absorbing edges), Monte Carlo against the guided optics.
 
-Monte Carlo runs are cached under ``out/mc_cache/`` (keyed by scene and options). Writes
+``--exposure K`` multiplies every count (the sensor's iterations per frame relative to the scene's): the
+photon noise of a frame falls as 1/sqrt(K), as a longer exposure (or K frames of a held contact summed) gives.
+
+Monte Carlo runs are cached under ``out/mc_cache/`` (keyed by scene, options and the Monte Carlo's source). Writes
 ``eval_mc_data.json`` (copy it to docs/results/). All data **simulated**.
 
     python experiments/eval_mc_data.py --out out/eval_mc_data [--photons 25000] [--configs 12]
@@ -78,7 +81,7 @@ def mc_expected(scene, photons: int, seed: int, progress: bool = False) -> tuple
     from tofjax.mc.capture import mc_expected_counts
 
     opts = mc_options(photons, seed)
-    key = hashlib.sha256((repr(scene) + repr(opts)).encode()).hexdigest()[:20]
+    key = hashlib.sha256((repr(scene) + repr(opts) + mc_source_hash()).encode()).hexdigest()[:20]
     path = CACHE / f"{key}.npz"
     if path.exists():
         z = np.load(path, allow_pickle=False)
@@ -91,6 +94,17 @@ def mc_expected(scene, photons: int, seed: int, progress: bool = False) -> tuple
     np.savez(tmp, expected=expected, info=json.dumps(info))
     os.replace(tmp, path)
     return expected, info
+
+
+def mc_source_hash() -> str:
+    """A hash of the Monte Carlo's source: a cached run made by another version of the transport (e.g.
+    before the contact flag fix) is not reused."""
+    import tofjax.mc as mc
+
+    h = hashlib.sha256()
+    for f in sorted(Path(mc.__file__).parent.glob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
 
 
 def touch_scene(base, contacts: np.ndarray, radius_m: float = 0.006):
@@ -177,7 +191,7 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
                   cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
-                  no_touch_frames: int = 20) -> dict:
+                  no_touch_frames: int = 20, exposure: float = 1.0) -> dict:
     """Six-contact detection with the calibrated optics, full and model methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
@@ -196,7 +210,7 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     border = np.concatenate([eval_touch._edge_distance(scene, c[:, :2]) < cfg.border_m for c in truth])
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
            "calibration_forced": forced, "optics": optical.optics, "methods": {},
-           "information_limit": information_limit(scene, base_expected, contacts, touch_expected)}
+           "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
     for m in ("full", "model"):
         t = time.perf_counter()
         inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
@@ -218,7 +232,8 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     return out
 
 
-def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_expected: list[np.ndarray]) -> dict:
+def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_expected: list[np.ndarray],
+                      exposure: float = 1.0) -> dict:
     """The most any detector can get from one frame.
 
     - ``per_contact_snr_guided_model``: each true contact's matched-filter signal-to-noise ratio at its
@@ -235,7 +250,7 @@ def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_e
 
     optical = dataclasses.replace(OpticalParams.from_scene(scene), optics="guided")
     c = np.asarray(contacts).reshape(-1, 3)
-    R = response_matrix(scene, optical, c[:, :2], 0.006, signed=True) * c[:, 2, None, None, None]
+    R = response_matrix(scene, optical, c[:, :2], 0.006, signed=True) * c[:, 2, None, None, None] * exposure
     var = np.maximum(baseline, 1.0)
     snr = np.sqrt(np.sum(R**2 / var[None], axis=(1, 2, 3)))
     frame = np.array([np.sqrt(np.sum((t - baseline) ** 2 / var)) for t in touch_expected])
@@ -329,7 +344,7 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
 
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
-        progress: bool = True, overwrite: bool = False, with_default: bool = False) -> dict:
+        progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0) -> dict:
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
 
@@ -346,6 +361,10 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     contacts = contact_configs(scene, configs)
     det_base = seeds[:seeds_touch].mean(0)  # the same seeds as the touch runs (common random numbers)
     own_touch = [expected_counts(touch_scene(scene, c), _own_model_options(True)) for c in contacts]
+    # the sensor's exposure (iterations per frame) times the scene's: every count scales, ambient included
+    own_base, mc_base, det_base = own_base * exposure, mc_base * exposure, det_base * exposure
+    mc_var = mc_var * exposure**2
+    own_touch = [e * exposure for e in own_touch]
     result = {
         "study": "calibration and six-contact detection on Monte Carlo data with the guided optics (issue 14)",
         "data": "simulated: 'monte_carlo' by tofjax.mc (validated against adding-doubling and van de Hulst), "
@@ -364,6 +383,9 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config,
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
+                     "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
+                     "transported light, light entry and ambient) times this: the sensor's iterations per frame "
+                     "relative to the scene's",
                      "contacts": "6 per config, 4 cm apart, radius 6 mm, strength 0.7-1.0 (x skin coupling 0.3)"},
         "contacts": contacts.tolist(),
         "calibration": {}, "detection": {},
@@ -373,7 +395,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         for optics in ("guided", "default") if (col == "monte_carlo" and with_default) else ("guided",):
             if progress:
                 print(f"calibrating {col} with {optics} optics ...", flush=True)
-            cached = out / f"calibration_{col}_{optics}_{calib_frames}f_{photons}x{seeds_baseline}.json"
+            cached = out / (f"calibration_{col}_{optics}_{calib_frames}f_{photons}x{seeds_baseline}"
+                            f"_exposure{exposure:g}_{mc_source_hash() if col == 'monte_carlo' else 'own'}.json")
             if cached.exists():  # a calibration does not depend on the contact model: rerun detection alone
                 fig, js = json.loads(cached.read_text())
             else:
@@ -385,13 +408,13 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                 print("  ", json.dumps({k: fig.get(k) for k in ("result", "reduced_chi2_photon_noise",
                                                                "reduced_chi2_with_mc_variance", "n1_rel_error")}), flush=True)
     generate(photons, seeds_baseline, seeds_touch, configs, progress=False)  # cached
-    mc_touch = [np.mean([mc_expected(touch_scene(scene, c), photons, s)[0] for s in range(seeds_touch)], 0)
+    mc_touch = [exposure * np.mean([mc_expected(touch_scene(scene, c), photons, s)[0] for s in range(seeds_touch)], 0)
                 for c in contacts]
     for col, b, tl in (("own", own_base, own_touch), ("monte_carlo", det_base, mc_touch)):
         if progress:
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
-                                                 baseline_frames, seed, progress)
+                                                 baseline_frames, seed, progress, exposure=exposure)
     if progress:
         print("touch L2: noise and model error ...", flush=True)
     result["guided_vs_mc_relative_l2"] = touch_l2(scene, contacts, photons, seeds_touch, seeds)
@@ -431,14 +454,18 @@ def main(argv=None):
     ap.add_argument("--calib-frames", type=int, default=10)
     ap.add_argument("--frames-per-config", type=int, default=2)
     ap.add_argument("--with-default", action="store_true", help="also calibrate the Monte Carlo data with the default optics")
+    ap.add_argument("--exposure", type=float, default=1.0,
+                    help="the sensor's iterations per frame relative to the scene's: every count times this")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
+    if not (a.exposure > 0 and np.isfinite(a.exposure)):
+        ap.error(f"--exposure: must be a finite number > 0, got {a.exposure!r}")
     tofjax.enable_x64()
     if a.generate:
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
-            overwrite=a.overwrite, with_default=a.with_default)
+            overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 
