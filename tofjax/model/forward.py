@@ -168,17 +168,19 @@ class ForwardModel(eqx.Module):
         dist = [n for n in self.components if n in C.DISTRIBUTED]
         if dist:
             nodes = ctx.nodes
-            # Range inside the waveguide within each node: from emission to each ray's far edge.
-            emitted = C.step_on(jnp.reshape(params.emission_time_s, (1, 1, 1)), nodes)
+            # G over the part of each node after emission, exactly, and where in the node that
+            # mass sits (the near field is about one node deep: its timing is the emission time's)
+            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m)
+            dctx = ctx._replace(falloff=fall)
             ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
-            coverage = params.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
+            coverage = params.gain[:, None, None] * jnp.clip(1.0 - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
-            densities = {n: C.DISTRIBUTED[n](ctx) for n in dist}
+            densities = {n: C.DISTRIBUTED[n](dctx) for n in dist}
             if separate:
-                out.update({n: C.smooth_like_deposit(coverage * d) for n, d in densities.items()})
+                out.update({n: C.smooth_like_deposit(coverage * d, offset) for n, d in densities.items()})
             else:
-                out["distributed"] = C.smooth_like_deposit(coverage * sum(densities.values()))
+                out["distributed"] = C.smooth_like_deposit(coverage * sum(densities.values()), offset)
         for name in self.components:
             if name == "touch" and params.n_touches:
                 out[name] = C.touch(ctx)
