@@ -22,9 +22,10 @@ __all__ = ["Transform", "default_transforms", "FITTABLE"]
 class Transform:
     """``kind = "log"``: x = scale exp(u); ``kind = "sigmoid"``: x = lo + (hi - lo) sigmoid(u).
 
-    ``floor``: with ``kind = "log"``, values below ``floor x scale`` (0 among them) map to the
-    coordinate of ``floor x scale``: a parameter whose natural value is 0 (a width the scene
-    does not state) then has a finite coordinate, and the prior centred there a finite pull."""
+    ``floor``: with ``kind = "log"``, 0 maps to the coordinate of ``floor x scale``: a parameter
+    whose natural value is 0 (a width the scene does not state) then has a finite coordinate,
+    and the prior centred there a finite pull. Positive values keep their own coordinate (a
+    fit may end below the floor; its result must round-trip)."""
 
     kind: str
     lo: float = 0.0
@@ -40,7 +41,7 @@ class Transform:
     def to_unconstrained(self, x):
         x = np.asarray(x, float)
         if self.kind == "log":
-            return np.log(np.maximum(x, self.floor * self.scale) / self.scale)
+            return np.log(np.where(x > 0, np.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return np.log(f) - np.log1p(-f)
 
@@ -62,7 +63,7 @@ class Transform:
     def unconstrain(self, x):
         """:meth:`to_unconstrained` in JAX (jit- and grad-safe), for the compiled fit."""
         if self.kind == "log":
-            return jnp.log(jnp.maximum(x, self.floor * self.scale) / self.scale)
+            return jnp.log(jnp.where(x > 0, jnp.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = jnp.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return jnp.log(f) - jnp.log1p(-f)
 

@@ -108,11 +108,15 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     eps = 0.02 * nodes.dr
 
     def after_emission(x):
-        return 0.5 * (x + jnp.sqrt(x * x + eps * eps))
+        # 0.5 (x + sqrt(x^2 + eps^2)), written without cancellation for x < 0 (float32: nodes
+        # long before emission must get 0, not rounding noise of either sign)
+        sq = jnp.sqrt(x * x + eps * eps)
+        pos = x > 0
+        return jnp.where(pos, 0.5 * (x + sq), 0.5 * eps * eps / jnp.where(pos, 1.0, sq - x))
 
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
-    mass = (jnp.arctan(hi / r0) - jnp.arctan(lo / r0)) / r0
+    mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0), 0.0) / r0
     first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2))
     some = mass > 1e-9 * (0.5 * jnp.pi / r0)  # the double-where keeps the gradient finite
     mean_r = jnp.where(some, first / jnp.where(some, mass, 1.0), 0.5 * (lo + hi))
