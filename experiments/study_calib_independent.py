@@ -64,9 +64,21 @@ def _scene(base, sensors, zones, bins):
     return base.replace(sensor=small, sensors=base.sensors[:sensors])
 
 
+def _mu_t_stderr(res):
+    """Laplace standard error of mu_s + mu_a (None where the covariance does not hold both)."""
+    try:
+        i, j = res.labels.index("mu_s_per_m"), res.labels.index("mu_a_per_m")
+        c = np.asarray(res.covariance)
+        v = float(c[i, i] + c[j, j] + 2 * c[i, j])
+        return float(np.sqrt(v)) if np.isfinite(v) and v >= 0 else None
+    except (ValueError, TypeError, IndexError, AttributeError):
+        return None
+
+
 def _row(res, n1, mu_t, seconds):
     f_n1 = float(res.params.n1)
     f_mu = float(res.params.mu_s_per_m + res.params.mu_a_per_m)
+    se = _mu_t_stderr(res)
     return {
         "result": res.result,
         "converged": bool(res.converged),
@@ -77,6 +89,10 @@ def _row(res, n1, mu_t, seconds):
         "near_field_m": float(res.params.near_field_m),
         "n1_rel_error": f_n1 / n1 - 1,
         "mu_t_rel_error": f_mu / mu_t - 1,
+        # Laplace standard error of mu_t (relative to the truth) and the error in its units
+        "mu_t_stderr_rel": None if se is None else se / mu_t,
+        "mu_t_error_in_stderr": None if not se else (f_mu - mu_t) / se,
+        "crosstalk_width_s": float(res.params.crosstalk_width_s),
         "reduced_chi2": res.reduced_chi2,
         "worst_zone": (res.discrepancy.get("worst_zones") or [None])[0],
         "end_reflectance": float(res.params.end_reflectance),

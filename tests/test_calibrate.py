@@ -222,7 +222,9 @@ def test_extinction_albedo_coordinates_round_trip(fitted, mu_s, mu_a):
 def test_loss_rule_stops_early_within_a_fraction_of_a_standard_error(small):
     """The chi-square stopping rule saves steps and moves the answer by << 1 standard error."""
     cap = simulate(small, 60, seed=5)
-    tight = Calibrator(small, FitConfig(loss_tol=0.0, rtol=1e-9, atol=1e-9)).fit(cap)
+    # the light-entry width is barely identified on own data (a point): to 1e-9 the tight fit
+    # takes 225 steps there (measured), over the default 200
+    tight = Calibrator(small, FitConfig(loss_tol=0.0, rtol=1e-9, atol=1e-9, max_steps=400)).fit(cap)
     quick = Calibrator(small, FitConfig(loss_tol=1e-3)).fit(cap)
     assert quick.converged and tight.converged
     assert quick.steps < tight.steps

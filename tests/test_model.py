@@ -149,8 +149,10 @@ def test_quadrature_converges(optoskin):
         m, p = run(scene, ModelOptions(quadrature=q))
         errs.append(np.linalg.norm(np.asarray(m(p)) - ref) / np.linalg.norm(ref))
     assert errs[0] > errs[1] > errs[2]
-    assert errs[1] < errs[0] / 3 and errs[2] < errs[1] / 3
-    assert errs[1] < 0.03
+    # measured: 2.0%, 0.55%, 0.20% (ratios 3.6, 2.8; before the near field's mass was put where it sits in its
+    # node: 6.2%, 1.9%, 0.62%, falling by 3.0-3.4x); a ratio below 2 would be first order
+    assert errs[1] < errs[0] / 2.5 and errs[2] < errs[1] / 2.5
+    assert errs[1] < 0.01
 
 
 def load_touch_scene(optoskin):
@@ -194,7 +196,8 @@ def test_gradients_match_central_differences(optoskin):
     has two tails with a non-zero slow weight, so its parameters are checked too."""
     scene = load_touch_scene(optoskin).replace(noise=optoskin.noise.__class__(pile_up=True))
     model, p = run(scene, ModelOptions(pulse_tails=2))
-    p = p.replace(pulse_slow_weight=0.15, pulse_slow_tail_s=5.5e-10)
+    # a light-entry width of 0 has no two-sided difference (widths are >= 0): checked at 20 ps
+    p = p.replace(pulse_slow_weight=0.15, pulse_slow_tail_s=5.5e-10, crosstalk_width_s=2e-11)
     assert {"touch", "shadowing", "volume", "multiple_scattering"} <= set(model.components)
     weights = jax.random.uniform(jax.random.key(1), model.shape, jnp.float64)
 
@@ -305,3 +308,32 @@ def test_pile_up_limits():
     out = np.asarray(pile_up(high, 250_000))
     assert out.sum() < 250_000  # at most one detection per laser pulse
     assert out[0] > out[-1]  # early bins steal the detections of late ones
+
+
+def test_light_entry_width(optoskin):
+    """Params.crosstalk_width_s: zero gives the point-like peak of before exactly (the peak
+    deposited and pulsed with the other components); a width keeps the peak's counts and its
+    mean time, widens it by the width in quadrature, and its gradient is finite at 0 and above."""
+    scene = strip_scene(optoskin, zones=2, n_bins=64)
+    model, p = run(scene, components=("interface", "end", "crosstalk", "ambient"))
+
+    @jax.jit
+    def parts(p):
+        masses = model._node_masses(p)
+        before = model._finish(model._apply_pulse(sum(masses.values()), p), p)
+        R, P = model.linear_parts(p)
+        return before, model(p), p.gain[:, None, None] * R + p.crosstalk_counts[..., None] * P + p.ambient_counts[..., None]
+
+    before, now, linear = (np.asarray(x) for x in parts(p))
+    np.testing.assert_allclose(now, before, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(linear, before, rtol=1e-12, atol=1e-9)
+    peak = jax.jit(lambda w: model.light_entry_peak(p.replace(crosstalk_width_s=w)))
+    point, wide = np.asarray(peak(0.0)), np.asarray(peak(40e-12))
+    assert wide.sum() == pytest.approx(point.sum(), rel=1e-9)
+    assert mean_bin_time(wide) == pytest.approx(mean_bin_time(point), abs=1e-13)
+    t = (np.arange(64) + 0.5) * 1e-10
+    var = lambda c: float((c * (t - mean_bin_time(c)) ** 2).sum() / c.sum())  # noqa: E731
+    assert var(wide) - var(point) == pytest.approx(40e-12**2, rel=0.02)
+    f = jax.jit(jax.vmap(jax.grad(lambda w: jnp.sum(model(p.replace(crosstalk_width_s=w)) ** 2) * 1e-6)))
+    g = np.asarray(f(jnp.asarray([0.0, 30e-12])))
+    assert np.isfinite(g).all() and g[1] != 0.0

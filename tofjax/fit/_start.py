@@ -26,6 +26,9 @@ __all__ = ["edge_estimates", "timing_start", "envelope_grid", "envelope_candidat
 
 #: Extinction grid of the envelope stage, 1/m (log-spaced, 0.01 to 30 /m).
 ENVELOPE_MU_T = tuple(float(x) for x in np.geomspace(0.01, 30.0, 19))
+#: Where a fit with a free light-entry width (``Params.crosstalk_width_s``) starts it, in bins,
+#: when the scene states none (the prior stays centred on the scene's 0).
+LIGHT_ENTRY_WIDTH_START = 0.2
 #: Relative n1 offsets around the timing estimate tried by the envelope stage.
 ENVELOPE_N1 = (-0.03, -0.015, 0.0, 0.015, 0.03)
 
@@ -113,6 +116,10 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
         mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
         mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
     )
+    if "crosstalk_width_s" in problem.nonlinear and float(base.crosstalk_width_s) < LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s:
+        # a width far below the pulse's barely changes the peak (it adds in quadrature): no
+        # gradient to leave from; the fit starts at a fifth of a bin and may go back to ~0
+        start = start.replace(crosstalk_width_s=LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s)
     return start, found
 
 

@@ -94,6 +94,7 @@ DEFAULT_FREE = (
     "near_field_m",
     "pulse_slow_weight",
     "pulse_slow_tail_s",
+    "crosstalk_width_s",
 )
 #: The second tail of the pulse: free only with ``pulse_tails = 2``.
 SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")

@@ -20,12 +20,18 @@ __all__ = ["Transform", "default_transforms", "FITTABLE"]
 
 @dataclass(frozen=True)
 class Transform:
-    """``kind = "log"``: x = scale exp(u); ``kind = "sigmoid"``: x = lo + (hi - lo) sigmoid(u)."""
+    """``kind = "log"``: x = scale exp(u); ``kind = "sigmoid"``: x = lo + (hi - lo) sigmoid(u).
+
+    ``floor``: with ``kind = "log"``, 0 maps to the coordinate of ``floor x scale``: a parameter
+    whose natural value is 0 (a width the scene does not state) then has a finite coordinate,
+    and the prior centred there a finite pull. Positive values keep their own coordinate (a
+    fit may end below the floor; its result must round-trip)."""
 
     kind: str
     lo: float = 0.0
     hi: float = 1.0
     scale: float = 1.0
+    floor: float = 1e-12
 
     def to_physical(self, u):
         if self.kind == "log":
@@ -35,7 +41,7 @@ class Transform:
     def to_unconstrained(self, x):
         x = np.asarray(x, float)
         if self.kind == "log":
-            return np.log(np.maximum(x, 1e-12 * self.scale) / self.scale)
+            return np.log(np.where(x > 0, np.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return np.log(f) - np.log1p(-f)
 
@@ -57,7 +63,7 @@ class Transform:
     def unconstrain(self, x):
         """:meth:`to_unconstrained` in JAX (jit- and grad-safe), for the compiled fit."""
         if self.kind == "log":
-            return jnp.log(jnp.maximum(x, 1e-12 * self.scale) / self.scale)
+            return jnp.log(jnp.where(x > 0, jnp.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = jnp.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
         return jnp.log(f) - jnp.log1p(-f)
 
@@ -77,6 +83,7 @@ FITTABLE = {
     "gain": "counts m^2",
     "ambient_counts": "counts/bin",
     "crosstalk_counts": "counts",
+    "crosstalk_width_s": "s",
     "pulse_sigma_s": "s",
     "pulse_tail_s": "s",
     "pulse_slow_weight": "",
@@ -102,6 +109,9 @@ def default_transforms(scene: Scene) -> dict[str, Transform]:
         "gain": Transform("log", scale=max(sm.gain, 1e-12)),
         "ambient_counts": Transform("log", scale=1.0),
         "crosstalk_counts": Transform("log", scale=1000.0),
+        # the light-entry peak's own width: a scene states 0 (a point), which maps to a tenth
+        # of the scale (1 ps for 100 ps bins, far below any pulse): the prior's centre
+        "crosstalk_width_s": Transform("log", scale=0.1 * sm.bin_width_s, floor=0.1),
         "pulse_sigma_s": Transform("log", scale=sm.bin_width_s),
         "pulse_tail_s": Transform("log", scale=sm.bin_width_s),
         # the slow tail's share stays below one half: the fast tail is the main one

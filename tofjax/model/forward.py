@@ -168,17 +168,19 @@ class ForwardModel(eqx.Module):
         dist = [n for n in self.components if n in C.DISTRIBUTED]
         if dist:
             nodes = ctx.nodes
-            # Range inside the waveguide within each node: from emission to each ray's far edge.
-            emitted = C.step_on(jnp.reshape(params.emission_time_s, (1, 1, 1)), nodes)
+            # G over the part of each node after emission, exactly, and where in the node that
+            # mass sits (the near field is about one node deep: its timing is the emission time's)
+            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m)
+            dctx = ctx._replace(falloff=fall)
             ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
-            coverage = params.gain[:, None, None] * jnp.clip(emitted - ended, 0.0, 1.0)
+            coverage = params.gain[:, None, None] * jnp.clip(1.0 - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
-            densities = {n: C.DISTRIBUTED[n](ctx) for n in dist}
+            densities = {n: C.DISTRIBUTED[n](dctx) for n in dist}
             if separate:
-                out.update({n: C.smooth_like_deposit(coverage * d) for n, d in densities.items()})
+                out.update({n: C.smooth_like_deposit(coverage * d, offset) for n, d in densities.items()})
             else:
-                out["distributed"] = C.smooth_like_deposit(coverage * sum(densities.values()))
+                out["distributed"] = C.smooth_like_deposit(coverage * sum(densities.values()), offset)
         for name in self.components:
             if name == "touch" and params.n_touches:
                 out[name] = C.touch(ctx)
@@ -186,11 +188,32 @@ class ForwardModel(eqx.Module):
                 out[name] = C.POINT[name](shadow_ctx)
         return out
 
-    def _apply_pulse(self, masses, params: Params):
+    def _apply_pulse(self, masses, params: Params, extra_width=None):
+        """The instrument response applied to node masses; ``extra_width``: a Gaussian spread
+        of the events themselves (s), added in quadrature to the pulse's Gaussian rise (a
+        Gaussian convolved with an ex-Gaussian is an ex-Gaussian)."""
         q = self.options.quadrature
         slow = (params.pulse_slow_weight, params.pulse_slow_tail_s) if self.options.pulse_tails == 2 else (None, None)
-        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, params.pulse_sigma_s, params.pulse_tail_s, params.n1.dtype, *slow)
+        sigma = params.pulse_sigma_s
+        if extra_width is not None:
+            sigma = jnp.sqrt(sigma**2 + extra_width**2)
+        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, sigma, params.pulse_tail_s, params.n1.dtype, *slow)
         return apply_kernels(masses, kernels, self.n_bins, q)
+
+    def light_entry_peak(self, params: Params) -> jax.Array:
+        """The light-entry (crosstalk) peak of unit size in every zone, (bins,): a point at the
+        emission time spread by ``Params.crosstalk_width_s`` (a Gaussian) and the pulse. With
+        zero width it is the pulse alone, exactly what depositing the peak with the other
+        components gives (the model is linear in the node masses)."""
+        nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
+        dtype = params.n1.dtype
+        unit = C.deposit(jnp.reshape(params.emission_time_s, (1, 1, 1)), jnp.ones((1, 1, 1), dtype), nodes)
+        return self._apply_pulse(unit, params, extra_width=params.crosstalk_width_s)[0, 0]
+
+    def _crosstalk(self, params: Params, counts=None) -> jax.Array:
+        """The light-entry peaks (S, Z, B) at ``counts`` (default ``params.crosstalk_counts``)."""
+        counts = params.crosstalk_counts if counts is None else counts
+        return counts[..., None] * self.light_entry_peak(params)
 
     def _finish(self, binned, params: Params):
         if "ambient" in self.components:
@@ -201,9 +224,14 @@ class ForwardModel(eqx.Module):
 
     def __call__(self, params: Params) -> jax.Array:
         masses = self._node_masses(params)
+        # the light-entry peak has a width of its own (Params.crosstalk_width_s): its pulse differs
+        cross = masses.pop("crosstalk", None)
         S, Z, B = self.shape
         total = sum(masses.values()) if masses else jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
-        return self._finish(self._apply_pulse(total, params), params)
+        binned = self._apply_pulse(total, params)
+        if cross is not None:
+            binned = binned + self._crosstalk(params)
+        return self._finish(binned, params)
 
     def linear_parts(self, params: Params, separate_end: bool = False) -> tuple[jax.Array, ...]:
         """The model as ``gain[s] * R + crosstalk[s, z] * P + ambient[s, z]`` (no pile-up):
@@ -219,17 +247,20 @@ class ForwardModel(eqx.Module):
             unit = unit.replace(end_reflectance=1.0)
         masses = self._node_masses(unit)
         zero = jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
-        cross = masses.pop("crosstalk", zero)
-        parts = [cross]
+        has_cross = masses.pop("crosstalk", None) is not None
+        parts = []
         if separate_end:
             parts.append(masses.pop("end", zero))
         rest = sum(masses.values()) if masses else zero
         binned = self._apply_pulse(jnp.stack([rest] + parts), params)
-        return tuple(binned[i] for i in range(len(parts) + 1))
+        # the light-entry peak: its own width (Params.crosstalk_width_s), the same shape in every zone
+        cross = self._crosstalk(unit) if has_cross else jnp.zeros((S, Z, B), binned.dtype)
+        return (binned[0], cross) + tuple(binned[i] for i in range(1, len(parts) + 1))
 
     def breakdown(self, params: Params) -> dict[str, jax.Array]:
         """Each component's contribution in counts per bin (before pile-up), for plots and pruning."""
-        out = {k: self._apply_pulse(v, params) for k, v in self._node_masses(params, separate=True).items()}
+        out = {k: self._crosstalk(params) if k == "crosstalk" else self._apply_pulse(v, params)
+               for k, v in self._node_masses(params, separate=True).items()}
         if "ambient" in self.components:
             out["ambient"] = jnp.broadcast_to(params.ambient_counts[..., None], self.shape)
         return out

@@ -45,6 +45,7 @@ _RANGES = (
     ("pulse_slow_tail_s", 0.0, np.inf, False),
     ("emission_time_s", -np.inf, np.inf, True),
     ("crosstalk_counts", 0.0, np.inf, True),
+    ("crosstalk_width_s", 0.0, np.inf, True),
     ("ambient_counts", 0.0, np.inf, True),
     ("interface_backscatter_per_m", 0.0, np.inf, True),
     ("end_reflectance", 0.0, 1.0, True),
@@ -84,6 +85,11 @@ class Params(eqx.Module):
     pulse_slow_tail_s: Float[Array, ""]
     emission_time_s: Float[Array, ""]
     crosstalk_counts: Float[Array, "S Z"]
+    # spread in time of the light-entry peak itself (s, a Gaussian's standard deviation) before
+    # the sensor's response: light that reaches the detector without crossing the guide takes
+    # paths of different lengths (cover window, package, the guide's entry face); 0: a point at
+    # the emission time (the scene's model). The peak's pulse has sigma sqrt(sigma^2 + width^2).
+    crosstalk_width_s: Float[Array, ""]
     ambient_counts: Float[Array, "S Z"]
     interface_backscatter_per_m: Float[Array, ""]
     end_reflectance: Float[Array, ""]
@@ -154,6 +160,8 @@ class Params(eqx.Module):
             pulse_slow_tail_s=f(4.0 * sm.pulse_tail_s),
             emission_time_s=f(sm.emission_time),
             crosstalk_counts=jnp.full((S, Z), sm.crosstalk_counts, dtype),
+            # a scene states a point-like light-entry peak
+            crosstalk_width_s=f(0.0),
             ambient_counts=jnp.full((S, Z), sm.ambient_counts, dtype),
             interface_backscatter_per_m=f(wg.interface_backscatter_per_m),
             end_reflectance=f(wg.end_reflectance),
