@@ -25,7 +25,10 @@ class Transform:
     ``floor``: with ``kind = "log"``, 0 maps to the coordinate of ``floor x scale``: a parameter
     whose natural value is 0 (a width the scene does not state) then has a finite coordinate,
     and the prior centred there a finite pull. Positive values keep their own coordinate (a
-    fit may end below the floor; its result must round-trip)."""
+    fit may end below the floor; its result must round-trip). With ``kind = "sigmoid"``, ``lo``
+    (or below) maps to the coordinate of ``lo + floor x (hi - lo)`` (at least 1e-9 of the range,
+    as every value is clipped): near ``lo`` such a sigmoid is a log with scale ``hi - lo``, and
+    ``hi`` caps it (a width that must stay within a physical bound)."""
 
     kind: str
     lo: float = 0.0
@@ -43,6 +46,7 @@ class Transform:
         if self.kind == "log":
             return np.log(np.where(x > 0, np.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = np.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
+        f = np.where(x > self.lo, f, max(self.floor, 1e-9))
         return np.log(f) - np.log1p(-f)
 
     def to_physical_np(self, u):
@@ -65,6 +69,7 @@ class Transform:
         if self.kind == "log":
             return jnp.log(jnp.where(x > 0, jnp.maximum(x, 1e-12 * self.scale), self.floor * self.scale) / self.scale)
         f = jnp.clip((x - self.lo) / (self.hi - self.lo), 1e-9, 1 - 1e-9)
+        f = jnp.where(x > self.lo, f, max(self.floor, 1e-9))
         return jnp.log(f) - jnp.log1p(-f)
 
     def derivative(self, u):
@@ -109,9 +114,11 @@ def default_transforms(scene: Scene) -> dict[str, Transform]:
         "gain": Transform("log", scale=max(sm.gain, 1e-12)),
         "ambient_counts": Transform("log", scale=1.0),
         "crosstalk_counts": Transform("log", scale=1000.0),
-        # the light-entry peak's own width: a scene states 0 (a point), which maps to a tenth
-        # of the scale (1 ps for 100 ps bins, far below any pulse): the prior's centre
-        "crosstalk_width_s": Transform("log", scale=0.1 * sm.bin_width_s, floor=0.1),
+        # the light-entry peak's own width: a scene states 0 (a point), which maps to 1/200 of
+        # the range (1 ps for 100 ps bins, far below any pulse): the prior's centre. Capped at
+        # two bins: paths that skip the guide differ by centimetres at most, and an uncapped
+        # width ran off to a broad background (2.7 ns) on one independent baseline
+        "crosstalk_width_s": Transform("sigmoid", lo=0.0, hi=2.0 * sm.bin_width_s, floor=0.005),
         "pulse_sigma_s": Transform("log", scale=sm.bin_width_s),
         "pulse_tail_s": Transform("log", scale=sm.bin_width_s),
         # the slow tail's share stays below one half: the fast tail is the main one
