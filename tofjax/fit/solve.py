@@ -1,10 +1,13 @@
-"""One jitted optimistix solve that also records the loss at every step.
+"""The calibration's solvers, jitted, each recording the loss at every step.
 
-``optx.least_squares`` returns only the end point; users of a calibration want
-to see how it got there. This drives an optimistix solver's own ``init``,
-``step`` and ``terminate`` in a ``lax.while_loop`` (as ``optx`` does
-internally) and writes ``0.5 * sum(residuals^2)`` (or the scalar loss of a
-minimiser) into a preallocated history.
+``optx.least_squares`` returns only the end point; users of a calibration want to see how it
+got there. :func:`solve_with_history` drives an optimistix solver's own ``init``, ``step`` and
+``terminate`` in a ``lax.while_loop`` (as ``optx`` does internally) and writes
+``0.5 * sum(residuals^2)`` (or the scalar loss of a minimiser) into a preallocated history.
+:func:`solve_marquardt` is the default least-squares solver (:class:`MarquardtLM`):
+Levenberg-Marquardt with Marquardt's scaling and geodesic acceleration, written out so that
+one step is one Jacobian and one small Cholesky, with no branches (a vmapped batch of fits
+runs one program, not both arms of a ``lax.cond``).
 """
 
 from __future__ import annotations
