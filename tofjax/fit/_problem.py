@@ -226,8 +226,12 @@ class CalibrationProblem(eqx.Module):
         y = data - fixed
         # Gram matrix and projections, padded to n unknowns (identity rows for absent ones)
         Bs = jnp.stack(basis + [jnp.zeros_like(R)] * (n - m), axis=-2)  # (S, Z, n, B)
-        G = jnp.einsum("szib,szjb->szij", Bs * w[..., None, :], Bs)
-        b = jnp.einsum("szib,szb->szi", Bs * w[..., None, :], y)
+        # elementwise products and sums, not einsum: a (3 x B) @ (B x 3) product per zone is a
+        # tiny batched matmul, which XLA's CPU backend runs as a loop of small calls, far worse
+        # again under vmap; as broadcasts and reductions it fuses into a few passes
+        Bw = Bs * w[..., None, :]
+        G = jnp.sum(Bw[..., :, None, :] * Bs[..., None, :, :], axis=-1)
+        b = jnp.sum(Bw * y[..., None, :], axis=-1)
         yy = jnp.sum(w * y * y, axis=-1)
         present = jnp.asarray([1.0] * m + [0.0] * (n - m), R.dtype)
         scale = jnp.where(present > 0, jnp.maximum(jnp.diagonal(G, axis1=-2, axis2=-1), jnp.finfo(R.dtype).tiny), 1.0)
@@ -243,8 +247,8 @@ class CalibrationProblem(eqx.Module):
             inv_s = jnp.linalg.inv(Gm * d[..., :, None] * d[..., None, :])
             inv = inv_s * d[..., :, None] * d[..., None, :]
             det = jnp.linalg.det(Gm * d[..., :, None] * d[..., None, :]) / jnp.prod(d, axis=-1) ** 2
-        c = jnp.einsum("szkij,szkj->szki", inv, b[..., None, :] * masks)
-        ssr = yy[..., None] - 2.0 * jnp.sum(c * b[..., None, :], -1) + jnp.einsum("szki,szkij,szkj->szk", c, Gm, c)
+        c = jnp.sum(inv * (b[..., None, :] * masks)[..., None, :], axis=-1)
+        ssr = yy[..., None] - 2.0 * jnp.sum(c * b[..., None, :], -1) + jnp.sum(c[..., :, None] * Gm * c[..., None, :], axis=(-2, -1))
         feasible = jnp.all(c >= 0.0, axis=-1)
         k = jnp.argmin(jnp.where(feasible, ssr, jnp.inf), axis=-1)  # (S, Z); the empty set is always feasible
         coef = jnp.take_along_axis(c, k[..., None, None], axis=-2)[..., 0, :]  # (S, Z, 3)

@@ -49,7 +49,7 @@ from ._result import (
     scene_fingerprint,
 )
 from ._start import envelope_candidates, timing_start
-from .solve import SolveResult, dense_jvp, solve_with_history
+from .solve import MarquardtLM, SolveResult, dense_jvp, solve_marquardt, solve_with_history
 from .transforms import FITTABLE, default_transforms
 
 __all__ = [
@@ -135,9 +135,9 @@ class PoissonDeviance(AbstractObjective):
 
 def _check_pair(solver, objective: AbstractObjective) -> None:
     """Refuse a solver the objective cannot drive (instead of silently doing something else)."""
-    if objective.minimise and not isinstance(solver, optx.AbstractMinimiser):
+    if objective.minimise and not isinstance(solver, optx.AbstractMinimiser) or isinstance(solver, MarquardtLM) and objective.minimise:
         raise ConfigError(f"solver: {type(solver).__name__} is not a minimiser; PoissonDeviance needs one (e.g. optx.BFGS)")
-    if not objective.minimise and not isinstance(solver, optx.AbstractLeastSquaresSolver):
+    if not objective.minimise and not isinstance(solver, (optx.AbstractLeastSquaresSolver, MarquardtLM)):
         raise ConfigError(
             f"solver: {type(solver).__name__} is not a least-squares solver; ChiSquare needs one (e.g. optx.LevenbergMarquardt)"
         )
@@ -150,13 +150,18 @@ def _check_pair(solver, objective: AbstractObjective) -> None:
 class FitConfig:
     """Options of a calibration fit (TOML: keys at the top level of the file).
 
-    - ``solver``: ``levenberg-marquardt`` (default), ``gauss-newton``, ``dogleg``, or
-      ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares).
+    - ``solver``: ``levenberg-marquardt`` (default: Levenberg-Marquardt with Marquardt's
+      scaling, :class:`~tofjax.fit.solve.MarquardtLM`), ``gauss-newton``, ``dogleg``, or
+      ``poisson-deviance`` (BFGS on the Poisson deviance instead of least squares). To run
+      optimistix's own (unscaled) ``optx.LevenbergMarquardt``, pass it as ``solver=`` to
+      :func:`calibrate`.
     - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
     - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than this
       (a few hundredths of a standard error from the optimum); 0 turns it off.
-    - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for the
-      damped solvers); where they fail or do not lower the loss the solver takes over. 0 = off.
+    - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for
+      ``dogleg`` and an optimistix solver passed as ``solver=``; the default solver's first
+      steps already are nearly Gauss-Newton steps); where they fail or do not lower the loss
+      the solver takes over. 0 = off.
     - ``max_steps``: per start.
     - ``free``: which parameters to fit; the rest stay at the scene's values.
     - ``zone_gain``: the gain is free per (sensor, zone), profiled out like ambient and
@@ -284,7 +289,7 @@ class FitConfig:
     def make_solver(self):
         """The optimistix solver object the ``solver`` string names."""
         if self.solver == "levenberg-marquardt":
-            return optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol)
+            return MarquardtLM(rtol=self.rtol, atol=self.atol)
         if self.solver == "gauss-newton":
             return optx.GaussNewton(rtol=self.rtol, atol=self.atol)
         if self.solver == "dogleg":
@@ -296,7 +301,8 @@ class FitConfig:
 
     @property
     def gn_first(self) -> int:
-        return min(self.gauss_newton_first, self.max_steps) if self.solver in ("levenberg-marquardt", "dogleg") else 0
+        # Marquardt's scaled LM (the default) takes Gauss-Newton-like steps itself
+        return min(self.gauss_newton_first, self.max_steps) if self.solver == "dogleg" else 0
 
 
 def load_fit_config(path) -> FitConfig:
@@ -395,6 +401,9 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, m
     def flat(f, a):
         return objective(problem, unravel(f), a)
 
+    if isinstance(solver, MarquardtLM):
+        out = solve_marquardt(flat, solver, f0, args, max_steps=max_steps, loss_tol=tol)
+        return _finish(problem, out, unravel, p0, data, sigma, prior_params, anchor, with_cov)
     fn = flat if objective.minimise else dense_jvp(flat)
 
     def main(v_start):
@@ -421,6 +430,11 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, m
         out = SolveResult(*jax.lax.cond(ok, done, fallback, None))
     else:
         out = main(f0)
+    return _finish(problem, out, unravel, p0, data, sigma, prior_params, anchor, with_cov)
+
+
+def _finish(problem, out: SolveResult, unravel, p0, data, sigma, prior_params, anchor, with_cov) -> FitSolution:
+    """The profiled end point, its residuals and (``with_cov``) the Laplace pieces."""
     u = unravel(out.value)
     params, m, lin = problem.profiled_model(u, p0, data, sigma)
     r = (m - data) / sigma

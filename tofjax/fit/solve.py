@@ -1,10 +1,13 @@
-"""One jitted optimistix solve that also records the loss at every step.
+"""The calibration's solvers, jitted, each recording the loss at every step.
 
-``optx.least_squares`` returns only the end point; users of a calibration want
-to see how it got there. This drives an optimistix solver's own ``init``,
-``step`` and ``terminate`` in a ``lax.while_loop`` (as ``optx`` does
-internally) and writes ``0.5 * sum(residuals^2)`` (or the scalar loss of a
-minimiser) into a preallocated history.
+``optx.least_squares`` returns only the end point; users of a calibration want to see how it
+got there. :func:`solve_with_history` drives an optimistix solver's own ``init``, ``step`` and
+``terminate`` in a ``lax.while_loop`` (as ``optx`` does internally) and writes
+``0.5 * sum(residuals^2)`` (or the scalar loss of a minimiser) into a preallocated history.
+:func:`solve_marquardt` is the default least-squares solver (:class:`MarquardtLM`):
+Levenberg-Marquardt with Marquardt's scaling and geodesic acceleration, written out so that
+one step is one Jacobian and one small Cholesky, with no branches (a vmapped batch of fits
+runs one program, not both arms of a ``lax.cond``).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-__all__ = ["SolveResult", "dense_jvp", "solve_with_history"]
+__all__ = ["MarquardtLM", "SolveResult", "dense_jvp", "solve_marquardt", "solve_with_history"]
 
 
 def dense_jvp(fn):
@@ -123,3 +126,120 @@ def solve_with_history(
     state = eqx.combine(static, dyn)
     y, _, _ = solver.postprocess(fn, y, None, args, options, state, tags, res)
     return SolveResult(y, res, steps, hist)
+
+
+class MarquardtLM(eqx.Module):
+    """Levenberg-Marquardt with Marquardt's scaling, driven by :func:`solve_marquardt`.
+
+    The damping is ``lambda diag(J^T J)`` (each coordinate damped in proportion to its own
+    curvature), not optimistix's ``lambda I``: the calibration's coordinates differ in
+    curvature by many decades, and an identity damping big enough for the stiff ones freezes
+    the soft ones, so the damped steps crawl along the valley of the poorly determined
+    directions (50-90 steps on the default baseline). With the scaling the first steps from a
+    good start are Gauss-Newton steps and the fit ends in a handful of them. Every step costs
+    one forward-mode Jacobian at the trial point (its value comes with it); the 12 x 12 normal
+    equations are solved by Cholesky, so a vmapped batch of fits is one batched Jacobian and
+    one batched Cholesky per step.
+
+    - ``rtol``, ``atol``: stop when a step changes every coordinate by less than
+      ``atol + rtol |y|``.
+    - ``geodesic``: add the geodesic acceleration (Transtrum and Sethna 2012; ``geodesic_h``
+      a finite-difference step for the second directional derivative, 0: exact by nested
+      forward mode, about two more residual passes; ``geodesic_alpha`` the largest accepted ratio of
+      acceleration to velocity): the poorly determined directions (albedo, interface
+      backscatter, edge reflectance) form a curved valley along which plain damped steps
+      are rejected and crawl.
+    - ``lambda0``: the initial relative damping, updated by Nielsen's rule (Madsen, Nielsen
+      and Tingleff 2004, eq. 2.21).
+    """
+
+    rtol: float = 1e-7
+    atol: float = 1e-7
+    lambda0: float = 1e-3
+    geodesic: bool = True
+    geodesic_h: float = 0.0
+    geodesic_alpha: float = 0.75
+
+
+def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0) -> SolveResult:
+    """Minimise ``0.5 |residuals(y, args)|^2`` from the flat vector ``y0`` with
+    :class:`MarquardtLM`. Same contract as :func:`solve_with_history`: the end point, an
+    optimistix result code, the number of steps (rejected ones included) and the loss per step
+    (a rejected step repeats the loss; NaN after the last). Stops successfully when an accepted
+    step lowers the loss by less than ``loss_tol``, when a step changes no coordinate by more
+    than ``atol + rtol |y|``, or when the gradient vanishes. Jit- and vmap-compatible.
+    """
+    ft = y0.dtype
+    tiny = jnp.finfo(ft).tiny
+    eye = jnp.eye(y0.shape[0], dtype=ft)
+
+    def value_and_jac(y):
+        def f(z):
+            r = residuals(z, args)
+            return r, r
+
+        jac, r = jax.jacfwd(f, has_aux=True)(y)
+        return r, jac
+
+    def loss_of(r):
+        return 0.5 * jnp.sum(r * r)
+
+    r0, j0 = value_and_jac(y0)
+    loss0 = loss_of(r0)
+    ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
+    hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
+    res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
+    # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+    carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0)
+
+    def cond(c):
+        return (~c[7]) & (c[6] < max_steps)
+
+    def body(c):
+        y, r, jac, loss, lam, nu, step, _, code, hist = c
+        g = jac.T @ r
+        a = jac.T @ jac
+        d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), tiny))
+        a_s = a / (d[:, None] * d[None, :])
+        g_s = g / d
+        chol = jnp.linalg.cholesky(a_s + lam * eye)
+        v = jax.scipy.linalg.cho_solve((chol, True), -g_s) / d
+        if solver.geodesic:
+            # geodesic acceleration (Transtrum and Sethna 2012): the second directional
+            # derivative of the residuals along v by a finite difference (one residual
+            # evaluation) bends the step along the valley's curve
+            if solver.geodesic_h > 0:
+                h = solver.geodesic_h
+                r_vv = (2.0 / h) * ((residuals(y + h * v, args) - r) / h - jac @ v)
+            else:
+                def along(t):
+                    return jax.jvp(lambda z: residuals(z, args), (t,), (v,))[1]
+
+                r_vv = jax.jvp(along, (y,), (v,))[1]
+            acc = jax.scipy.linalg.cho_solve((chol, True), -(jac.T @ r_vv) / d) / d
+            ok_acc = 2.0 * jnp.linalg.norm(acc * d) <= solver.geodesic_alpha * jnp.linalg.norm(v * d)
+            delta = v + 0.5 * acc
+        else:
+            ok_acc = jnp.array(True)
+            delta = v
+        pred = -(g @ delta + 0.5 * delta @ (a @ delta))
+        y_t = y + delta
+        r_t, j_t = value_and_jac(y_t)
+        loss_t = loss_of(r_t)
+        finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t)) & jnp.all(jnp.isfinite(delta))
+        rho = (loss - loss_t) / jnp.maximum(pred, tiny)
+        accept = finite & ok_acc & (loss_t <= loss) & (rho > 1e-4)
+        lam_new = jnp.where(accept, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu)
+        nu_new = jnp.where(accept, 2.0, 2.0 * nu)
+        small_step = jnp.all(jnp.abs(delta) <= solver.atol + solver.rtol * jnp.abs(y))
+        small_gain = accept & (step >= 1) & (loss - loss_t < loss_tol) if loss_tol > 0 else jnp.array(False)
+        stalled = lam_new > 1e16
+        done = small_step | small_gain | stalled
+        code = optx.RESULTS.where(stalled & ~(small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
+        y, r, jac, loss = (jnp.where(accept, a_new, a_old) for a_new, a_old in ((y_t, y), (r_t, r), (j_t, jac), (loss_t, loss)))
+        hist = hist.at[step + 1].set(loss)
+        return y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist
+
+    y, _, _, _, _, _, steps, done, code, hist = jax.lax.while_loop(cond, body, carry0)
+    code = optx.RESULTS.where((code == optx.RESULTS.successful) & ~done, optx.RESULTS.nonlinear_max_steps_reached, code)
+    return SolveResult(y, code, steps, hist)

@@ -1,0 +1,251 @@
+"""Benchmark: the calibration fit's speed (issue 13): warm fit, compile, and a batch of fits in
+one call against separate calls, optionally side by side with another checkout of tofjax.
+
+On simulated 100-frame baselines of the default OptoSkin scene (6 sensors x 7 zones x 128 bins,
+twelve nonlinear parameters), in one process per checkout:
+
+* ``warm_fit_s``: ``Calibrator(scene).fit(capture)`` (timing start, envelope, fit, covariance,
+  result) after a first fit, median over ``--captures`` captures x ``--repeats``;
+* ``compile_s``: the first ``fit_problem`` call (with covariance) minus a warm one: what the
+  compiled fit costs to trace and compile (the first whole fit is ``first_fit_s``);
+* ``batch``: ``fit_problem`` (no covariance) on ``--separate`` captures one call each, and
+  ``fit_problem_batch`` on ``--batch`` captures in one call, all from the same start (the
+  envelope start of the first capture); ``speedup = batch x mean separate / batch call``.
+  The batched fit is compiled by a first call, timed separately (``batch_compile_s``).
+* the estimates and standard errors of every capture's fit, so the parent can compare two
+  checkouts in standard errors, and (``--reference``) a tight refit of each capture
+  (``loss_tol = 0``, tolerances 1e-12, from the default fit's end point) as the yardstick.
+
+With ``--baseline DIR`` (another checkout, e.g. ``git worktree add /tmp/fsbase <commit>``) each
+checkout runs as its own process with its own ``PYTHONPATH``, alternating, and the JSON holds
+both and their ratios. Writes ``fit_bench.json`` to ``--out``. **Simulated** data.
+
+    python experiments/bench_fit.py --out out/bench_fit --baseline /tmp/fsbase
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _flat(values: dict) -> dict:
+    import numpy as np
+
+    return {k: np.asarray(v, np.float64).ravel().tolist() for k, v in values.items()}
+
+
+def worker(a) -> dict:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.fit._start import envelope_candidates, timing_start
+    from tofjax.fit.calibrate import Calibrator, _anchor, _data, fit_problem, fit_problem_batch
+    from tofjax.scene import load_scene
+    from tofjax.simulate import simulate
+
+    scene = load_scene(a.scene)
+    cal = Calibrator(scene)
+    pb, cfg = cal.problem, cal.config
+    solver, objective = cfg.make_solver(), cfg.make_objective()
+    dtype = pb.model.geometry.ray_length.dtype
+    base = cal.base_params()
+    kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
+    out: dict = {"solver": type(solver).__name__}
+
+    caps = [simulate(scene, a.frames, seed=1000 + i) for i in range(a.captures)]
+    t = time.perf_counter()
+    cal.fit(caps[0])
+    out["first_fit_s"] = time.perf_counter() - t
+    fits, times = [], []
+    for r in range(a.repeats):
+        for i, c in enumerate(caps):
+            t = time.perf_counter()
+            res = cal.fit(c)
+            times.append(time.perf_counter() - t)
+            if r == 0:
+                fits.append({"steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
+                             "values": _flat(res.values), "stderr": _flat(res.stderr),
+                             "loss": res.loss_history[-1]})
+    out["warm_fit_s"] = statistics.median(times)
+    out["warm_fit_all_s"] = times
+    out["fits"] = fits
+
+    # compile of the fit program alone: a new problem object of the same structure is a
+    # cache hit in eqx.filter_jit, so compile through a fresh jit of the same function
+    d0, s0 = _data(caps[0], dtype)
+    st, found = timing_start(pb, np.asarray(d0), caps[0].n_frames, scene, base)
+    start = envelope_candidates(pb, st, d0, s0, 1)[0]
+    anchor = _anchor(st, found, cfg, dtype)
+    import equinox as eqx
+
+    calmod = sys.modules["tofjax.fit.calibrate"]
+    fresh = eqx.filter_jit(calmod._fit)
+    args = (pb, objective, solver, start, d0, s0, base, anchor, cfg.max_steps, cfg.loss_tol, cfg.gn_first, True)
+    t = time.perf_counter()
+    jax.block_until_ready(fresh(*args))
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    jax.block_until_ready(fresh(*args))
+    out["compile_s"] = first - (time.perf_counter() - t)
+
+    if a.reference:
+        from tofjax.fit.solve import MarquardtLM
+
+        tight = MarquardtLM(rtol=1e-12, atol=1e-12)
+        refs = []
+        for c, f in zip(caps, fits):
+            d, g = _data(c, dtype)
+            res = cal.fit(c)
+            sol = jax.device_get(fit_problem(pb, objective, tight, res.params, d, g, base, anchor_of(cfg, pb, scene, base, c, dtype),
+                                             max_steps=a.reference_steps, loss_tol=0.0, gn_first=0, with_cov=False))
+            vals = {k: np.asarray(sol.linear[k] if k in sol.linear else getattr(sol.params, k)) for k in pb.free}
+            refs.append({"values": _flat(vals), "steps": int(sol.steps), "loss": float(0.5 * sol.chi2)})
+        out["reference"] = refs
+
+    if a.batch:
+        pairs = []
+        for i in range(a.batch):
+            c = simulate(scene, a.frames, seed=2000 + i)
+            pairs.append(_data(c, dtype))
+        D = jnp.stack([p[0] for p in pairs])
+        G = jnp.stack([p[1] for p in pairs])
+        nocov = dict(kw, with_cov=False)
+        jax.block_until_ready(fit_problem(pb, objective, solver, start, D[0], G[0], base, anchor, **nocov))
+        sep, sep_steps = [], []
+        for i in range(a.separate):
+            t = time.perf_counter()
+            sol = jax.block_until_ready(fit_problem(pb, objective, solver, start, D[i], G[i], base, anchor, **nocov))
+            sep.append(time.perf_counter() - t)
+            sep_steps.append(int(sol.steps))
+        starts = jax.tree_util.tree_map(lambda x: jnp.stack([x] * a.batch), start)
+        A = jnp.stack([anchor] * a.batch)
+        t = time.perf_counter()
+        jax.block_until_ready(fit_problem_batch(pb, objective, solver, starts, D, G, base, A, **nocov))
+        first = time.perf_counter() - t
+        t = time.perf_counter()
+        sols = jax.block_until_ready(fit_problem_batch(pb, objective, solver, starts, D, G, base, A, **nocov))
+        batch_s = time.perf_counter() - t
+        steps = np.asarray(sols.steps)
+        # the batch against the same fits one by one (the first --separate)
+        n1_sep = [float(fit_problem(pb, objective, solver, start, D[i], G[i], base, anchor, **nocov).params.n1)
+                  for i in range(min(a.separate, 5))]
+        out["batch"] = {
+            "n": a.batch, "separate_n": a.separate, "separate_s": sep, "separate_mean_s": statistics.mean(sep),
+            "separate_steps": sep_steps, "batch_s": batch_s, "batch_compile_s": first - batch_s,
+            "batch_steps_max": int(steps.max()), "batch_steps_mean": float(steps.mean()),
+            "speedup": a.batch * statistics.mean(sep) / batch_s,
+            "successful": int(np.sum(np.asarray(jax.tree_util.tree_leaves(sols.result)[0]) == 0)),
+            "max_n1_diff_batch_vs_separate": float(np.max(np.abs(np.asarray(sols.params.n1)[: len(n1_sep)] - n1_sep))),
+        }
+    return out
+
+
+def anchor_of(cfg, pb, scene, base, capture, dtype):
+    import numpy as np
+
+    from tofjax.fit._start import timing_start
+    from tofjax.fit.calibrate import _anchor, _data
+
+    d, _ = _data(capture, dtype)
+    st, found = timing_start(pb, np.asarray(d), capture.n_frames, scene, base)
+    return _anchor(st, found, cfg, dtype)
+
+
+def _compare(fa: list, fb: list) -> dict:
+    """Largest difference of the estimates of ``fa`` and ``fb`` in ``fa``'s standard errors:
+    over n1 and mu_s + mu_a's parts, and over every free parameter."""
+    import numpy as np
+
+    worst, worst_key, named = 0.0, None, {}
+    for x, y in zip(fa, fb):
+        for k, v in x["values"].items():
+            se = np.maximum(np.asarray(x["stderr"][k]), 1e-300)
+            d = float(np.max(np.abs(np.asarray(v) - np.asarray(y["values"][k])) / se))
+            named[k] = max(named.get(k, 0.0), d)
+            if d > worst:
+                worst, worst_key = d, k
+    return {"max_stderr": worst, "where": worst_key, "per_parameter": named}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", required=True)
+    p.add_argument("--baseline", help="another tofjax checkout to run side by side")
+    p.add_argument("--scene", default="optoskin")
+    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--captures", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--batch", type=int, default=100)
+    p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
+    p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
+    p.add_argument("--reference-steps", type=int, default=400)
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.worker:
+        Path(a.out).write_text(json.dumps(worker(a)))
+        return 0
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    trees = {"this": str(ROOT)} | ({"baseline": str(Path(a.baseline).resolve())} if a.baseline else {})
+    runs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, tree in trees.items():
+            dest = Path(tmp) / f"{name}.json"
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
+                   "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
+                   "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
+                   "--reference-steps", str(a.reference_steps)] + (["--reference"] if a.reference and name == "this" else [])
+            env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
+            t = time.perf_counter()
+            done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            if done.returncode:
+                raise SystemExit(f"{name} ({tree}) failed:\n{done.stderr[-3000:]}")
+            runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
+            print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name]['compile_s']:.1f} s"
+                  + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
+    report = {
+        "what": "calibration fit speed on simulated baselines (issue 13 targets)",
+        "simulated": True,
+        "scene": a.scene, "frames": a.frames, "captures": a.captures, "repeats": a.repeats,
+        "runs": runs,
+        "targets": {"warm_fit_s": 0.05, "compile_s": 10.0, "batch_speedup": 10.0},
+        "load_average_1min_end": os.getloadavg()[0],
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
+    }
+    this = runs["this"]
+    if "reference" in this:
+        report["this_vs_reference"] = _compare(this["fits"], [{"values": r["values"]} for r in this["reference"]])
+    if "baseline" in runs:
+        b = runs["baseline"]
+        report["ratios_baseline_over_this"] = {
+            "warm_fit": b["warm_fit_s"] / this["warm_fit_s"], "compile": b["compile_s"] / this["compile_s"],
+        } | ({"batch_call": b["batch"]["batch_s"] / this["batch"]["batch_s"]} if a.batch else {})
+        report["this_vs_baseline"] = _compare(this["fits"], b["fits"])
+        if "reference" in this:
+            report["baseline_vs_reference"] = _compare(
+                [{"values": r["values"], "stderr": f["stderr"]} for r, f in zip(this["reference"], this["fits"])], b["fits"])
+            report["this_vs_reference"] = _compare(
+                [{"values": r["values"], "stderr": f["stderr"]} for r, f in zip(this["reference"], this["fits"])], this["fits"])
+    from tofjax.outputs import atomic_write_text
+
+    atomic_write_text(out / "fit_bench.json", json.dumps(report, indent=2))
+    print(json.dumps({k: v for k, v in report.items() if k != "runs"}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
