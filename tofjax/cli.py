@@ -175,9 +175,11 @@ def _cmd_calibrate(a) -> int:
         )
     if not result.converged and not a.allow_unconverged:
         bound = f" on a bound: {', '.join(result.on_bound)};" if result.on_bound else ""
+        poor = (f" reduced chi-square {result.reduced_chi2:.1f} > {config.max_reduced_chi2:g}: is it really a no-touch "
+                "baseline of this scene?" if result.reduced_chi2 > config.max_reduced_chi2 else "")
         print(
             f"tofjax calibrate: error: the fit did not converge ({result.result});{bound} the parameters in {out} are "
-            "not a fit. Raise max_steps or loosen rtol/atol in a --config, or pass --allow-unconverged",
+            f"not a fit.{poor} Raise max_steps or loosen rtol/atol in a --config, or pass --allow-unconverged",
             file=sys.stderr,
         )
         return 3
