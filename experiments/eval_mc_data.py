@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -96,9 +97,10 @@ def mc_expected(scene, photons: int, seed: int, progress: bool = False) -> tuple
     return expected, info
 
 
+@functools.lru_cache(maxsize=1)
 def mc_source_hash() -> str:
     """A hash of the Monte Carlo's source: a cached run made by another version of the transport (e.g.
-    before the contact flag fix) is not reused."""
+    before the contact flag fix) is not reused. Read once per process (every cached run asks for it)."""
     import tofjax.mc as mc
 
     h = hashlib.sha256()
