@@ -282,3 +282,21 @@ def test_different_scene_same_shape_is_an_error(scene):
     other = scene.replace(waveguide=scene.waveguide.__class__(**{**scene.waveguide.__dict__, "n1": 1.5}))
     with pytest.raises(InversionError, match="different scenes"):
         check_compatible(other, scene)
+
+
+def test_simulate_contacts_on_a_guide_smaller_than_15_cm():
+    """The vmapped simulator's prototype contacts sit inside any guide (they were hard-coded at
+    (0.15, 0.15) m, outside a 10 cm guide), and its frames equal the one-scene simulator's."""
+    from tofjax.scene import Touch, scene_from_dict
+
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.1, 0.08], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.5, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": 1e-10, "n_bins": 24, "zones": 3, "fov_deg": 30.0, "emission_time_s": 1e-10},
+        "sensors": [{"position_m": [0.0, 0.04], "direction_deg": 0.0}],
+    })
+    c = np.array([[[0.06, 0.045, 1.0]]])
+    got = simulate_contacts(sc, c, noise=False)[0]
+    want = expected_counts(sc.replace(touches=(Touch((0.06, 0.045), 0.006, 1.0),)))
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())  # float32 model
+    with pytest.raises(ValueError, match="configurations, contacts, 3"):
+        simulate_contacts(sc, c[0])

@@ -36,9 +36,14 @@ def simulate_contacts(
     ``contacts`` is (C, N, 3) = x_m, y_m, strength (all configurations share N).
     """
     contacts = np.asarray(contacts, float)
+    if contacts.ndim != 3 or contacts.shape[2] != 3:
+        raise ValueError(f"contacts must be (configurations, contacts, 3) = x_m, y_m, strength; got shape {contacts.shape}")
     C, N, _ = contacts.shape
     base = scene.without_touches()
-    proto = base.replace(touches=tuple(Touch((0.15, 0.15), radius_m, 1.0) for _ in range(N))) if N else base
+    # The prototype only fixes the model's structure (N contacts of this radius); its positions
+    # are replaced per configuration. The guide's centre lies inside any guide.
+    centre = tuple(0.5 * s for s in scene.waveguide.size_m)
+    proto = base.replace(touches=tuple(Touch(centre, radius_m, 1.0) for _ in range(N))) if N else base
     model = build_model(proto, options)
     p0 = Params.from_scene(proto, options.jnp_dtype)
 
