@@ -71,12 +71,13 @@ NUISANCE_WIDTH = 0.3
 #: And the light-entry width (``crosstalk_width_s``, a sigmoid coordinate capped at two bins):
 #: where the light-entry peak is as narrow as the pulse (every baseline of tofjax's own
 #: simulator states 0), the data bound it only from above. On the default baseline the
-#: log-density is flat within 0.3 nats from 0.07 to 1.3 ps (the draws there are the fit's weak
-#: prior, not the data) and falls as ``exp(4 u)`` beyond (5 nats at 3.6 ps, 135 at 9 ps): its
-#: curvature grows sixfold per 0.5 in the coordinate, and the draws that reach that wall need
-#: a step a third of the rest's; it was where the NUTS divergences came from (70 in 4 x 1000
-#: draws). Its draws correlated with n1, extinction and albedo by less than 0.02 and with the
-#: pulse width by -0.15 (experiments/posterior_geometry.py, docs/calibration.md). For a
+#: log-density is flat within 0.4 nats from 0.07 to 1.3 ps (the draws there are the fit's weak
+#: prior, not the data) and falls as ``exp(4 u)`` beyond (2.6 nats at 3.6 ps, 122 at 9.5 ps): its
+#: curvature grows 6-7 fold per 0.5 in the coordinate, and at the draws that reach that wall the
+#: Hessian's largest eigenvalue in the draws' metric was up to 420 (median draw 4.4), where a
+#: leapfrog step above 0.1 diverges: most of the NUTS divergences (70 in 4 x 1000 draws).
+#: Its draws correlated with n1, extinction and albedo by less than 0.02 and with the pulse
+#: width by -0.15 (experiments/posterior_geometry.py, docs/calibration.md). For a
 #: capture whose light-entry peak is resolved, sample it: ``hold=HELD_SLOW_TAIL``.
 HELD_SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")
 HELD = (*HELD_SLOW_TAIL, "crosstalk_width_s")
