@@ -19,10 +19,9 @@ through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up includ
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
 load-independent figures. Writes ``posterior.json`` in ``--out``. The defaults (NUTS 4 x
 (250 + 700) at target acceptance 0.95, the light-entry width held at the fit; 32 walkers x
-3000 steps) made 55k gradients and 96k values on the default baseline; on the loaded 2-core
-VM (load 17-21) NUTS took 206 s and emcee 202 s (docs/results/posterior.json); at the
-lead's idle rate of 1117 gradients per second (posterior_idle.json) the NUTS part would be
-about 50 s (an estimate, not measured idle).
+3000 steps) made 55k gradients and 96k values on the default baseline: NUTS 51 s and emcee
+46 s at load 0.8-1.6 (docs/results/posterior.json), 206 s and 202 s at load 17-21
+(posterior_loaded.json, the same draws: the seeds are fixed).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
