@@ -21,7 +21,7 @@ load-independent figures. Writes ``posterior.json`` in ``--out``. The defaults (
 (250 + 700) at target acceptance 0.95, the light-entry width held at the fit; 32 walkers x
 3000 steps) made 55k gradients and 96k values on the default baseline: NUTS 51 s and emcee
 46 s at load 0.8-1.6 (docs/results/posterior.json), 206 s and 202 s at load 17-21
-(posterior_loaded.json, the same draws: the seeds are fixed).
+(posterior_loaded.json; the same NUTS draws: the seeds are fixed).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
