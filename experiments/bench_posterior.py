@@ -17,9 +17,11 @@ Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-
 split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
-load-independent figures. Writes ``posterior.json`` in ``--out``; the defaults (4 x (250 +
-1000), 32 walkers x 3000 steps) should take about 3-4 minutes on an idle 2-core machine
-(estimated from the loaded one's gradient counts and a 1 ms gradient; not measured idle).
+load-independent figures. Writes ``posterior.json`` in ``--out``. The defaults (NUTS 4 x
+(250 + 700) at target acceptance 0.95, the light-entry width held at the fit; 32 walkers x
+3000 steps) made 55k gradients and 96k values on the default baseline: NUTS 51 s and emcee
+46 s at load 0.8-1.6 (docs/results/posterior.json), 206 s and 202 s at load 17-21
+(posterior_loaded.json; the same NUTS draws: the seeds are fixed).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
@@ -203,9 +205,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--chains", type=int, default=4)
     ap.add_argument("--warmup", type=int, default=250)
-    ap.add_argument("--draws", type=int, default=1000)
+    ap.add_argument("--draws", type=int, default=700)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
-    ap.add_argument("--target-accept", type=float, default=0.9)
+    ap.add_argument("--target-accept", type=float, default=0.95)
     ap.add_argument("--max-tree-depth", type=int, default=10)
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)

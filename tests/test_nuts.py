@@ -45,6 +45,9 @@ def test_log_density_is_shared_and_whitenable(fitted):
     loose = log_density(cal, cap, res, nuisance_width=None, hold=())
     assert held and set(loose.coords) == set(ld.coords) | set(held) and not set(held) & set(ld.names)
     assert set(held) <= set(loose.names)
+    # the light-entry width is held by default (its posterior is the weak prior below a steep wall)
+    assert "crosstalk_width_s" in HELD and "crosstalk_width_s" in cal.problem.nonlinear
+    assert "crosstalk_width_s" not in ld.coords and "crosstalk_width_s" in loose.coords
     for k in ld.coords:
         i, j = ld.coords.index(k), loose.coords.index(k)
         assert ld.laplace_cov[i, i] <= loose.laplace_cov[j, j] * (1 + 1e-9)

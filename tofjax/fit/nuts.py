@@ -60,11 +60,11 @@ class NutsOptions:
     ``gain_prior`` (its prior of the integrated-out gains)."""
 
     chains: int = 4
-    warmup: int = 500
-    draws: int = 1000
+    warmup: int = 250
+    draws: int = 700
     start: str = "mode"
     seed: int = 0
-    target_accept: float = 0.9
+    target_accept: float = 0.95
     max_tree_depth: int = 10
     dense: bool = True
     pilot: bool = False

@@ -48,7 +48,7 @@ from ._laplace import normal_covariance
 from .calibrate import CalibrationError, CalibrationResult, Calibrator, _anchor, _data, scene_fingerprint
 from .transforms import FITTABLE
 
-__all__ = ["GAIN_PRIOR", "GAIN_PRIORS", "HELD", "LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "posterior_mode",
+__all__ = ["GAIN_PRIOR", "GAIN_PRIORS", "HELD", "HELD_SLOW_TAIL", "LogDensity", "PosteriorOptions", "PosteriorResult", "log_density", "posterior_mode",
            "sample_posterior", "summarise"]
 
 
@@ -68,7 +68,19 @@ NUISANCE_WIDTH = 0.3
 #: plateau to the edge of the fit's weak prior (slow tail at e^12 bins, 16 Laplace standard
 #: errors from the fit), the Laplace whitening is off by a factor of 8 in the fast tail, and
 #: the adapted step size collapses. They correlate with n1 and mu_s + mu_a by less than 0.1.
-HELD = ("pulse_slow_weight", "pulse_slow_tail_s")
+#: And the light-entry width (``crosstalk_width_s``, a sigmoid coordinate capped at two bins):
+#: where the light-entry peak is as narrow as the pulse (every baseline of tofjax's own
+#: simulator states 0), the data bound it only from above. On the default baseline the
+#: log-density is flat within 0.4 nats from 0.07 to 1.3 ps (the draws there are the fit's weak
+#: prior, not the data) and falls as ``exp(4 u)`` beyond (2.6 nats at 3.6 ps, 122 at 9.5 ps): its
+#: curvature grows 6-7 fold per 0.5 in the coordinate, and at the draws that reach that wall the
+#: Hessian's largest eigenvalue in the draws' metric was up to 420 (median draw 4.4), where a
+#: leapfrog step above 0.1 diverges: most of the NUTS divergences (70 in 4 x 1000 draws).
+#: Its draws correlated with n1, extinction and albedo by less than 0.02 and with the pulse
+#: width by -0.15 (experiments/posterior_geometry.py, docs/calibration.md). For a
+#: capture whose light-entry peak is resolved, sample it: ``hold=HELD_SLOW_TAIL``.
+HELD_SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")
+HELD = (*HELD_SLOW_TAIL, "crosstalk_width_s")
 #: Prior of the profiled gains: "log-uniform" (default, ``p(g) ~ 1/g``) or "flat" (before
 #: issue 16's rework; its volume term ``-log ||R||`` per zone moved the posterior's bulk
 #: away from the fit along the ridge).
