@@ -273,6 +273,8 @@ def main(argv=None):
     ap.add_argument("--columns", default=",".join(COLUMNS), help=f"comma-separated subset of {', '.join(COLUMNS)}")
     ap.add_argument("--n1", type=float, nargs="+", help="only these true n1 of the grid")
     ap.add_argument("--mu-t", type=float, nargs="+", help="only these true mu_t of the grid")
+    ap.add_argument("--geodesic", choices=("on", "off"), default="on" if FitConfig().geodesic else "off",
+                    help="FitConfig.geodesic: the Marquardt solver's geodesic acceleration")
     ap.add_argument("--no-batch", action="store_true", help="skip the batch speed-up measurement")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' JSONs into --out instead of fitting")
     args = ap.parse_args(argv)
@@ -284,7 +286,7 @@ def main(argv=None):
         if bad:
             raise SystemExit(f"--columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
         tofjax.enable_x64()
-        r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error), overwrite=args.overwrite,
+        r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error, geodesic=args.geodesic == "on"), overwrite=args.overwrite,
                 columns=cols, n1s=args.n1, mu_ts=args.mu_t, batch=not args.no_batch)
     for name in COLUMNS:
         if name in r:

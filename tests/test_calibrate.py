@@ -522,3 +522,38 @@ def test_basin_check_keeps_the_lowest_chi2_of_the_basins(fitted, small):
     for i in range(1, len(ends)):  # each further start was in another basin than the ends before it
         start = [s for s in res.stages if s.get("stage") == "envelope"][0]["starts"][int(fits[i]["stage"].split()[-1])]
         assert all(abs(np.log(start["mu_t_per_m"] / e)) >= np.log(2.0) for e in ends[:i])
+
+
+@pytest.mark.parametrize("zone_end", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_structured_jacobian_of_the_linear_parts_equals_autodiff(small, zone_end):
+    """The profiled residuals' Jacobian (each piece of linear_parts differentiated by only the
+    coordinates it depends on, CalibrationProblem._parts_of) equals plain forward-mode AD of
+    the same residuals without that structure, to rounding; the values are the same."""
+    import jax
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from tofjax.fit.calibrate import base_params, build_problem
+
+    scene = small.replace(sensor=SensorModel(bin_width_s=1e-10, n_bins=48, zones=2, fov_deg=20.0), sensors=small.sensors[:2])
+    cfg = FitConfig(zone_end=zone_end)
+    problem = build_problem(scene, cfg)
+    base = base_params(scene, cfg, jnp.float64)
+    data = jnp.asarray(simulate(scene, 20, seed=5).mean())
+    sigma = jnp.sqrt(jnp.maximum(data, 1.0) / 20)
+    u = problem.pack_jax(base, problem.nonlinear)
+    flat, unravel = jax.flatten_util.ravel_pytree(u)
+    flat = flat + 0.03 * jnp.sin(jnp.arange(flat.size, dtype=flat.dtype))  # away from the scene's values
+    prior = problem.pack_jax(base, problem.nonlinear)
+
+    def plain(f):
+        uu = unravel(f)
+        _, m, _, _ = problem.profile(problem.unpack(uu, base), data, sigma)
+        return jnp.concatenate([((m - data) / sigma).ravel(), problem.prior_residuals(uu, prior)])
+
+    def ours(f):
+        return problem.residuals(unravel(f), (base, data, sigma, prior))
+
+    np.testing.assert_allclose(np.asarray(jax.jit(ours)(flat)), np.asarray(jax.jit(plain)(flat)), rtol=1e-12, atol=1e-12)
+    a, b = np.asarray(jax.jit(jax.jacfwd(ours))(flat)), np.asarray(jax.jit(jax.jacfwd(plain))(flat))
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())

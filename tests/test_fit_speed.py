@@ -1,4 +1,4 @@
-"""The default calibration solver (Marquardt-scaled Levenberg-Marquardt with geodesic
+"""The default calibration solver (Marquardt-scaled Levenberg-Marquardt, optionally with geodesic
 acceleration, tofjax.fit.solve): it finds the least-squares optimum, a vmapped batch of fits
 equals the fits one by one, and failures are result codes. Toy problems: each test compiles in
 well under a second."""
@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+import pytest
 from scipy.optimize import least_squares
 
 from tofjax.fit.solve import MarquardtLM, solve_marquardt
@@ -33,9 +34,10 @@ def residuals(p, data):
 Y0 = jnp.log(jnp.asarray([1.5, 1.0, 0.6, 2.0]))
 
 
-def test_marquardt_finds_the_least_squares_optimum():
+@pytest.mark.parametrize("geodesic", [False, True])
+def test_marquardt_finds_the_least_squares_optimum(geodesic):
     data = jnp.asarray(_data(0))
-    solver = MarquardtLM(rtol=1e-12, atol=1e-12)
+    solver = MarquardtLM(rtol=1e-12, atol=1e-12, geodesic=geodesic)
     out = jax.jit(lambda y, d: solve_marquardt(residuals, solver, y, d, max_steps=200))(Y0, data)
     assert out.result == optx.RESULTS.successful
     ref = least_squares(lambda p: np.asarray(residuals(jnp.asarray(p), data)), np.asarray(Y0), xtol=1e-15, ftol=1e-15, gtol=1e-15)

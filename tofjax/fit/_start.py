@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compile_cache import call_stored
 from ..model import SPEED_OF_LIGHT_M_PER_S, Geometry, Params
 from ..scene import Scene
 from ._problem import CalibrationProblem
@@ -94,6 +95,12 @@ def _model_at(model, params):
     return model(params)
 
 
+def _stored(name: str, fn, args):
+    """``fn(*args)`` (one array out) through the program store, as the fit itself: a new process
+    with the store on reads the traced start stages from disk instead of tracing them again."""
+    return call_stored(name, fn, args, to_plain=lambda x: x, from_plain=lambda plain, _: plain)
+
+
 def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, scene: Scene, base: Params):
     """Step 1: emission time, ambient and n1 from the data's timing; returns the start and
     whether n1 came from the data (an edge return was seen).
@@ -101,7 +108,7 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
     The same estimators run on the model at ``base`` first; their offsets from ``base``
     (the estimators' bias: a pulse's peak is not its mean) are taken out of the estimates."""
     tau = float(base.pulse_tail_s)
-    ref = np.asarray(_model_at(problem.model, base), np.float64)
+    ref = np.asarray(_stored("calibration timing reference", _model_at, (problem.model, base)), np.float64)
     ref_t_e, _, ref_n1 = edge_estimates(ref, frames, scene, tau)
     t_e, ambient, n1 = edge_estimates(np.asarray(data, np.float64), frames, scene, tau)
     t_e = max(t_e + float(base.emission_time_s) - ref_t_e, 0.0)
@@ -159,7 +166,8 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     n = np.asarray([g[0] for g in grid])
     m = np.asarray([g[1] for g in grid])
     dt = start.n1.dtype
-    chi = np.asarray(envelope_grid(problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt)))
+    chi = np.asarray(_stored("calibration envelope grid", envelope_grid,
+                             (problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt))))
     albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
     order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
     out = []

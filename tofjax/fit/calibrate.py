@@ -215,6 +215,11 @@ class FitConfig:
       strongly attenuating guide (4 /m) has a second basin near 0.1 /m whose chi-square
       (2.7-3.2 on the independent simulator) is under ``max_reduced_chi2`` but above the
       true basin's (1.7-2.1). Default 1.5; ``inf`` turns the check off.
+    - ``geodesic``: the default solver adds the geodesic acceleration to its steps
+      (:class:`~tofjax.fit.solve.MarquardtLM`); off by default: on the calibration study's grid
+      it took more steps (its acceptance test rejects steps near the optimum, where the
+      profiled residuals' curvature changes with the active set) and ended no lower, and its
+      nested forward mode makes the compiled fit larger (docs/results/fit_bench.json).
     - ``free`` includes ``end_incidence_power`` by default: the edge's angle law
       ``R(theta) = end_reflectance cos(theta)^p`` (docs/physics.md); a scene states ``p = 0``.
     """
@@ -239,6 +244,7 @@ class FitConfig:
     pulse_tails: int = 2
     basin_check_chi2: float = 1.5
     optics: str = "default"
+    geodesic: bool = False
 
     def __post_init__(self):
         if self.optics not in OPTICS:
@@ -289,7 +295,7 @@ class FitConfig:
     def make_solver(self):
         """The optimistix solver object the ``solver`` string names."""
         if self.solver == "levenberg-marquardt":
-            return MarquardtLM(rtol=self.rtol, atol=self.atol)
+            return MarquardtLM(rtol=self.rtol, atol=self.atol, geodesic=self.geodesic)
         if self.solver == "gauss-newton":
             return optx.GaussNewton(rtol=self.rtol, atol=self.atol)
         if self.solver == "dogleg":

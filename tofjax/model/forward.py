@@ -192,13 +192,17 @@ class ForwardModel(eqx.Module):
         """The instrument response applied to node masses; ``extra_width``: a Gaussian spread
         of the events themselves (s), added in quadrature to the pulse's Gaussian rise (a
         Gaussian convolved with an ex-Gaussian is an ex-Gaussian)."""
+        return apply_kernels(masses, self.pulse_kernels(params, extra_width), self.n_bins, self.options.quadrature)
+
+    def pulse_kernels(self, params: Params, extra_width=None) -> jax.Array:
+        """The bin-integrated pulse per node phase (:func:`~tofjax.model.pulse.bin_kernels`):
+        a function of the pulse parameters (and ``extra_width``) only."""
         q = self.options.quadrature
         slow = (params.pulse_slow_weight, params.pulse_slow_tail_s) if self.options.pulse_tails == 2 else (None, None)
         sigma = params.pulse_sigma_s
         if extra_width is not None:
             sigma = jnp.sqrt(sigma**2 + extra_width**2)
-        kernels = bin_kernels(self.bin_width_s / q, self.n_bins, q, sigma, params.pulse_tail_s, params.n1.dtype, *slow)
-        return apply_kernels(masses, kernels, self.n_bins, q)
+        return bin_kernels(self.bin_width_s / q, self.n_bins, q, sigma, params.pulse_tail_s, params.n1.dtype, *slow)
 
     def light_entry_peak(self, params: Params) -> jax.Array:
         """The light-entry (crosstalk) peak of unit size in every zone, (bins,): a point at the
@@ -239,10 +243,26 @@ class ForwardModel(eqx.Module):
         peak of unit size), both (sensors, zones, bins). Calibration profiles the linear
         parameters out with these. With ``separate_end``: ``(R - E, P, E)``, ``E`` the far-edge
         return at unit gain and unit reflectance (so it can be scaled per zone)."""
+        S, Z, B = self.shape
+        stack, has_cross = self.linear_masses(params, separate_end)
+        binned = self._apply_pulse(stack, params)
+        # the light-entry peak: its own width (Params.crosstalk_width_s), the same shape in every zone
+        cross = self._crosstalk(self._unit(params)) if has_cross else jnp.zeros((S, Z, B), binned.dtype)
+        return (binned[0], cross) + tuple(binned[i] for i in range(1, stack.shape[0]))
+
+    def _unit(self, params: Params) -> Params:
+        return params.replace(gain=jnp.ones_like(params.gain), crosstalk_counts=jnp.ones_like(params.crosstalk_counts))
+
+    def linear_masses(self, params: Params, separate_end: bool = False) -> tuple[jax.Array, bool]:
+        """The node masses behind :meth:`linear_parts`, before the pulse: ``(stack, has_cross)``,
+        ``stack`` (1 or 2, S, Z, K) (``R`` and, with ``separate_end``, ``E``) and whether the
+        scene has the light-entry peak. Pieces of :meth:`linear_parts` so a calibration can
+        differentiate each by only the parameters it depends on (the masses do not depend on
+        the pulse, the pulse kernels on nothing else)."""
         if self.pile_up:
             raise ValueError("with pile-up the model is not linear in gain, crosstalk and ambient")
         S, Z, B = self.shape
-        unit = params.replace(gain=jnp.ones_like(params.gain), crosstalk_counts=jnp.ones_like(params.crosstalk_counts))
+        unit = self._unit(params)
         if separate_end:
             unit = unit.replace(end_reflectance=1.0)
         masses = self._node_masses(unit)
@@ -252,10 +272,7 @@ class ForwardModel(eqx.Module):
         if separate_end:
             parts.append(masses.pop("end", zero))
         rest = sum(masses.values()) if masses else zero
-        binned = self._apply_pulse(jnp.stack([rest] + parts), params)
-        # the light-entry peak: its own width (Params.crosstalk_width_s), the same shape in every zone
-        cross = self._crosstalk(unit) if has_cross else jnp.zeros((S, Z, B), binned.dtype)
-        return (binned[0], cross) + tuple(binned[i] for i in range(1, len(parts) + 1))
+        return jnp.stack([rest] + parts), has_cross
 
     def breakdown(self, params: Params) -> dict[str, jax.Array]:
         """Each component's contribution in counts per bin (before pile-up), for plots and pruning."""
