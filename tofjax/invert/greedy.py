@@ -33,6 +33,7 @@ unused ones at strength 0, so one compiled model serves every count).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -148,28 +149,30 @@ class FitDetector:
         A = R.reshape(len(self.centres), -1) / self.sigma[None]
         self._A = A.astype(np.float32)
         self._gdiag = np.sum(A**2, 1)
-        # the model with max_contacts slots (unused ones at strength 0: exactly no contact)
-        from ..model.contact import SkinContact
-
         K = o.max_contacts
-        dt = "float64" if jax.config.jax_enable_x64 else "float32"
-        proto = scene.without_touches().replace(
-            touches=tuple(Touch((0.5 * lx, 0.5 * ly), o.contact_radius_m, 0.0) for _ in range(K)))
-        mopts = ModelOptions(dtype=dt, pulse_tails=optical.pulse_tails, optics="guided", skin=SkinContact())
-        model = build_model(proto, mopts, components=proto.components())
-        p0 = _params_with_optics(proto, optical, mopts.jnp_dtype)
-        f0 = model(p0.replace(touch_strength=jnp.zeros(K, mopts.jnp_dtype))).ravel()
-        sig = jnp.asarray(self.sigma, mopts.jnp_dtype)
+        change, dtype = _contact_change(scene, optical, K, o.contact_radius_m)
+        sig = jnp.asarray(self.sigma, dtype)
 
         def weighted_change(theta):  # theta (3K,): x, y, strength -> (model change) / sigma, (n,)
-            xy = jnp.stack([theta[:K], theta[K : 2 * K]], -1)
-            return (model(p0.replace(touch_xy_m=xy, touch_strength=theta[2 * K :])).ravel() - f0) / sig
+            return change(theta) / sig
 
-        self._dtype = mopts.jnp_dtype
+        self._dtype = dtype
         self._change = jax.jit(weighted_change)
         self._jac = jax.jit(jax.jacfwd(weighted_change))
         self.K = K
         self._sat = float(scene.sensor.saturation_counts)
+
+    def with_options(self, options: FitDetectOptions) -> "FitDetector":
+        """The same detector with other search and stopping options (thresholds, iterations, pruning),
+        sharing the precomputed responses and compiled model; the grid, contact radius, slots and margin
+        must be those it was built with."""
+        fixed = ("cell_m", "contact_radius_m", "max_contacts", "edge_margin_m")
+        changed = [k for k in fixed if getattr(options, k) != getattr(self.options, k)]
+        if changed:
+            raise ConfigError(f"with_options: {', '.join(changed)} need a new detector (build_fit_detector)")
+        new = copy.copy(self)
+        new.options = options
+        return new
 
     # -- one frame -------------------------------------------------------------------------------
     def _chi2(self, theta, y):
@@ -342,6 +345,29 @@ class FitDetector:
                                            for x, yy, s in contacts]))
         return FitResult(maps.reshape(F, self.grid.ny, self.grid.nx), ok, self.grid, "fit",
                          dets if detect else None, None, chi2, int(self.sigma.size))
+
+
+def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: float):
+    """The guided model's change of the histograms (flattened) caused by ``K`` skin contacts
+    ``theta = (x_1..x_K, y_1..y_K, strength_1..strength_K)``, at the calibrated optics, and its dtype.
+    Every contact is in one model evaluation: their shadows on each other are in it. A slot at strength 0
+    is exactly no contact (the skin model's coupling scales the contact's every effect)."""
+    from ..model.contact import SkinContact
+    from .reconstruct import _params_with_optics
+
+    lx, ly = scene.waveguide.size_m
+    dt = "float64" if jax.config.jax_enable_x64 else "float32"
+    proto = scene.without_touches().replace(touches=tuple(Touch((0.5 * lx, 0.5 * ly), radius_m, 0.0) for _ in range(K)))
+    mopts = ModelOptions(dtype=dt, pulse_tails=optical.pulse_tails, optics="guided", skin=SkinContact())
+    model = build_model(proto, mopts, components=proto.components())
+    p0 = _params_with_optics(proto, optical, mopts.jnp_dtype)
+    f0 = model(p0.replace(touch_strength=jnp.zeros(K, mopts.jnp_dtype))).ravel()
+
+    def change(theta):
+        xy = jnp.stack([theta[:K], theta[K : 2 * K]], -1)
+        return model(p0.replace(touch_xy_m=xy, touch_strength=theta[2 * K :])).ravel() - f0
+
+    return change, mopts.jnp_dtype
 
 
 def build_fit_detector(scene: Scene, baseline: np.ndarray, optical: OpticalParams | None = None,
