@@ -19,7 +19,8 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    seeds as the detection baseline: common random numbers, so the touch frame differs from the
    baseline by what the contacts do, not by independent Monte Carlo noise of the whole histogram),
    ``frames_per_config`` photon-noise frames each; inverted with the calibrated optics by the
-   ``full`` (back-projection) and ``model`` methods; scored as experiments/eval_touch.py scores
+   ``full`` (back-projection), ``model`` (grid reconstruction) and ``fit`` (greedy contact fit,
+   :mod:`tofjax.invert.greedy`) methods; scored as experiments/eval_touch.py scores
    (2 cm match radius). The model method's contact response follows from the calibration: with the
    guided optics it is the skin contact's signed response (added and removed light,
    ``ReconstructOptions.response`` "auto"). ``information_limit``: how much evidence of each contact
@@ -193,8 +194,8 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
                   cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
-                  no_touch_frames: int = 20, exposure: float = 1.0) -> dict:
-    """Six-contact detection with the calibrated optics, full and model methods."""
+                  no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit")) -> dict:
+    """Six-contact detection with the calibrated optics: full, model and fit methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
 
@@ -203,7 +204,7 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
 
     forced = not cal_json["converged"]
     optical = OpticalParams.from_calibration(dict(cal_json, converged=True), scene)
-    cfg = eval_touch.EvalConfig(methods=("full", "model"))
+    cfg = eval_touch.EvalConfig(methods=tuple(m for m in methods if m != "fit"))
     opts = eval_touch._options(cfg)
     base = _capture(scene, base_expected, baseline_frames, seed + 1000, "baseline")
     H = np.concatenate([_capture(scene, e, frames_per_config, seed + 2000 + i, "touch").histograms
@@ -213,10 +214,16 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
            "calibration_forced": forced, "optics": optical.optics, "methods": {},
            "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
-    for m in ("full", "model"):
+    for m in methods:
         t = time.perf_counter()
-        inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
-                             baseline_frames=base.histograms)
+        if m == "fit":
+            from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
+
+            inv = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
+                                     n_baseline=baseline_frames)
+        else:
+            inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
+                                 baseline_frames=base.histograms)
         res = inv.process(H)
         score, found = eval_touch._score(res.detections, truth, cfg.match_radius_m)
         quiet = inv.process(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms)
@@ -226,8 +233,13 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
         score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
         score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
         score["seconds"] = time.perf_counter() - t
-        if inv.reconstructor is not None:
+        if getattr(inv, "reconstructor", None) is not None:
             score["contact_response"] = inv.reconstructor.response
+        if m == "fit":
+            score["options"] = repr(inv.options)
+            score["seconds_what"] = "building (signed responses on the 5 mm grid, compiling) and every frame"
+            score["reduced_chi2_touch_frames_median"] = float(np.nanmedian(res.chi2 / res.dof))
+            score["contacts_found_per_frame"] = np.bincount([len(d.touches) for d in res.detections]).tolist()
         out["methods"][m] = score
         if progress:
             print(f"  {m}: P {score['precision']:.3f} R {score['recall']:.3f} err {score['mean_error_cm']:.2f} cm", flush=True)
@@ -346,7 +358,9 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
 
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
-        progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0) -> dict:
+        progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
+        methods=("full", "model", "fit"), skip_l2: bool = False) -> dict:
+    import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
 
@@ -383,7 +397,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "touch_photons_per_sensor": photons * seeds_touch,
                         "baseline_relative_noise": transported_noise,
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
-        "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config,
+        "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
+                     "skip_l2": skip_l2,
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
                      "transported light, light entry and ambient) times this: the sensor's iterations per frame "
@@ -416,14 +431,15 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         if progress:
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
-                                                 baseline_frames, seed, progress, exposure=exposure)
-    if progress:
-        print("touch L2: noise and model error ...", flush=True)
-    result["guided_vs_mc_relative_l2"] = touch_l2(scene, contacts, photons, seeds_touch, seeds)
-    if progress:
-        print("  ", json.dumps(result["guided_vs_mc_relative_l2"]["touch_median"]), flush=True)
-        print("first-order touch, one contact ...", flush=True)
-    result["first_order_touch"] = first_order_touch()
+                                                 baseline_frames, seed, progress, exposure=exposure, methods=methods)
+    if not skip_l2:
+        if progress:
+            print("touch L2: noise and model error ...", flush=True)
+        result["guided_vs_mc_relative_l2"] = touch_l2(scene, contacts, photons, seeds_touch, seeds)
+        if progress:
+            print("  ", json.dumps(result["guided_vs_mc_relative_l2"]["touch_median"]), flush=True)
+            print("first-order touch, one contact ...", flush=True)
+        result["first_order_touch"] = first_order_touch()
     targets = {}
     for col in ("own", "monte_carlo"):
         c = result["calibration"][col]["guided"]
@@ -458,6 +474,10 @@ def main(argv=None):
     ap.add_argument("--with-default", action="store_true", help="also calibrate the Monte Carlo data with the default optics")
     ap.add_argument("--exposure", type=float, default=1.0,
                     help="the sensor's iterations per frame relative to the scene's: every count times this")
+    ap.add_argument("--methods", default="full,model,fit", help="detection methods, comma-separated")
+    ap.add_argument("--skip-l2", action="store_true",
+                    help="leave out the guided-vs-Monte-Carlo L2 and the first-order touch (they do not depend on the "
+                         "detectors; minutes of Monte Carlo on a loaded machine)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
@@ -467,7 +487,8 @@ def main(argv=None):
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
-            overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure)
+            overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
+            methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 

@@ -22,6 +22,8 @@ def _options(a):
     from .pipeline import InvertOptions
     from .reconstruct import ReconstructOptions
 
+    if a.method == "fit":
+        return _fit_options(a)
     model = a.method == "model"
     # Reject what the chosen method would ignore instead of dropping it silently.
     if a.dynamic_baseline and a.method not in ("baseline", "full"):
@@ -48,6 +50,19 @@ def _options(a):
     )
 
 
+def _fit_options(a):
+    """``--method fit``: the greedy contact fit's options (what it would ignore is refused)."""
+    from .correction import InversionError
+    from .greedy import FitDetectOptions
+
+    for flag, given in (("--dynamic-baseline", a.dynamic_baseline), ("--no-cfar", a.no_cfar),
+                        ("--relative", a.relative is not None), ("--contact-response", a.contact_response is not None)):
+        if given:
+            raise InversionError(f"{flag} does not apply to --method fit")
+    changes = {"n_sigma": a.n_sigma, "min_strength": a.min_strength}
+    return FitDetectOptions(**{k: v for k, v in changes.items() if v is not None})
+
+
 def _run(a, *, want_detect: bool):
     from .pipeline import build_inverter, load_inputs
 
@@ -64,13 +79,19 @@ def _run(a, *, want_detect: bool):
         )
     for w in caught:
         print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
-    if a.method == "model":
+    if a.method in ("model", "fit"):
         print(
-            f"tofjax {a.command}: building the model-based reconstruction (the forward model's response "
-            "at every cell; tens of seconds) ...",
+            f"tofjax {a.command}: building the model-based {'reconstruction' if a.method == 'model' else 'contact fit'} "
+            "(the forward model's response at every cell; tens of seconds) ...",
             file=sys.stderr,
             flush=True,
         )
+    if a.method == "fit":
+        from .greedy import build_fit_detector
+
+        inv = build_fit_detector(base.scene, base.mean(), optical, options, n_baseline=base.n_frames)
+        res = inv.process(touch.histograms, detect=True)
+        return touch, base, optical, inv, _flag_bad(a, res)
     inv = build_inverter(
         base.scene, base.mean(), options, optical, n_baseline=base.n_frames, baseline_frames=base.histograms
     )
@@ -87,6 +108,10 @@ def _run(a, *, want_detect: bool):
         )
     else:
         res = inv.process(touch.histograms, detect=want_detect or bool(getattr(a, "png", None)))
+    return touch, base, optical, inv, _flag_bad(a, res)
+
+
+def _flag_bad(a, res):
     bad = int((~res.ok).sum())
     if bad:
         print(
@@ -94,7 +119,7 @@ def _run(a, *, want_detect: bool):
             "flagged (ok = false) and left out",
             file=sys.stderr,
         )
-    return touch, base, optical, inv, res
+    return res
 
 
 def _cmd_process(a) -> int:
@@ -182,13 +207,20 @@ def _common(s):
         help="sensor model from `tofjax sensor fit` (its bin width replaces the nominal one; pass the same "
         "model as to `tofjax calibrate --sensor`)",
     )
-    s.add_argument("--method", choices=ALL_METHODS, default="full", help="correction (default full: Algorithm 1)")
+    s.add_argument(
+        "--method",
+        choices=(*ALL_METHODS, "fit"),
+        default="full",
+        help="correction (default full: Algorithm 1); 'model': grid reconstruction; 'fit': contacts fitted one by one "
+        "(positions and strengths through the model; needs a guided-optics calibration)",
+    )
     s.add_argument("--resolution-mm", type=float, default=2.5, help="map pixel size in mm (default 2.5)")
     s.add_argument(
         "--n-sigma",
         type=float,
         help="detection threshold in noise standard deviations: of the no-touch map at each pixel "
-        "(back-projection, default 7) or of each cell's strength (--method model, default 1)",
+        "(back-projection, default 7), of each cell's strength (--method model, default 1) or of each fitted "
+        "contact's chi-square drop, sqrt (--method fit, default 6)",
     )
     s.add_argument(
         "--relative",
@@ -204,7 +236,8 @@ def _common(s):
     s.add_argument(
         "--min-strength",
         type=float,
-        help="--method model: also require this summed strength, in the forward model's units (default: none)",
+        help="--method model: also require this summed strength, in the forward model's units; --method fit: this "
+        "fitted coupling strength, 0-1 (default: none)",
     )
     s.add_argument(
         "--contact-response",

@@ -1,0 +1,176 @@
+"""The greedy contact fit (``method="fit"``, tofjax/invert/greedy.py).
+
+The fast tests give the detector a stand-in forward model (a contact that removes light from the
+far-edge return and the volume light before it, by geometry; differentiable jnp, so no compilation of
+the guided model); the slow one uses the guided model itself on a small scene.
+"""
+
+import dataclasses
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tofjax import load_scene
+from tofjax.config import ConfigError
+from tofjax.invert import match
+from tofjax.invert.correction import InversionError, OpticalParams
+from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
+from tofjax.scene import SensorPlacement
+
+EDGE_BIN, BINS = 30, 48
+
+
+def _small_scene():
+    sc = load_scene("optoskin").without_touches()
+    wg = dataclasses.replace(sc.waveguide, size_m=(0.15, 0.15))
+    sensors = (
+        SensorPlacement((0.0, 0.0), 45.0, name="A"),
+        SensorPlacement((0.15, 0.0), 135.0, name="B"),
+        SensorPlacement((0.0, 0.15), 315.0, name="C"),
+    )
+    return sc.replace(waveguide=wg, sensors=sensors, sensor=dataclasses.replace(sc.sensor, n_bins=BINS))
+
+
+def _stand_in_change(scene, K):
+    """theta (3K,) -> change (S*Z*B,): each contact removes light in the zones that see it (triangular
+    share between zone centres) from its range bin up to the far edge, and from the far-edge return."""
+    pos = jnp.asarray([sp.position_m for sp in scene.sensors])
+    dirs = jnp.asarray([sp.direction_deg for sp in scene.sensors])
+    half = scene.sensor.fov_deg / 2
+    width = scene.sensor.fov_deg / scene.sensor.zones
+    zc = (jnp.arange(scene.sensor.zones) + 0.5) * width - half
+    b = jnp.arange(BINS)
+    to_bins = 2 * scene.waveguide.n1 / 2.998e8 / scene.sensor.bin_width_s
+
+    def change(theta):
+        x, y, s = theta[:K], theta[K : 2 * K], theta[2 * K :]
+        dx, dy = x[None] - pos[:, 0, None], y[None] - pos[:, 1, None]  # (S, K)
+        off = (jnp.degrees(jnp.arctan2(dy, dx)) - dirs[:, None] + 180.0) % 360.0 - 180.0
+        share = jnp.clip(1.0 - jnp.abs(off[:, None, :] - zc[None, :, None]) / width, 0.0, 1.0)  # (S, Z, K)
+        rb = jnp.sqrt(dx**2 + dy**2) * to_bins  # (S, K)
+        behind = 1 / (1 + jnp.exp(-(b[None, :, None] - rb[:, None, :]) / 0.7)) * (b < EDGE_BIN)[None, :, None]
+        lost = 150.0 * jnp.exp(-0.5 * ((b - EDGE_BIN) / 1.5) ** 2)[None, :, None] + 15.0 * behind  # (S, B, K)
+        return -jnp.einsum("szk,sbk,k->szb", share, lost, s).ravel()
+
+    return change
+
+
+@pytest.fixture()
+def stand_in(monkeypatch):
+    import tofjax.invert.greedy as greedy
+    import tofjax.invert.reconstruct as rec
+
+    sc = _small_scene()
+
+    def fake_change(scene, optical, K, radius_m):
+        return _stand_in_change(scene, K), jnp.float64
+
+    def fake_response(scene, optical, centres, radius_m, chunk=128, *, shadow=False, signed=False):
+        one = jax.vmap(_stand_in_change(scene, 1))
+        c = np.asarray(centres, float)
+        return np.asarray(one(jnp.asarray(np.c_[c, np.ones(len(c))]))).reshape(len(c), *scene.shape)
+
+    monkeypatch.setattr(greedy, "_contact_change", fake_change)
+    monkeypatch.setattr(rec, "response_matrix", fake_response)
+    base = np.broadcast_to(20.0 + 600.0 * np.exp(-0.5 * ((np.arange(BINS) - EDGE_BIN) / 1.5) ** 2), sc.shape).copy()
+    optical = dataclasses.replace(OpticalParams.from_scene(sc), optics="guided")
+    return sc, base, optical
+
+
+def test_fast_two_contacts_found_within_1cm_none_without_touch(stand_in):
+    sc, base, optical = stand_in
+    truth = np.array([[0.06, 0.10, 0.9], [0.11, 0.05, 0.7]])
+    K = 3
+    theta = np.zeros(3 * K)
+    theta[:2], theta[K : K + 2], theta[2 * K : 2 * K + 2] = truth.T
+    touch = base + np.asarray(_stand_in_change(sc, K)(jnp.asarray(theta))).reshape(sc.shape)
+    rng = np.random.default_rng(0)
+    frames = rng.poisson(np.stack([touch, base])).astype(float)
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=K, iterations=4, relocate_candidates=2)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=100)
+    res = det.process(frames)
+    pos = res.detections[0].positions()
+    assert len(pos) == 2, res.detections[0].touches
+    assert match(pos, truth[:, :2], 0.01)[0] == 2, (pos, truth)
+    assert res.detections[1].touches == []
+    # the fit reaches the optimum: its chi-square is no worse than the truth's refitted (the stand-in leaves
+    # the two strengths nearly degenerate, so they are not compared)
+    y = (frames[0].ravel() - det.base) / det.sigma
+    assert res.chi2[0] <= det._refit(theta, np.arange(2), y)[1] + 1.0
+
+
+def test_fast_threshold_is_in_noise_units(stand_in):
+    """A contact of evidence 12 noise sd is found with n_sigma 9, not with 15, at any noise level (the
+    stand-in's contact has a fixed amplitude: the baseline's counts, and so the noise, change)."""
+    sc, base, optical = stand_in
+    one = _stand_in_change(sc, 1)
+    opts = FitDetectOptions(cell_m=0.02, max_contacts=1, iterations=3, overdispersion=False, relocate=False)
+    for scale in (1.0, 0.25):
+        b = base * scale
+        resp = np.asarray(one(jnp.asarray([0.07, 0.08, 1.0]))).reshape(sc.shape)
+        z = np.sqrt(np.sum(resp**2 / b))  # the strength-1 contact's evidence in noise sd
+        frame = b + (12.0 / z) * resp  # noise-free: its chi-square drop is 144
+        det = build_fit_detector(sc, b, optical, opts, n_baseline=10**9)
+        found = [len(det.with_options(dataclasses.replace(opts, n_sigma=n, n_sigma_forward=n)).process(
+            frame[None]).detections[0].touches) for n in (9.0, 15.0)]
+        assert found == [1, 0], (scale, found)
+    with pytest.raises(ConfigError, match="cell_m"):
+        det.with_options(dataclasses.replace(opts, cell_m=0.01))
+
+
+def test_fast_options_and_inputs_rejected(stand_in):
+    sc, base, optical = stand_in
+    with pytest.raises(ConfigError, match="n_sigma"):
+        FitDetectOptions(n_sigma=-1.0)
+    with pytest.raises(ConfigError, match="max_contacts"):
+        FitDetectOptions(max_contacts=0)
+    with pytest.raises(InversionError, match="guided"):
+        build_fit_detector(sc, base, dataclasses.replace(optical, optics="default"))
+    det = build_fit_detector(sc, base, optical, FitDetectOptions(cell_m=0.02, max_contacts=1))
+    with pytest.raises(InversionError, match="shape"):
+        det.process(base[None, :2])
+    bad = base.copy()
+    bad[0, 0, 0] = np.nan
+    res = det.process(bad[None])
+    assert not res.ok[0] and res.detections[0].touches == []
+
+
+@pytest.mark.slow
+def test_cli_fit_rejects_options_it_would_ignore(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "tofjax.cli", "detect", "t.h5", "--baseline", "b.h5", "--method", "fit",
+                        "--relative", "0.3", "--json", str(tmp_path / "o.json")], capture_output=True, text=True)
+    assert r.returncode != 0 and "--relative does not apply to --method fit" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_slow_guided_model_two_contacts():
+    """The real guided model (small scene): two skin contacts at a long exposure found within 1 cm, none
+    on no-touch frames."""
+    import tofjax
+    from tofjax.model import ModelOptions
+    from tofjax.model.contact import SkinContact
+    from tofjax.scene import Touch
+    from tofjax.simulate import expected_counts
+
+    tofjax.enable_x64()
+    sc = _small_scene()
+    wg = dataclasses.replace(sc.waveguide, volume_backscatter_fraction=0.5)
+    sc = sc.replace(waveguide=wg)
+    opts = ModelOptions(optics="guided", skin=SkinContact())
+    base = expected_counts(sc, ModelOptions(optics="guided")) * 16
+    truth = np.array([[0.06, 0.09, 0.9], [0.10, 0.05, 0.8]])
+    touch = expected_counts(sc.replace(touches=tuple(Touch((x, y), 0.006, s) for x, y, s in truth)), opts) * 16
+    rng = np.random.default_rng(1)
+    frames = rng.poisson(np.stack([touch, base, base])).astype(float)
+    optical = dataclasses.replace(OpticalParams.from_scene(sc), optics="guided")
+    optical = dataclasses.replace(optical, gain=tuple(g * 16 for g in optical.gain))
+    det = build_fit_detector(sc, base, optical, FitDetectOptions(cell_m=0.01, max_contacts=4), n_baseline=100)
+    res = det.process(frames)
+    k, _ = match(res.detections[0].positions(), truth[:, :2], 0.01)
+    assert k == 2 and len(res.detections[0].touches) == 2, res.detections[0].touches
+    assert [len(d.touches) for d in res.detections[1:]] == [0, 0]

@@ -1,0 +1,385 @@
+"""Contact detection by fitting: greedy forward selection of contacts with a joint refit (``method="fit"``).
+
+The grid reconstruction (:mod:`tofjax.invert.reconstruct`) explains a frame as a sparse sum of
+fixed per-cell responses and thresholds a map; six skin contacts that each mostly *shadow* the
+same far-edge return share their evidence and come out as blurred, merged or missing cells.
+Here the contacts themselves are the unknowns, each a position and a strength, and the frame
+is explained by the forward model with *all* of them at once (their shadows on each other
+included, not a sum of single-contact responses):
+
+1. The weighted residual of the frame against the current fit, ``r = (P - B - Delta(theta)) / sigma``,
+   with ``B`` the baseline mean, ``sigma^2 = B (1 + 1/N)`` (photon noise of the frame and the
+   N-frame baseline) and ``Delta(theta)`` the guided model's change of the histograms caused by
+   the contacts ``theta`` (their added and removed light, with signs: each contact's signed
+   response, strength clipped to [0, 1] as the model's coupling is).
+2. **Proposal**: for every cell of a fine grid (``cell_m``), the chi-square drop of adding one
+   contact there with the best strength in [0, 1], from the precomputed signed response of a
+   unit contact there (a matched filter). The best cell at least ``min_separation_m`` from the
+   contacts already found is added.
+3. **Joint refit**: Levenberg-Marquardt on every contact's position and strength (the Jacobian
+   by forward differentiation of the model), positions kept inside the guide, strengths in [0, 1].
+4. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
+   in noise units: the drop is ``z^2`` of the new contact's evidence); then **backward pruning**:
+   a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes.
+
+Everything is in noise units, none in tofjax's amplitude scale: a rig whose contacts couple at a
+tenth of the model's strength is thresholded the same way. ``overdispersion`` (default on) divides
+the drops by the final fit's reduced chi-square when it exceeds 1: what the model cannot describe
+of the frame (a different rig, the Monte Carlo) is then counted as noise instead of as contacts.
+
+The number of contacts is inferred (at most ``max_contacts``: the model has that many slots, the
+unused ones at strength 0, so one compiled model serves every count).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..config import ConfigError
+from ..model import ModelOptions, build_model
+from ..scene import Scene, Touch
+from .correction import InversionError, OpticalParams
+from .detect import Detection
+from .maps import Grid
+
+__all__ = ["FitDetectOptions", "FitDetector", "build_fit_detector"]
+
+
+@dataclass(frozen=True)
+class FitDetectOptions:
+    """- ``n_sigma``: a contact is kept when it lowers the chi-square by more than ``n_sigma^2``
+      (its evidence in noise standard deviations, a likelihood-ratio test; default 6: the proposal
+      searches thousands of positions, so pure noise reaches ~4-5).
+    - ``n_sigma_forward``: the forward selection adds contacts down to this (lower) evidence; the
+      pruning then keeps those above ``n_sigma`` (over-complete first: a spare contact lets the
+      refit split a greedy pick that sat between two contacts).
+    - ``cell_m``: the proposal grid (default 5 mm); positions are then refined continuously.
+    - ``contact_radius_m``: the radius of the contacts the model fits.
+    - ``max_contacts``: at most this many contacts per frame (the model's slots).
+    - ``min_separation_m``: a new contact is proposed at least this far from those found.
+    - ``edge_margin_m``: contact centres stay at least this far inside the guide.
+    - ``iterations``: Levenberg-Marquardt steps of each joint refit.
+    - ``overdispersion``: divide the chi-square drops by the final fit's reduced chi-square when > 1
+      (model error counted as noise).
+    - ``prune``: backward pruning after the forward selection.
+    - ``relocate``: after the forward selection, move each contact to the best position the
+      residual without it proposes (its ``relocate_candidates`` best local maxima), when that lowers
+      the chi-square.
+    - ``min_strength``: an extra floor on a contact's fitted strength (the model's coupling, 0-1;
+      default 0: none)."""
+
+    n_sigma: float = 6.0
+    n_sigma_forward: float = 4.0
+    cell_m: float = 0.005
+    contact_radius_m: float = 0.006
+    max_contacts: int = 8
+    min_separation_m: float = 0.02
+    edge_margin_m: float = 0.006
+    iterations: int = 6
+    overdispersion: bool = True
+    prune: bool = True
+    relocate: bool = True
+    relocate_candidates: int = 3
+    min_strength: float = 0.0
+
+    def __post_init__(self):
+        for k in ("n_sigma", "n_sigma_forward", "min_strength", "min_separation_m", "edge_margin_m"):
+            v = getattr(self, k)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{k}: must be a finite number >= 0, got {v!r}")
+        for k in ("cell_m", "contact_radius_m"):
+            v = getattr(self, k)
+            if not (v > 0 and math.isfinite(v)):
+                raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
+        if self.max_contacts < 1 or self.iterations < 1:
+            raise ConfigError("max_contacts and iterations must be >= 1")
+
+
+@dataclass
+class FitResult:
+    """What :meth:`FitDetector.process` returns (the pipeline's ``ProcessResult`` shape): ``maps`` are
+    each frame's evidence map before any contact is fitted (``sqrt`` of the chi-square drop of one
+    contact at each cell, in noise standard deviations)."""
+
+    maps: np.ndarray
+    ok: np.ndarray
+    grid: Grid
+    method: str
+    detections: list[Detection] | None = None
+    noise: np.ndarray | None = None
+    chi2: np.ndarray | None = None  # (F,) final chi-square of each frame
+    dof: int = 0
+
+    def touches_json(self) -> dict:
+        return {"frames": [{"index": i, "touches": [{k: t[k] for k in ("x_m", "y_m", "strength")} for t in d.touches]}
+                           for i, d in enumerate(self.detections or [])]}
+
+
+class FitDetector:
+    """Precomputed fit detector of one scene, baseline and calibration (see :func:`build_fit_detector`)."""
+
+    def __init__(self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: FitDetectOptions,
+                 n_baseline: int):
+        from .reconstruct import _params_with_optics, response_matrix
+
+        if optical.optics != "guided":
+            raise InversionError("--method fit needs a calibration with the guided optics (skin contacts); "
+                                 f"this one has {optical.optics!r}")
+        self.scene, self.options, self.optical = scene, options, optical
+        o = options
+        lx, ly = scene.waveguide.size_m
+        self.bounds = np.array([[o.edge_margin_m, lx - o.edge_margin_m], [o.edge_margin_m, ly - o.edge_margin_m]])
+        self.grid = Grid.for_scene(scene, o.cell_m)
+        c = self.grid.centres().reshape(-1, 2)
+        inside = ((c[:, 0] >= self.bounds[0, 0]) & (c[:, 0] <= self.bounds[0, 1]) & (c[:, 1] >= self.bounds[1, 0])
+                  & (c[:, 1] <= self.bounds[1, 1]))
+        self.cells = np.flatnonzero(inside)
+        self.centres = c[self.cells]
+        base = np.asarray(baseline, float)
+        self.sigma = np.sqrt(np.maximum(base, 1.0) * (1.0 + 1.0 / n_baseline)).ravel()
+        self.base = base.ravel()
+        R = response_matrix(scene, optical, self.centres, o.contact_radius_m, signed=True)  # (K, S, Z, B)
+        A = R.reshape(len(self.centres), -1) / self.sigma[None]
+        self._A = A.astype(np.float32)
+        self._gdiag = np.sum(A**2, 1)
+        K = o.max_contacts
+        change, dtype = _contact_change(scene, optical, K, o.contact_radius_m)
+        sig = jnp.asarray(self.sigma, dtype)
+
+        def weighted_change(theta):  # theta (3K,): x, y, strength -> (model change) / sigma, (n,)
+            return change(theta) / sig
+
+        self._dtype = dtype
+        self._change = jax.jit(weighted_change)
+        self._jac = jax.jit(jax.jacfwd(weighted_change))
+        self.K = K
+        self._sat = float(scene.sensor.saturation_counts)
+
+    def with_options(self, options: FitDetectOptions) -> "FitDetector":
+        """The same detector with other search and stopping options (thresholds, iterations, pruning),
+        sharing the precomputed responses and compiled model; the grid, contact radius, slots and margin
+        must be those it was built with."""
+        fixed = ("cell_m", "contact_radius_m", "max_contacts", "edge_margin_m")
+        changed = [k for k in fixed if getattr(options, k) != getattr(self.options, k)]
+        if changed:
+            raise ConfigError(f"with_options: {', '.join(changed)} need a new detector (build_fit_detector)")
+        new = copy.copy(self)
+        new.options = options
+        return new
+
+    # -- one frame -------------------------------------------------------------------------------
+    def _chi2(self, theta, y):
+        r = y - np.asarray(self._change(jnp.asarray(theta, self._dtype)), float)
+        return float(r @ r), r
+
+    def _clip(self, theta):
+        K = self.K
+        theta = theta.copy()
+        theta[:K] = np.clip(theta[:K], *self.bounds[0])
+        theta[K : 2 * K] = np.clip(theta[K : 2 * K], *self.bounds[1])
+        theta[2 * K :] = np.clip(theta[2 * K :], 0.0, 1.0)
+        return theta
+
+    def _refit(self, theta, active, y, iterations=None):
+        """Levenberg-Marquardt on the active contacts' x, y, strength (box-constrained by clipping)."""
+        K = self.K
+        cols = np.concatenate([active, active + K, active + 2 * K])
+        chi, r = self._chi2(theta, y)
+        lam = 1e-3
+        for _ in range(self.options.iterations if iterations is None else iterations):
+            J = np.asarray(self._jac(jnp.asarray(theta, self._dtype)), float)[:, cols]
+            JtJ, g = J.T @ J, J.T @ r
+            d = np.maximum(np.diag(JtJ), 1e-30)
+            improved = False
+            for _ in range(6):
+                step = np.linalg.solve(JtJ + lam * np.diag(d), g)
+                t2 = theta.copy()
+                t2[cols] += step
+                t2 = self._clip(t2)
+                chi2, r2 = self._chi2(t2, y)
+                if chi2 < chi:
+                    theta, r, improved = t2, r2, True
+                    drop = chi - chi2
+                    chi = chi2
+                    lam = max(lam / 3.0, 1e-6)
+                    break
+                lam *= 4.0
+            if not improved or drop < 0.1:  # a tenth of one unit of chi-square: converged
+                break
+        return theta, chi, r
+
+    def _propose(self, r, theta, active):
+        """The best new contact on the grid for residual ``r`` (weighted): (cell, strength, drop)."""
+        c = self._A @ r.astype(np.float32)
+        s = np.clip(c / np.maximum(self._gdiag, 1e-30), 0.0, 1.0)
+        gain = 2.0 * s * c - s * s * self._gdiag
+        K = self.K
+        for k in active:
+            near = np.hypot(self.centres[:, 0] - theta[k], self.centres[:, 1] - theta[K + k]) < self.options.min_separation_m
+            gain = np.where(near, -np.inf, gain)
+        j = int(np.argmax(gain))
+        return j, float(s[j]), float(gain[j]), gain
+
+    def fit_frame(self, histogram) -> tuple[np.ndarray, float, np.ndarray]:
+        """Contacts (n, 3: x_m, y_m, strength), the final chi-square, and the first evidence map (cells)."""
+        o, K = self.options, self.K
+        y = (np.asarray(histogram, float).ravel() - self.base) / self.sigma
+        theta = np.zeros(3 * K)
+        theta[:K], theta[K : 2 * K] = self.centres[0]
+        active = np.zeros(0, int)
+        chi, r = float(y @ y), y
+        thr_add = o.n_sigma_forward**2
+        first = None
+        while len(active) < K:
+            j, s, gain, gmap = self._propose(r, theta, active)
+            if first is None:
+                first = np.sqrt(np.maximum(gmap, 0.0))
+            if not gain > thr_add:
+                break
+            k = len(active)
+            t = theta.copy()
+            t[k], t[K + k], t[2 * K + k] = self.centres[j, 0], self.centres[j, 1], s
+            act = np.append(active, k)
+            t, chi_new, r_new = self._refit(t, act, y)
+            if chi - chi_new <= thr_add:
+                break
+            theta, active, chi, r = t, act, chi_new, r_new
+        if o.relocate and len(active) > 1:
+            theta, chi, r = self._relocate(theta, active, chi, r, y)
+        thr = o.n_sigma**2
+        if len(active) and o.overdispersion:
+            phi = max(1.0, chi / max(len(y) - 3 * len(active), 1))
+            thr = thr * phi
+        if o.prune and len(active):
+            theta, active, chi = self._prune(theta, active, chi, y, thr)
+        out = np.stack([theta[active], theta[K + active], theta[2 * K + active]], -1) if len(active) else np.zeros((0, 3))
+        if o.min_strength > 0:
+            out = out[out[:, 2] >= o.min_strength]
+        return out, chi, first
+
+    def _relocate(self, theta, active, chi, r, y):
+        """Move each contact (weakest first) to where the residual without it wants a contact (the
+        ``relocate_candidates`` best local maxima of the proposal), refit all; kept when the chi-square
+        falls (undoes a greedy pick that merged two contacts or sits on the wrong crossing of range rings)."""
+        K = self.K
+        moved = False
+        for k in active[np.argsort(theta[2 * K + active])]:
+            t0 = theta.copy()
+            t0[2 * K + k] = 0.0
+            _, r0 = self._chi2(t0, y)
+            others = active[active != k]
+            _, _, _, gain = self._propose(r0, t0, others)
+            for j in self._local_maxima(gain, self.options.relocate_candidates):
+                if np.hypot(self.centres[j, 0] - theta[k], self.centres[j, 1] - theta[K + k]) < self.options.min_separation_m:
+                    continue  # it would come back where it is
+                g = self._gdiag[j]
+                t = t0.copy()
+                t[k], t[K + k] = self.centres[j]
+                t[2 * K + k] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(g, 1e-30)), 0.0, 1.0))
+                t, cc, rr = self._refit(t, active, y, iterations=2)  # a quick look; the winner is refitted
+                if cc < chi:
+                    theta, chi, r = t, cc, rr
+                    moved = True
+        if moved:
+            theta, chi, r = self._refit(theta, active, y)
+        return theta, chi, r
+
+    def _local_maxima(self, gain, n):
+        """Cells of the ``n`` largest local maxima (3 x 3) of the proposal map, best first."""
+        full = np.full(self.grid.ny * self.grid.nx, -np.inf)
+        full[self.cells] = gain
+        m = full.reshape(self.grid.ny, self.grid.nx)
+        from scipy import ndimage
+
+        peak = (m == ndimage.maximum_filter(m, size=3, mode="constant", cval=-np.inf)) & np.isfinite(m) & (m > 0)
+        idx = np.flatnonzero(peak.ravel())
+        idx = idx[np.argsort(-full[idx])][:n]
+        return [int(i) for i in np.searchsorted(self.cells, idx)]
+
+    def _prune(self, theta, active, chi, y, thr):
+        K = self.K
+        while len(active):
+            best = None
+            for k in active:
+                t = theta.copy()
+                t[2 * K + k] = 0.0
+                rest = active[active != k]
+                c0, _ = self._chi2(t, y)
+                if c0 - chi > thr:  # plainly needed even before refitting the others
+                    continue
+                t, c, _ = self._refit(t, rest, y) if len(rest) else (t, c0, None)
+                if c - chi <= thr and (best is None or c < best[1]):
+                    best = (k, c, t)
+            if best is None:
+                break
+            k, chi, theta = best
+            active = active[active != k]
+        return theta, active, chi
+
+    # -- frames ----------------------------------------------------------------------------------
+    def process(self, histograms, *, detect: bool = True) -> FitResult:
+        h = np.asarray(histograms, float)
+        if h.ndim != 4 or h.shape[1:] != self.scene.shape:
+            raise InversionError(f"histograms have shape {h.shape[1:]} per frame, the scene {self.scene.shape}")
+        F = len(h)
+        maps = np.zeros((F, self.grid.ny * self.grid.nx))
+        ok = np.ones(F, bool)
+        chi2 = np.full(F, np.nan)
+        dets = []
+        for i in range(F):
+            bad = ~np.isfinite(h[i]) | (h[i] >= self._sat)
+            if bad.any():
+                ok[i] = False
+                dets.append(Detection())
+                continue
+            contacts, chi2[i], first = self.fit_frame(h[i])
+            maps[i, self.cells] = first
+            dets.append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s), "component": 0}
+                                           for x, yy, s in contacts]))
+        return FitResult(maps.reshape(F, self.grid.ny, self.grid.nx), ok, self.grid, "fit",
+                         dets if detect else None, None, chi2, int(self.sigma.size))
+
+
+def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: float):
+    """The guided model's change of the histograms (flattened) caused by ``K`` skin contacts
+    ``theta = (x_1..x_K, y_1..y_K, strength_1..strength_K)``, at the calibrated optics, and its dtype.
+    Every contact is in one model evaluation: their shadows on each other are in it. A slot at strength 0
+    is exactly no contact (the skin model's coupling scales the contact's every effect)."""
+    from ..model.contact import SkinContact
+    from .reconstruct import _params_with_optics
+
+    lx, ly = scene.waveguide.size_m
+    dt = "float64" if jax.config.jax_enable_x64 else "float32"
+    proto = scene.without_touches().replace(touches=tuple(Touch((0.5 * lx, 0.5 * ly), radius_m, 0.0) for _ in range(K)))
+    mopts = ModelOptions(dtype=dt, pulse_tails=optical.pulse_tails, optics="guided", skin=SkinContact())
+    model = build_model(proto, mopts, components=proto.components())
+    p0 = _params_with_optics(proto, optical, mopts.jnp_dtype)
+    f0 = model(p0.replace(touch_strength=jnp.zeros(K, mopts.jnp_dtype))).ravel()
+
+    def change(theta):
+        xy = jnp.stack([theta[:K], theta[K : 2 * K]], -1)
+        return model(p0.replace(touch_xy_m=xy, touch_strength=theta[2 * K :])).ravel() - f0
+
+    return change, mopts.jnp_dtype
+
+
+def build_fit_detector(scene: Scene, baseline: np.ndarray, optical: OpticalParams | None = None,
+                       options: FitDetectOptions = FitDetectOptions(), *, n_baseline: int = 1) -> FitDetector:
+    """Precompute the fit detector of ``scene``: the signed response of a unit contact at every cell of the
+    proposal grid and the compiled forward model with ``options.max_contacts`` contact slots.
+
+    **Arguments:** ``scene`` (its contacts ignored), ``baseline`` mean no-touch histogram (S, Z, B),
+    ``optical`` the calibrated optics (guided; default the scene's stated values, as guided optics),
+    ``options``, ``n_baseline`` frames averaged into ``baseline``.
+
+    **Returns:** a :class:`FitDetector`; ``.process(histograms)`` gives detections per frame."""
+    if optical is None:
+        optical = dataclasses.replace(OpticalParams.from_scene(scene), optics="guided")
+    return FitDetector(scene, baseline, optical, options, n_baseline)
