@@ -16,7 +16,8 @@ of the calibration study at that grid point, fixed), at several frame counts. Pe
   (~1 without a shared misfit) and its mean over zones per bin (a shape the model lacks).
 
 Then the frames needed: the sd of the relative error against frames, with the power law fitted
-(-1/2 if the error is photon noise), and the frames at which 2 sd reach 25% (extrapolated).
+(-1/2 if the error is photon noise), and the frames at which 2 sd reach 25% (extrapolated), or
+|bias| + 2 sd reach 25% (never where the bias alone exceeds 25%).
 
 The scene is the calibration study's (3 sensors, 7 zones, 128 bins, optoskin, albedo 0.8).
 
@@ -47,7 +48,7 @@ from tofjax.simulate import simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from indep_sim import IndepRig  # noqa: E402
+from indep_sim import IndepOptions, IndepRig  # noqa: E402
 from indep_sim import simulate as simulate_independent  # noqa: E402
 from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene  # noqa: E402
 
@@ -147,6 +148,12 @@ def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
                 row["frames_for_2sd_within_25pct"] = float(np.exp((np.log(0.125) - icpt) / slope)) if slope < 0 else None
                 # and on the 1/sqrt(frames) law from the largest frame count
                 row["frames_for_2sd_within_25pct_sqrt_law"] = float(f[-1] * (sd[-1] / 0.125) ** 2)
+                # with the bias measured at the largest frame count (it does not fall with frames):
+                # |bias| + 2 sd <= 25%, never where the bias alone exceeds it
+                bias = abs(groups[col][str(n1)][str(cfg.frames[-1])]["mu_t_bias"])
+                room = 0.25 - bias
+                row["bias_at_most_frames"] = bias
+                row["frames_for_bias_plus_2sd_within_25pct"] = float(f[-1] * (2 * sd[-1] / room) ** 2) if room > 0 else None
             out[key] = row
     return out
 
@@ -245,6 +252,105 @@ def _result(cfg, config, groups, fits, scaling, t0, finished) -> dict:
     }
 
 
+def _calibrator_with_rays(scene, config: FitConfig, angles_per_zone: int) -> Calibrator:
+    """A calibrator whose model traces ``angles_per_zone`` rays per zone (the far edge and the
+    range truncation; tofjax's default is 8). FitConfig does not expose it: the problem is
+    rebuilt here as ``build_problem`` builds it, with that one option changed (a diagnosis, not
+    a change of tofjax)."""
+    from tofjax.fit._problem import CalibrationProblem
+    from tofjax.fit.transforms import default_transforms
+    from tofjax.model import ModelOptions, build_model
+
+    cal = Calibrator(scene, config)
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails,
+                           optics=config.optics, angles_per_zone=angles_per_zone)
+    base = scene.without_touches()
+    cal.problem = CalibrationProblem.build(build_model(base, options), default_transforms(base), config.free,
+                                           zone_gain=config.zone_gain, prior_width=config.prior_width, zone_end=config.zone_end)
+    return cal
+
+
+DENSE = IndepOptions(angles_per_zone=48, end_rays=192, range_step_m=0.25e-3)
+VARIANTS = {
+    # name: (data, tofjax rays per zone)
+    "independent as is / tofjax 8 rays": ("indep", 8),
+    "independent sampled 4x denser / tofjax 8 rays": ("indep dense", 8),
+    "independent as is / tofjax 32 rays": ("indep", 32),
+    "independent sampled 4x denser / tofjax 32 rays": ("indep dense", 32),
+    "independent, another rig (seed 999) / tofjax 8 rays": ("indep rig999", 8),
+    "own / tofjax 8 rays": ("own", 8),
+    "own / tofjax 32 rays": ("own", 32),
+    # which of the rig's per-zone draws moves the bias (the other draws unchanged: same seed)
+    "independent rig 999 without gain spread / tofjax 8 rays": ("indep rig999 nogain", 8),
+    "independent rig 999 without crosstalk spread / tofjax 8 rays": ("indep rig999 noxt", 8),
+    "independent rig 999 without ambient spread / tofjax 8 rays": ("indep rig999 noamb", 8),
+    # FitConfig(zone_end=True): a far-edge reflectance per zone, profiled out
+    "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
+    "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
+    "own / tofjax 8 rays, zone_end": ("own", "zone_end"),
+}
+
+
+def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8, variants=tuple(VARIANTS),
+             config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+    """Where the bias comes from: the same replicate seeds fitted with the independent rig
+    sampled as it is or 4x denser (its own discretisation: 12 jittered angles per zone every
+    1 mm, 48 far-edge rays), another rig, and tofjax tracing 8 (default) or 32 rays per zone."""
+    path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    k = _grid_index(n1, MU_T)
+    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
+    truth = nominal.replace(waveguide=wg)
+    rigs = {"indep": IndepRig.from_scene(truth, seed=200 + k), "indep dense": IndepRig.from_scene(truth, seed=200 + k, options=DENSE),
+            "indep rig999": IndepRig.from_scene(truth, seed=999),
+            "indep rig999 nogain": IndepRig.from_scene(truth, seed=999, options=IndepOptions(gain_spread=0.0)),
+            "indep rig999 noxt": IndepRig.from_scene(truth, seed=999, options=IndepOptions(crosstalk_spread=0.0)),
+            "indep rig999 noamb": IndepRig.from_scene(truth, seed=999, options=IndepOptions(ambient_spread=0.0))}
+    cals = {}
+    rows = {}
+    for name in variants:
+        data, rays = VARIANTS[name]
+        if rays not in cals:
+            if rays == "zone_end":
+                cals[rays] = Calibrator(nominal, dataclasses.replace(config, zone_end=True))
+            else:
+                cals[rays] = Calibrator(nominal, config) if rays == 8 else _calibrator_with_rays(nominal, config, rays)
+        fits, resid = [], []
+        for r in range(replicates):
+            seed = 50_000 + r
+            cap = simulate(truth, frames, seed=seed) if data == "own" else simulate_independent(
+                rigs[data], contacts=np.zeros((0, 3)), frames=frames, seed=seed)
+            t = time.perf_counter()
+            res = cals[rays].fit(cap)
+            se = _mu_t_stderr(res)
+            f_mu = float(res.params.mu_s_per_m + res.params.mu_a_per_m)
+            fits.append({"seed": seed, "result": res.result, "converged": bool(res.converged),
+                         "n1_rel_error": float(res.params.n1) / n1 - 1, "mu_t_rel_error": f_mu / MU_T - 1,
+                         "mu_t_stderr_rel": None if se is None else se / MU_T, "mu_s_per_m": float(res.params.mu_s_per_m),
+                         "mu_a_per_m": float(res.params.mu_a_per_m), "reduced_chi2": float(res.reduced_chi2),
+                         "seconds": time.perf_counter() - t})
+            resid.append(np.asarray(res.residuals, np.float64))
+        g = _group(fits, np.stack(resid))
+        g["shared_misfit"].pop("by_bin")
+        rows[name] = {"summary": g, "fits": fits}
+        if progress:
+            print(f"{name:55s}: bias {100 * g['mu_t_bias']:+6.1f} +- {100 * g['mu_t_bias_stderr']:4.1f}%  sd {100 * g['mu_t_rel_error_sd']:5.1f}%  "
+                  f"chi2 {g['reduced_chi2_median']:.3f}  misfit {g['shared_misfit']['mean_square']:.2f}", flush=True)
+        result = {
+            "study": "low attenuation: where the bias comes from (simulator sampling, tofjax rays per zone, rig)",
+            "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+            "load_average": list(os.getloadavg()),
+            "truth": {"n1": n1, "mu_t_per_m": MU_T, "albedo": ALBEDO, "frames": frames, "replicates": replicates},
+            "dense_independent_options": dataclasses.asdict(DENSE),
+            "variants": rows,
+            "seconds": time.perf_counter() - t0,
+        }
+        atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
 def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     """One result from the JSONs of parts run separately (``--columns``, ``--n1``): groups and
     fits joined (a later part wins), pooled figures and the frame scaling recomputed."""
@@ -291,7 +397,20 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
+    ap.add_argument("--variants", help=f"with --diagnose: a ';'-separated subset of {'; '.join(VARIANTS)}")
     args = ap.parse_args(argv)
+    if args.diagnose:
+        tofjax.enable_x64()
+        v = tuple(x for x in args.variants.split(";") if x) if args.variants else tuple(VARIANTS)
+        bad = [x for x in v if x not in VARIANTS]
+        if bad:
+            raise SystemExit(f"--variants: unknown variant {bad[0]!r}")
+        diagnose(Path(args.out), n1=args.n1[0], frames=args.frames[-1], replicates=min(args.replicates, 8), variants=v,
+                 overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_diagnose.json")
+        return
     if args.merge:
         r = merge(args.merge, Path(args.out), overwrite=args.overwrite)
         print(json.dumps(r["pooled"], indent=1))

@@ -182,6 +182,9 @@ def test_mu_low_summaries_fast():
     sc = study._scaling(groups, cfg)["own n1=1.45"]
     assert sc["sd_power_law_exponent"] == pytest.approx(-0.5)
     assert sc["frames_for_2sd_within_25pct"] == pytest.approx(240) and sc["frames_for_2sd_within_25pct_sqrt_law"] == pytest.approx(240)
+    assert sc["frames_for_bias_plus_2sd_within_25pct"] == pytest.approx(240)
+    groups["own"]["1.45"]["960"]["mu_t_bias"] = -0.3  # a bias over 25%: no frame count is enough
+    assert study._scaling(groups, cfg)["own n1=1.45"]["frames_for_bias_plus_2sd_within_25pct"] is None
     with pytest.raises(ValueError, match="replicates"):
         study.MuLowConfig(replicates=1)
     with pytest.raises(ValueError, match="columns"):
