@@ -288,6 +288,9 @@ VARIANTS = {
     "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
     "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
     "own / tofjax 8 rays, zone_end": ("own", "zone_end"),
+    # FitConfig(quadrature=4): 4 time nodes per bin instead of 2 (the light-entry peak is narrower than a bin)
+    "independent as is / tofjax 8 rays, quadrature 4": ("indep", "quadrature4"),
+    "independent, another rig (seed 999) / tofjax 8 rays, quadrature 4": ("indep rig999", "quadrature4"),
 }
 
 
@@ -314,6 +317,8 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
         if rays not in cals:
             if rays == "zone_end":
                 cals[rays] = Calibrator(nominal, dataclasses.replace(config, zone_end=True))
+            elif rays == "quadrature4":
+                cals[rays] = Calibrator(nominal, dataclasses.replace(config, quadrature=4))
             else:
                 cals[rays] = Calibrator(nominal, config) if rays == 8 else _calibrator_with_rays(nominal, config, rays)
         fits, resid = [], []
@@ -401,6 +406,9 @@ def main(argv=None):
                     help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
     ap.add_argument("--variants", help=f"with --diagnose: a ';'-separated subset of {'; '.join(VARIANTS)}")
     args = ap.parse_args(argv)
+    from tofjax.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # parts run as separate processes: compile once per machine
     if args.diagnose:
         tofjax.enable_x64()
         v = tuple(x for x in args.variants.split(";") if x) if args.variants else tuple(VARIANTS)
