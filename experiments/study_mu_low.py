@@ -271,6 +271,7 @@ def _calibrator_with_rays(scene, config: FitConfig, angles_per_zone: int) -> Cal
 
 
 DENSE = IndepOptions(angles_per_zone=48, end_rays=192, range_step_m=0.25e-3)
+NOSPREAD = IndepOptions(gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
 VARIANTS = {
     # name: (data, tofjax rays per zone)
     "independent as is / tofjax 8 rays": ("indep", 8),
@@ -284,6 +285,9 @@ VARIANTS = {
     "independent rig 999 without gain spread / tofjax 8 rays": ("indep rig999 nogain", 8),
     "independent rig 999 without crosstalk spread / tofjax 8 rays": ("indep rig999 noxt", 8),
     "independent rig 999 without ambient spread / tofjax 8 rays": ("indep rig999 noamb", 8),
+    # every per-zone draw off: the two rigs then differ only in their sampling jitter
+    "independent rig of the study without per-zone spreads / tofjax 8 rays": ("indep nospread", 8),
+    "independent rig 999 without per-zone spreads / tofjax 8 rays": ("indep rig999 nospread", 8),
     # FitConfig(zone_end=True): a far-edge reflectance per zone, profiled out
     "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
     "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
@@ -309,7 +313,9 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
             "indep rig999": IndepRig.from_scene(truth, seed=999),
             "indep rig999 nogain": IndepRig.from_scene(truth, seed=999, options=IndepOptions(gain_spread=0.0)),
             "indep rig999 noxt": IndepRig.from_scene(truth, seed=999, options=IndepOptions(crosstalk_spread=0.0)),
-            "indep rig999 noamb": IndepRig.from_scene(truth, seed=999, options=IndepOptions(ambient_spread=0.0))}
+            "indep rig999 noamb": IndepRig.from_scene(truth, seed=999, options=IndepOptions(ambient_spread=0.0)),
+            "indep nospread": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD),
+            "indep rig999 nospread": IndepRig.from_scene(truth, seed=999, options=NOSPREAD)}
     cals = {}
     rows = {}
     for name in variants:
