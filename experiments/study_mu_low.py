@@ -272,6 +272,7 @@ def _calibrator_with_rays(scene, config: FitConfig, angles_per_zone: int) -> Cal
 
 DENSE = IndepOptions(angles_per_zone=48, end_rays=192, range_step_m=0.25e-3)
 NOSPREAD = IndepOptions(gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
+NOSPREAD_DENSE = dataclasses.replace(DENSE, gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
 VARIANTS = {
     # name: (data, tofjax rays per zone)
     "independent as is / tofjax 8 rays": ("indep", 8),
@@ -288,6 +289,8 @@ VARIANTS = {
     # every per-zone draw off: the two rigs then differ only in their sampling jitter
     "independent rig of the study without per-zone spreads / tofjax 8 rays": ("indep nospread", 8),
     "independent rig 999 without per-zone spreads / tofjax 8 rays": ("indep rig999 nospread", 8),
+    "independent rig of the study without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep nospread dense", 8),
+    "independent rig 999 without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep rig999 nospread dense", 8),
     # FitConfig(zone_end=True): a far-edge reflectance per zone, profiled out
     "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
     "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
@@ -315,7 +318,9 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
             "indep rig999 noxt": IndepRig.from_scene(truth, seed=999, options=IndepOptions(crosstalk_spread=0.0)),
             "indep rig999 noamb": IndepRig.from_scene(truth, seed=999, options=IndepOptions(ambient_spread=0.0)),
             "indep nospread": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD),
-            "indep rig999 nospread": IndepRig.from_scene(truth, seed=999, options=NOSPREAD)}
+            "indep rig999 nospread": IndepRig.from_scene(truth, seed=999, options=NOSPREAD),
+            "indep nospread dense": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD_DENSE),
+            "indep rig999 nospread dense": IndepRig.from_scene(truth, seed=999, options=NOSPREAD_DENSE)}
     cals = {}
     rows = {}
     for name in variants:
@@ -359,6 +364,22 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
             "seconds": time.perf_counter() - t0,
         }
         atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """The variants of several ``--diagnose`` runs in one JSON (their load averages kept)."""
+    path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    result = {k: loaded[0][k] for k in ("study", "data", "machine", "truth", "dense_independent_options")}
+    result["load_average"] = [d["load_average"] for d in loaded]
+    result["parts"] = [str(q) for q in parts]
+    result["seconds"] = sum(d["seconds"] for d in loaded)
+    result["variants"] = {}
+    for d in loaded:
+        result["variants"].update(d["variants"])
+    result["bias_by_variant"] = {k: [v["summary"]["mu_t_bias"], v["summary"]["mu_t_bias_stderr"]] for k, v in result["variants"].items()}
+    atomic_write_text(path, json.dumps(result, indent=2))
     return result
 
 
@@ -415,7 +436,7 @@ def main(argv=None):
     from tofjax.compile_cache import enable_compilation_cache
 
     enable_compilation_cache()  # parts run as separate processes: compile once per machine
-    if args.diagnose:
+    if args.diagnose and not args.merge:
         tofjax.enable_x64()
         v = tuple(x for x in args.variants.split(";") if x) if args.variants else tuple(VARIANTS)
         bad = [x for x in v if x not in VARIANTS]
@@ -424,6 +445,10 @@ def main(argv=None):
         diagnose(Path(args.out), n1=args.n1[0], frames=args.frames[-1], replicates=min(args.replicates, 8), variants=v,
                  overwrite=args.overwrite)
         print(f"wrote {args.out}/mu_low_diagnose.json")
+        return
+    if args.merge and args.diagnose:
+        r = merge_diagnose(args.merge, Path(args.out), overwrite=args.overwrite)
+        print(json.dumps(r["bias_by_variant"], indent=1))
         return
     if args.merge:
         r = merge(args.merge, Path(args.out), overwrite=args.overwrite)
