@@ -53,7 +53,9 @@ from indep_sim import simulate as simulate_independent  # noqa: E402
 from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene  # noqa: E402
 
 MU_T = 0.05
-COLUMNS = ("own", "independent")
+# independent_dense: the same rigs (same per-zone draws) with the geometry sampled 4x denser
+# (DENSE): the independent simulator's frozen sampling noise taken out
+COLUMNS = ("own", "independent", "independent_dense")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +64,7 @@ class MuLowConfig:
     mu_t: float = MU_T
     frames: tuple[int, ...] = (60, 240, 960)
     replicates: int = 16
-    columns: tuple[str, ...] = COLUMNS
+    columns: tuple[str, ...] = ("own", "independent")
     sensors: int = FULL["sensors"]
     zones: int = FULL["zones"]
     bins: int = FULL["bins"]
@@ -77,7 +79,7 @@ class MuLowConfig:
             raise ValueError(f"frames: positive frame counts, got {self.frames}")
 
 
-QUICK = MuLowConfig(n1=(1.45,), frames=(20,), replicates=2, columns=COLUMNS, sensors=2, zones=3, bins=96)
+QUICK = MuLowConfig(n1=(1.45,), frames=(20,), replicates=2, sensors=2, zones=3, bins=96)
 
 
 def _grid_index(n1: float, mu_t: float) -> int:
@@ -136,11 +138,14 @@ def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
     for col in cfg.columns:
         for n1 in cfg.n1:
             key = f"{col} n1={n1}"
-            f = np.array(cfg.frames, float)
-            sd = np.array([groups[col][str(n1)][str(fr)]["mu_t_rel_error_sd"] for fr in cfg.frames])
-            rms = np.array([np.sqrt(groups[col][str(n1)][str(fr)]["mu_t_bias"] ** 2 + groups[col][str(n1)][str(fr)]["mu_t_rel_error_sd"] ** 2)
-                            for fr in cfg.frames])
-            row = {"frames": cfg.frames, "sd": sd.tolist(), "rms_error": rms.tolist()}
+            g = groups.get(col, {}).get(str(n1), {})
+            frames = [fr for fr in cfg.frames if str(fr) in g]  # a merged column may lack some
+            if not frames:
+                continue
+            f = np.array(frames, float)
+            sd = np.array([g[str(fr)]["mu_t_rel_error_sd"] for fr in frames])
+            rms = np.array([np.sqrt(g[str(fr)]["mu_t_bias"] ** 2 + g[str(fr)]["mu_t_rel_error_sd"] ** 2) for fr in frames])
+            row = {"frames": list(frames), "sd": sd.tolist(), "rms_error": rms.tolist()}
             if len(f) >= 2:
                 slope, icpt = np.polyfit(np.log(f), np.log(sd), 1)
                 row["sd_power_law_exponent"] = float(slope)
@@ -150,7 +155,7 @@ def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
                 row["frames_for_2sd_within_25pct_sqrt_law"] = float(f[-1] * (sd[-1] / 0.125) ** 2)
                 # with the bias measured at the largest frame count (it does not fall with frames):
                 # |bias| + 2 sd <= 25%, never where the bias alone exceeds it
-                bias = abs(groups[col][str(n1)][str(cfg.frames[-1])]["mu_t_bias"])
+                bias = abs(g[str(frames[-1])]["mu_t_bias"])
                 room = 0.25 - bias
                 row["bias_at_most_frames"] = bias
                 row["frames_for_bias_plus_2sd_within_25pct"] = float(f[-1] * (2 * sd[-1] / room) ** 2) if room > 0 else None
@@ -171,6 +176,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
         wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * cfg.mu_t, mu_a_per_m=(1 - ALBEDO) * cfg.mu_t)
         truth = nominal.replace(waveguide=wg)
         rig = IndepRig.from_scene(truth, seed=200 + k)  # the calibration study's rig at this grid point
+        dense = IndepRig.from_scene(truth, seed=200 + k, options=DENSE) if "independent_dense" in cfg.columns else None
         for col in cfg.columns:
             fits[col][str(n1)], groups[col][str(n1)] = {}, {}
             for fr in cfg.frames:
@@ -180,7 +186,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                     if col == "own":
                         cap = simulate(truth, fr, seed=seed)
                     else:
-                        cap = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=fr, seed=seed)
+                        cap = simulate_independent(rig if col == "independent" else dense, contacts=np.zeros((0, 3)), frames=fr, seed=seed)
                     t = time.perf_counter()
                     res = cal.fit(cap)
                     sec = time.perf_counter() - t
@@ -401,7 +407,8 @@ def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     cols = tuple(c for c in COLUMNS if c in groups)
     cfg = MuLowConfig(n1=tuple(n1s), mu_t=c0["mu_t"], frames=tuple(frames), replicates=c0["replicates"], columns=cols,
                       sensors=c0["sensors"], zones=c0["zones"], bins=c0["bins"])
-    complete = all(str(fr) in groups[c].get(str(n1), {}) for c in cols for n1 in n1s for fr in frames)
+    # every column at every n1 (a column may have run fewer frame counts)
+    complete = all(groups[c].get(str(n1)) for c in cols for n1 in n1s)
     result = {k: loaded[0][k] for k in ("study", "data", "machine", "target")}
     result.update({
         "load_average": [d["load_average"] for d in loaded],
@@ -425,7 +432,7 @@ def main(argv=None):
     ap.add_argument("--replicates", type=int, default=MuLowConfig.replicates)
     ap.add_argument("--frames", type=int, nargs="+", default=list(MuLowConfig.frames))
     ap.add_argument("--n1", type=float, nargs="+", default=list(MuLowConfig.n1))
-    ap.add_argument("--columns", default=",".join(COLUMNS))
+    ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
     ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
