@@ -105,11 +105,16 @@ def test_independent_study_quick(tmp_path):
     assert set(study.COLUMNS) <= set(r) and r["independent_scene_without_ms"]["summary"]["fits"] == 1
 
 
-def test_detect_calibrated_study_is_a_script():
+def test_detect_calibrated_study_is_a_script(tmp_path):
     """The six-contact study on calibrated independent data imports and says what it writes
     (its end-to-end run is the study itself: minutes, not a test)."""
     mod = load("eval_detect_calibrated")
-    assert "detect_calibrated_independent.json" in mod.__doc__ and "Simulated" in mod.__doc__
+    assert "detect_calibrated_<source>.json" in mod.__doc__ and "Simulated" in mod.__doc__
+    # both columns: the own simulator beside the independent one; anything else is refused first
+    with pytest.raises(ValueError, match="source"):
+        mod.run(tmp_path, source="mine")
+    with pytest.raises(SystemExit):
+        mod.main(["--source", "mine", "--out", str(tmp_path)])
 
 
 @pytest.mark.slow  # three fits of a 3 x 7 x 128 baseline: 76-157 s at load 15 on the shared VM
