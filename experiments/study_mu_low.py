@@ -297,6 +297,9 @@ VARIANTS = {
     "independent rig 999 without per-zone spreads / tofjax 8 rays": ("indep rig999 nospread", 8),
     "independent rig of the study without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep nospread dense", 8),
     "independent rig 999 without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep rig999 nospread dense", 8),
+    # and without the light-entry peak (the scene's crosstalk_counts = 0 in the rig only)
+    "independent rig of the study without per-zone spreads or light-entry peak, sampled 4x denser / tofjax 8 rays":
+        ("indep nospread dense noxt", 8),
     # FitConfig(zone_end=True): a far-edge reflectance per zone, profiled out
     "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
     "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
@@ -326,7 +329,9 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
             "indep nospread": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD),
             "indep rig999 nospread": IndepRig.from_scene(truth, seed=999, options=NOSPREAD),
             "indep nospread dense": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD_DENSE),
-            "indep rig999 nospread dense": IndepRig.from_scene(truth, seed=999, options=NOSPREAD_DENSE)}
+            "indep rig999 nospread dense": IndepRig.from_scene(truth, seed=999, options=NOSPREAD_DENSE),
+            "indep nospread dense noxt": IndepRig.from_scene(
+                truth.replace(sensor=dataclasses.replace(truth.sensor, crosstalk_counts=0.0)), seed=200 + k, options=NOSPREAD_DENSE)}
     cals = {}
     rows = {}
     for name in variants:
