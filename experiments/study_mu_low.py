@@ -20,6 +20,10 @@ Then the frames needed: the sd of the relative error against frames, with the po
 |bias| + 2 sd reach 25% (never where the bias alone exceeds 25%).
 
 The scene is the calibration study's (3 sensors, 7 zones, 128 bins, optoskin, albedo 0.8).
+Column ``independent_dense`` (opt-in): the same rigs sampled 4x denser (the independent
+simulator's frozen sampling noise taken out). ``--diagnose`` fits the same seeds with the rig
+or tofjax changed one thing at a time (``VARIANTS``) and writes ``mu_low_diagnose.json``.
+Run it in parts (``--columns``, ``--n1``) on a loaded machine and ``--merge`` them.
 
     python experiments/study_mu_low.py --out out/mu_low [--replicates 16] [--frames 60 240 960]
         [--n1 1.3 1.45 1.6] [--columns own,independent] [--quick] [--overwrite]
