@@ -105,11 +105,16 @@ def test_independent_study_quick(tmp_path):
     assert set(study.COLUMNS) <= set(r) and r["independent_scene_without_ms"]["summary"]["fits"] == 1
 
 
-def test_detect_calibrated_study_is_a_script():
+def test_detect_calibrated_study_is_a_script(tmp_path):
     """The six-contact study on calibrated independent data imports and says what it writes
     (its end-to-end run is the study itself: minutes, not a test)."""
     mod = load("eval_detect_calibrated")
-    assert "detect_calibrated_independent.json" in mod.__doc__ and "Simulated" in mod.__doc__
+    assert "detect_calibrated_<source>.json" in mod.__doc__ and "Simulated" in mod.__doc__
+    # both columns: the own simulator beside the independent one; anything else is refused first
+    with pytest.raises(ValueError, match="source"):
+        mod.run(tmp_path, source="mine")
+    with pytest.raises(SystemExit):
+        mod.main(["--source", "mine", "--out", str(tmp_path)])
 
 
 @pytest.mark.slow  # three fits of a 3 x 7 x 128 baseline: 76-157 s at load 15 on the shared VM
@@ -153,3 +158,53 @@ def test_coverage_merge_counts_each_seed_once():
     assert m["laplace"]["coverage"]["n1"] == pytest.approx(2 / 3) and m["posterior"]["coverage"]["n1"] == pytest.approx(2 / 3)
     with pytest.raises(ValueError, match="settings"):
         study.merge([a, {**b, "config": {**b["config"], "draws": 11}}])
+
+
+def _mu_low_rows(errors, stderr):
+    return [{"mu_t_rel_error": e, "mu_t_stderr_rel": stderr, "converged": True, "n1_rel_error": 0.001,
+             "reduced_chi2": 1.0, "seconds": 0.1} for e in errors]
+
+
+def test_mu_low_summaries_fast():
+    """The bias, z and shared-misfit summaries of experiments/study_mu_low.py on made-up fits (no fit: < 1 s)."""
+    study = load("study_mu_low")
+    rng = np.random.default_rng(0)
+    e = 0.1 + 0.2 * rng.standard_normal(400)
+    g = study._group(_mu_low_rows(e, 0.2), 0.5 * rng.standard_normal((400, 2, 3, 16)))
+    assert g["mu_t_bias"] == pytest.approx(e.mean()) and abs(g["mu_t_bias_in_its_stderr"] - 10) < 3
+    assert g["z_sd"] == pytest.approx(1.0, abs=0.1) and g["sd_over_laplace"] == pytest.approx(1.0, abs=0.1)
+    assert g["within_25pct"] == int(np.sum(np.abs(e) <= 0.25))
+    # residuals of sd 0.5 that replicates do not share: the scaled mean map has a mean square ~0.25
+    assert g["shared_misfit"]["mean_square"] == pytest.approx(0.25, rel=0.45)  # 96 cells: chi-square sd 14%
+    # a misfit every replicate shares stands out: one bin 1 sigma high in every zone
+    r = 0.5 * rng.standard_normal((16, 2, 3, 16))
+    r[..., 5] += 1.0
+    s = study._group(_mu_low_rows(e[:16], 0.2), r)["shared_misfit"]
+    assert s["by_bin_worst"] == 5 and s["by_bin_abs_max"] > 6  # expected 4 x sqrt(6) = 9.8
+    # frame scaling: sd falling as 1/sqrt(frames) gives the exponent -1/2 and 2 sd = 25% at 4x60 frames for sd 0.25
+    cfg = study.MuLowConfig(n1=(1.45,), frames=(60, 240, 960), replicates=2, columns=("own",))
+    groups = {"own": {"1.45": {str(f): {"mu_t_rel_error_sd": 0.25 * (60 / f) ** 0.5, "mu_t_bias": 0.0} for f in cfg.frames}}}
+    sc = study._scaling(groups, cfg)["own n1=1.45"]
+    assert sc["sd_power_law_exponent"] == pytest.approx(-0.5)
+    assert sc["frames_for_2sd_within_25pct"] == pytest.approx(240) and sc["frames_for_2sd_within_25pct_sqrt_law"] == pytest.approx(240)
+    assert sc["frames_for_bias_plus_2sd_within_25pct"] == pytest.approx(240)
+    groups["own"]["1.45"]["960"]["mu_t_bias"] = -0.3  # a bias over 25%: no frame count is enough
+    assert study._scaling(groups, cfg)["own n1=1.45"]["frames_for_bias_plus_2sd_within_25pct"] is None
+    with pytest.raises(ValueError, match="replicates"):
+        study.MuLowConfig(replicates=1)
+    with pytest.raises(ValueError, match="columns"):
+        study.MuLowConfig(columns=("mine",))
+
+
+@pytest.mark.slow  # a fit compilation (~15 s idle, minutes on the loaded VM): over the suite's budget
+def test_mu_low_study_quick(tmp_path):
+    study = load("study_mu_low")
+    r = study.run(tmp_path, study.QUICK, progress=False)
+    assert r["finished"] and r["data"].startswith("simulated")
+    for col in ("own", "independent"):
+        g = r["groups"][col]["1.45"]["20"]
+        assert g["replicates"] == 2 and np.isfinite(g["mu_t_bias"]) and g["shared_misfit"]["mean_square"] > 0
+    saved = json.loads((tmp_path / "mu_low.json").read_text())
+    assert set(saved["pooled"]) == {"own frames=20", "independent frames=20"}
+    merged = study.merge([tmp_path / "mu_low.json"], tmp_path / "m")
+    assert merged["pooled"] == saved["pooled"]

@@ -1,0 +1,489 @@
+"""Study: is the low-attenuation miss of the calibration noise or bias? (issue 13, mu_t = 0.05 /m)
+
+``study_calib_independent.py`` meets n1 within 1% everywhere but misses mu_t = mu_s + mu_a
+within 25% at mu_t = 0.05 /m (one fit per truth). Here every truth at mu_t = 0.05 /m is fitted
+on ``replicates`` baselines of the same rig that differ only in the photon-noise seed, from
+both simulators (``own``: ``tofjax.simulate``; ``independent``: ``tests/indep_sim.py``, the rig
+of the calibration study at that grid point, fixed), at several frame counts. Per
+(simulator, n1, frames):
+
+* the bias: the mean relative error of mu_t and its standard error (sd / sqrt(replicates));
+* the spread: the sd of the relative error against the mean Laplace standard error, and
+  z = error / Laplace standard error (sd of z ~ 1 where the interval is honest);
+* the share within 25%, converged fits, reduced chi-square;
+* the misfit that replicates share: the residual maps ``(model - data) / sigma`` averaged over
+  the replicates (times sqrt(replicates), so noise alone gives unit variance): its mean square
+  (~1 without a shared misfit) and its mean over zones per bin (a shape the model lacks).
+
+Then the frames needed: the sd of the relative error against frames, with the power law fitted
+(-1/2 if the error is photon noise), and the frames at which 2 sd reach 25% (extrapolated), or
+|bias| + 2 sd reach 25% (never where the bias alone exceeds 25%).
+
+The scene is the calibration study's (3 sensors, 7 zones, 128 bins, optoskin, albedo 0.8).
+Column ``independent_dense`` (opt-in): the same rigs sampled 4x denser (the independent
+simulator's frozen sampling noise taken out). ``--diagnose`` fits the same seeds with the rig
+or tofjax changed one thing at a time (``VARIANTS``) and writes ``mu_low_diagnose.json``.
+Run it in parts (``--columns``, ``--n1``) on a loaded machine and ``--merge`` them.
+
+    python experiments/study_mu_low.py --out out/mu_low [--replicates 16] [--frames 60 240 960]
+        [--n1 1.3 1.45 1.6] [--columns own,independent] [--quick] [--overwrite]
+
+Writes ``mu_low.json`` (copy it to ``docs/results/``). **Simulated** data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import tofjax
+from tofjax.fit import Calibrator, FitConfig
+from tofjax.outputs import atomic_write_text, check_output
+from tofjax.scene import load_scene
+from tofjax.simulate import simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from indep_sim import IndepOptions, IndepRig  # noqa: E402
+from indep_sim import simulate as simulate_independent  # noqa: E402
+from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene  # noqa: E402
+
+MU_T = 0.05
+# independent_dense: the same rigs (same per-zone draws) with the geometry sampled 4x denser
+# (DENSE): the independent simulator's frozen sampling noise taken out
+COLUMNS = ("own", "independent", "independent_dense")
+
+
+@dataclasses.dataclass(frozen=True)
+class MuLowConfig:
+    n1: tuple[float, ...] = (1.3, 1.45, 1.6)
+    mu_t: float = MU_T
+    frames: tuple[int, ...] = (60, 240, 960)
+    replicates: int = 16
+    columns: tuple[str, ...] = ("own", "independent")
+    sensors: int = FULL["sensors"]
+    zones: int = FULL["zones"]
+    bins: int = FULL["bins"]
+
+    def __post_init__(self):
+        if self.replicates < 2:
+            raise ValueError(f"replicates: at least 2 (a spread needs two), got {self.replicates}")
+        bad = [c for c in self.columns if c not in COLUMNS]
+        if bad:
+            raise ValueError(f"columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
+        if not self.frames or min(self.frames) < 1:
+            raise ValueError(f"frames: positive frame counts, got {self.frames}")
+
+
+QUICK = MuLowConfig(n1=(1.45,), frames=(20,), replicates=2, sensors=2, zones=3, bins=96)
+
+
+def _grid_index(n1: float, mu_t: float) -> int:
+    """The calibration study's grid index of (n1, mu_t) (its rig seed is 200 + index), or 0."""
+    grid = [(a, b) for a in FULL["n1"] for b in FULL["mu_t"]]
+    return grid.index((n1, mu_t)) if (n1, mu_t) in grid else 0
+
+
+def _group(rows: list[dict], resid: np.ndarray | None) -> dict:
+    e = np.array([r["mu_t_rel_error"] for r in rows])
+    se = np.array([np.nan if r["mu_t_stderr_rel"] is None else r["mu_t_stderr_rel"] for r in rows])
+    z = e / se
+    n = len(e)
+    out = {
+        "replicates": n,
+        "converged": int(sum(r["converged"] for r in rows)),
+        "mu_t_bias": float(e.mean()),
+        "mu_t_bias_stderr": float(e.std(ddof=1) / np.sqrt(n)),
+        "mu_t_bias_in_its_stderr": float(e.mean() / (e.std(ddof=1) / np.sqrt(n))),
+        "mu_t_rel_error_sd": float(e.std(ddof=1)),
+        "mu_t_laplace_stderr_rel_mean": float(np.nanmean(se)),
+        "sd_over_laplace": float(e.std(ddof=1) / np.nanmean(se)),
+        "z_mean": float(np.nanmean(z)),
+        "z_sd": float(np.nanstd(z, ddof=1)),
+        "z_abs_over_2": int(np.sum(np.abs(z) > 2)),
+        "within_25pct": int(np.sum(np.abs(e) <= 0.25)),
+        "n1_rel_error_mean": float(np.mean([r["n1_rel_error"] for r in rows])),
+        "n1_rel_error_abs_max": float(np.max(np.abs([r["n1_rel_error"] for r in rows]))),
+        "reduced_chi2_median": float(np.median([r["reduced_chi2"] for r in rows])),
+        "seconds_median": float(np.median([r["seconds"] for r in rows])),
+    }
+    if resid is not None:
+        # mean residual map over replicates, scaled so that noise alone has unit variance per cell
+        m = resid.mean(0) * np.sqrt(resid.shape[0])
+        by_bin = m.mean(axis=(0, 1)) * np.sqrt(m.shape[0] * m.shape[1])
+        zone = (m**2).mean(-1)
+        S, Z = zone.shape
+        worst = np.argsort(zone.ravel())[::-1][:3]
+        out["shared_misfit"] = {
+            "mean_square": float((m**2).mean()),
+            "zone_mean_square_max": float(zone.max()),
+            "worst_zones": [{"sensor": int(f // Z), "zone": int(f % Z), "mean_square": float(zone.ravel()[f])} for f in worst],
+            "by_bin_mean_square": float((by_bin**2).mean()),
+            "by_bin_abs_max": float(np.abs(by_bin).max()),
+            "by_bin_worst": int(np.argmax(np.abs(by_bin))),
+            "by_bin": by_bin.round(2).tolist(),
+            "note": "replicate-mean residual x sqrt(replicates) (by_bin: also x sqrt(sensors x zones)); "
+            "~N(0, 1) per cell where the model describes what the replicates share",
+        }
+    return out
+
+
+def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
+    """sd of the relative error against frames: the power law and the frames for 2 sd <= 25%."""
+    out = {}
+    for col in cfg.columns:
+        for n1 in cfg.n1:
+            key = f"{col} n1={n1}"
+            g = groups.get(col, {}).get(str(n1), {})
+            frames = [fr for fr in cfg.frames if str(fr) in g]  # a merged column may lack some
+            if not frames:
+                continue
+            f = np.array(frames, float)
+            sd = np.array([g[str(fr)]["mu_t_rel_error_sd"] for fr in frames])
+            rms = np.array([np.sqrt(g[str(fr)]["mu_t_bias"] ** 2 + g[str(fr)]["mu_t_rel_error_sd"] ** 2) for fr in frames])
+            row = {"frames": list(frames), "sd": sd.tolist(), "rms_error": rms.tolist()}
+            if len(f) >= 2:
+                slope, icpt = np.polyfit(np.log(f), np.log(sd), 1)
+                row["sd_power_law_exponent"] = float(slope)
+                # frames at which 2 sd = 25% (95% of fits within 25% if unbiased), on the fitted law
+                row["frames_for_2sd_within_25pct"] = float(np.exp((np.log(0.125) - icpt) / slope)) if slope < 0 else None
+                # and on the 1/sqrt(frames) law from the largest frame count
+                row["frames_for_2sd_within_25pct_sqrt_law"] = float(f[-1] * (sd[-1] / 0.125) ** 2)
+                # with the bias measured at the largest frame count (it does not fall with frames):
+                # |bias| + 2 sd <= 25%, never where the bias alone exceeds it
+                bias = abs(g[str(frames[-1])]["mu_t_bias"])
+                room = 0.25 - bias
+                row["bias_at_most_frames"] = bias
+                row["frames_for_bias_plus_2sd_within_25pct"] = float(f[-1] * (2 * sd[-1] / room) ** 2) if room > 0 else None
+            out[key] = row
+    return out
+
+
+def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConfig(), progress: bool = True,
+        overwrite: bool = False) -> dict:
+    path = check_output(out / "mu_low.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), cfg.sensors, cfg.zones, cfg.bins)
+    cal = Calibrator(nominal, config)
+    fits: dict = {c: {} for c in cfg.columns}
+    groups: dict = {c: {} for c in cfg.columns}
+    for n1 in cfg.n1:
+        k = _grid_index(n1, cfg.mu_t)
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * cfg.mu_t, mu_a_per_m=(1 - ALBEDO) * cfg.mu_t)
+        truth = nominal.replace(waveguide=wg)
+        rig = IndepRig.from_scene(truth, seed=200 + k)  # the calibration study's rig at this grid point
+        dense = IndepRig.from_scene(truth, seed=200 + k, options=DENSE) if "independent_dense" in cfg.columns else None
+        for col in cfg.columns:
+            fits[col][str(n1)], groups[col][str(n1)] = {}, {}
+            for fr in cfg.frames:
+                rows, resid = [], []
+                for r in range(cfg.replicates):
+                    seed = 10_000 + 1000 * k + 100 * cfg.frames.index(fr) + r
+                    if col == "own":
+                        cap = simulate(truth, fr, seed=seed)
+                    else:
+                        cap = simulate_independent(rig if col == "independent" else dense, contacts=np.zeros((0, 3)), frames=fr, seed=seed)
+                    t = time.perf_counter()
+                    res = cal.fit(cap)
+                    sec = time.perf_counter() - t
+                    f_mu = float(res.params.mu_s_per_m + res.params.mu_a_per_m)
+                    se = _mu_t_stderr(res)
+                    rows.append({
+                        "seed": seed,
+                        "result": res.result,
+                        "converged": bool(res.converged),
+                        "n1_rel_error": float(res.params.n1) / n1 - 1,
+                        "mu_t_rel_error": f_mu / cfg.mu_t - 1,
+                        "mu_t_stderr_rel": None if se is None else se / cfg.mu_t,
+                        "mu_s_per_m": float(res.params.mu_s_per_m),
+                        "mu_a_per_m": float(res.params.mu_a_per_m),
+                        "reduced_chi2": float(res.reduced_chi2),
+                        "seconds": sec,
+                    })
+                    if res.residuals is not None:
+                        resid.append(np.asarray(res.residuals, np.float64))
+                fits[col][str(n1)][str(fr)] = rows
+                g = _group(rows, np.stack(resid) if len(resid) == len(rows) else None)
+                groups[col][str(n1)][str(fr)] = g
+                if progress:
+                    print(f"{col:11s} n1 {n1:.2f} frames {fr:5d}: bias {100 * g['mu_t_bias']:+6.1f} +- {100 * g['mu_t_bias_stderr']:4.1f}%  "
+                          f"sd {100 * g['mu_t_rel_error_sd']:5.1f}% laplace {100 * g['mu_t_laplace_stderr_rel_mean']:5.1f}%  "
+                          f"z sd {g['z_sd']:.2f}  within 25% {g['within_25pct']}/{g['replicates']}  "
+                          f"misfit {g.get('shared_misfit', {}).get('mean_square', float('nan')):.2f}  ({g['seconds_median']:.2f} s/fit)",
+                          flush=True)
+                atomic_write_text(path, json.dumps(_result(cfg, config, groups, fits, None, t0, finished=False), indent=2))
+    result = _result(cfg, config, groups, fits, _scaling(groups, cfg), t0, finished=True)
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def _pooled(groups: dict, cfg: MuLowConfig) -> dict:
+    """Per simulator and frame count, over the n1: the bias, its stderr, sd of z, misses."""
+    out = {}
+    for col in cfg.columns:
+        for fr in cfg.frames:
+            gs = [groups[col][str(n1)][str(fr)] for n1 in cfg.n1 if str(n1) in groups[col] and str(fr) in groups[col][str(n1)]]
+            if not gs:
+                continue
+            n = sum(g["replicates"] for g in gs)
+            out[f"{col} frames={fr}"] = {
+                "replicates": n,
+                "bias_mean": float(np.mean([g["mu_t_bias"] for g in gs])),
+                "bias_stderr": float(np.sqrt(np.sum([g["mu_t_bias_stderr"] ** 2 for g in gs])) / len(gs)),
+                "z_sd_rms": float(np.sqrt(np.mean([g["z_sd"] ** 2 for g in gs]))),
+                "within_25pct": int(sum(g["within_25pct"] for g in gs)),
+            }
+    return out
+
+
+def _result(cfg, config, groups, fits, scaling, t0, finished) -> dict:
+    return {
+        "study": "calibration at low attenuation (mu_s + mu_a = 0.05 /m): noise or bias, and frames needed",
+        "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py, the calibration study's rig per n1)",
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+        "load_average": list(os.getloadavg()),
+        "finished": finished,
+        "seconds": time.perf_counter() - t0,
+        "config": dataclasses.asdict(cfg) | {"base": "optoskin", "albedo": ALBEDO},
+        "fit_config": dataclasses.asdict(config),
+        "target": "mu_t within 25% of the truth",
+        "pooled": _pooled(groups, cfg),
+        "groups": groups,
+        "scaling": scaling,
+        "fits": fits,
+    }
+
+
+def _calibrator_with_rays(scene, config: FitConfig, angles_per_zone: int) -> Calibrator:
+    """A calibrator whose model traces ``angles_per_zone`` rays per zone (the far edge and the
+    range truncation; tofjax's default is 8). FitConfig does not expose it: the problem is
+    rebuilt here as ``build_problem`` builds it, with that one option changed (a diagnosis, not
+    a change of tofjax)."""
+    from tofjax.fit._problem import CalibrationProblem
+    from tofjax.fit.transforms import default_transforms
+    from tofjax.model import ModelOptions, build_model
+
+    cal = Calibrator(scene, config)
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails,
+                           optics=config.optics, angles_per_zone=angles_per_zone)
+    base = scene.without_touches()
+    cal.problem = CalibrationProblem.build(build_model(base, options), default_transforms(base), config.free,
+                                           zone_gain=config.zone_gain, prior_width=config.prior_width, zone_end=config.zone_end)
+    return cal
+
+
+DENSE = IndepOptions(angles_per_zone=48, end_rays=192, range_step_m=0.25e-3)
+NOSPREAD = IndepOptions(gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
+NOSPREAD_DENSE = dataclasses.replace(DENSE, gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
+VARIANTS = {
+    # name: (data, tofjax rays per zone)
+    "independent as is / tofjax 8 rays": ("indep", 8),
+    "independent sampled 4x denser / tofjax 8 rays": ("indep dense", 8),
+    "independent as is / tofjax 32 rays": ("indep", 32),
+    "independent sampled 4x denser / tofjax 32 rays": ("indep dense", 32),
+    "independent, another rig (seed 999) / tofjax 8 rays": ("indep rig999", 8),
+    "own / tofjax 8 rays": ("own", 8),
+    "own / tofjax 32 rays": ("own", 32),
+    # which of the rig's per-zone draws moves the bias (the other draws unchanged: same seed)
+    "independent rig 999 without gain spread / tofjax 8 rays": ("indep rig999 nogain", 8),
+    "independent rig 999 without crosstalk spread / tofjax 8 rays": ("indep rig999 noxt", 8),
+    "independent rig 999 without ambient spread / tofjax 8 rays": ("indep rig999 noamb", 8),
+    # every per-zone draw off: the two rigs then differ only in their sampling jitter
+    "independent rig of the study without per-zone spreads / tofjax 8 rays": ("indep nospread", 8),
+    "independent rig 999 without per-zone spreads / tofjax 8 rays": ("indep rig999 nospread", 8),
+    "independent rig of the study without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep nospread dense", 8),
+    "independent rig 999 without per-zone spreads, sampled 4x denser / tofjax 8 rays": ("indep rig999 nospread dense", 8),
+    # and without the light-entry peak (the scene's crosstalk_counts = 0 in the rig only)
+    "independent rig of the study without per-zone spreads or light-entry peak, sampled 4x denser / tofjax 8 rays":
+        ("indep nospread dense noxt", 8),
+    # FitConfig(zone_end=True): a far-edge reflectance per zone, profiled out
+    "independent as is / tofjax 8 rays, zone_end": ("indep", "zone_end"),
+    "independent, another rig (seed 999) / tofjax 8 rays, zone_end": ("indep rig999", "zone_end"),
+    "own / tofjax 8 rays, zone_end": ("own", "zone_end"),
+    # FitConfig(quadrature=4): 4 time nodes per bin instead of 2 (the light-entry peak is narrower than a bin)
+    "independent as is / tofjax 8 rays, quadrature 4": ("indep", "quadrature4"),
+    "independent, another rig (seed 999) / tofjax 8 rays, quadrature 4": ("indep rig999", "quadrature4"),
+}
+
+
+def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8, variants=tuple(VARIANTS),
+             config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+    """Where the bias comes from: the same replicate seeds fitted with the independent rig
+    sampled as it is or 4x denser (its own discretisation: 12 jittered angles per zone every
+    1 mm, 48 far-edge rays), another rig, and tofjax tracing 8 (default) or 32 rays per zone."""
+    path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    k = _grid_index(n1, MU_T)
+    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
+    truth = nominal.replace(waveguide=wg)
+    rigs = {"indep": IndepRig.from_scene(truth, seed=200 + k), "indep dense": IndepRig.from_scene(truth, seed=200 + k, options=DENSE),
+            "indep rig999": IndepRig.from_scene(truth, seed=999),
+            "indep rig999 nogain": IndepRig.from_scene(truth, seed=999, options=IndepOptions(gain_spread=0.0)),
+            "indep rig999 noxt": IndepRig.from_scene(truth, seed=999, options=IndepOptions(crosstalk_spread=0.0)),
+            "indep rig999 noamb": IndepRig.from_scene(truth, seed=999, options=IndepOptions(ambient_spread=0.0)),
+            "indep nospread": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD),
+            "indep rig999 nospread": IndepRig.from_scene(truth, seed=999, options=NOSPREAD),
+            "indep nospread dense": IndepRig.from_scene(truth, seed=200 + k, options=NOSPREAD_DENSE),
+            "indep rig999 nospread dense": IndepRig.from_scene(truth, seed=999, options=NOSPREAD_DENSE),
+            "indep nospread dense noxt": IndepRig.from_scene(
+                truth.replace(sensor=dataclasses.replace(truth.sensor, crosstalk_counts=0.0)), seed=200 + k, options=NOSPREAD_DENSE)}
+    cals = {}
+    rows = {}
+    for name in variants:
+        data, rays = VARIANTS[name]
+        if rays not in cals:
+            if rays == "zone_end":
+                cals[rays] = Calibrator(nominal, dataclasses.replace(config, zone_end=True))
+            elif rays == "quadrature4":
+                cals[rays] = Calibrator(nominal, dataclasses.replace(config, quadrature=4))
+            else:
+                cals[rays] = Calibrator(nominal, config) if rays == 8 else _calibrator_with_rays(nominal, config, rays)
+        fits, resid = [], []
+        for r in range(replicates):
+            seed = 50_000 + r
+            cap = simulate(truth, frames, seed=seed) if data == "own" else simulate_independent(
+                rigs[data], contacts=np.zeros((0, 3)), frames=frames, seed=seed)
+            t = time.perf_counter()
+            res = cals[rays].fit(cap)
+            se = _mu_t_stderr(res)
+            f_mu = float(res.params.mu_s_per_m + res.params.mu_a_per_m)
+            fits.append({"seed": seed, "result": res.result, "converged": bool(res.converged),
+                         "n1_rel_error": float(res.params.n1) / n1 - 1, "mu_t_rel_error": f_mu / MU_T - 1,
+                         "mu_t_stderr_rel": None if se is None else se / MU_T, "mu_s_per_m": float(res.params.mu_s_per_m),
+                         "mu_a_per_m": float(res.params.mu_a_per_m), "reduced_chi2": float(res.reduced_chi2),
+                         "seconds": time.perf_counter() - t})
+            resid.append(np.asarray(res.residuals, np.float64))
+        g = _group(fits, np.stack(resid))
+        g["shared_misfit"].pop("by_bin")
+        rows[name] = {"summary": g, "fits": fits}
+        if progress:
+            print(f"{name:55s}: bias {100 * g['mu_t_bias']:+6.1f} +- {100 * g['mu_t_bias_stderr']:4.1f}%  sd {100 * g['mu_t_rel_error_sd']:5.1f}%  "
+                  f"chi2 {g['reduced_chi2_median']:.3f}  misfit {g['shared_misfit']['mean_square']:.2f}", flush=True)
+        result = {
+            "study": "low attenuation: where the bias comes from (simulator sampling, tofjax rays per zone, rig)",
+            "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+            "load_average": list(os.getloadavg()),
+            "truth": {"n1": n1, "mu_t_per_m": MU_T, "albedo": ALBEDO, "frames": frames, "replicates": replicates},
+            "dense_independent_options": dataclasses.asdict(DENSE),
+            "variants": rows,
+            "seconds": time.perf_counter() - t0,
+        }
+        atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """The variants of several ``--diagnose`` runs in one JSON (their load averages kept)."""
+    path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    result = {k: loaded[0][k] for k in ("study", "data", "machine", "truth", "dense_independent_options")}
+    result["load_average"] = [d["load_average"] for d in loaded]
+    result["parts"] = [str(q) for q in parts]
+    result["seconds"] = sum(d["seconds"] for d in loaded)
+    result["variants"] = {}
+    for d in loaded:
+        result["variants"].update(d["variants"])
+    result["bias_by_variant"] = {k: [v["summary"]["mu_t_bias"], v["summary"]["mu_t_bias_stderr"]] for k, v in result["variants"].items()}
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """One result from the JSONs of parts run separately (``--columns``, ``--n1``): groups and
+    fits joined (a later part wins), pooled figures and the frame scaling recomputed."""
+    path = check_output(out / "mu_low.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    groups: dict = {}
+    fits: dict = {}
+    for d in loaded:
+        for col, by_n1 in d["groups"].items():
+            for n1, by_fr in by_n1.items():
+                groups.setdefault(col, {}).setdefault(n1, {}).update(by_fr)
+                fits.setdefault(col, {}).setdefault(n1, {}).update(d["fits"][col][n1])
+    c0 = loaded[0]["config"]
+    n1s = sorted({float(n1) for by_n1 in groups.values() for n1 in by_n1})
+    frames = sorted({int(fr) for by_n1 in groups.values() for by_fr in by_n1.values() for fr in by_fr})
+    cols = tuple(c for c in COLUMNS if c in groups)
+    cfg = MuLowConfig(n1=tuple(n1s), mu_t=c0["mu_t"], frames=tuple(frames), replicates=c0["replicates"], columns=cols,
+                      sensors=c0["sensors"], zones=c0["zones"], bins=c0["bins"])
+    # every column at every n1 (a column may have run fewer frame counts)
+    complete = all(groups[c].get(str(n1)) for c in cols for n1 in n1s)
+    result = {k: loaded[0][k] for k in ("study", "data", "machine", "target")}
+    result.update({
+        "load_average": [d["load_average"] for d in loaded],
+        "finished": all(d["finished"] for d in loaded) and complete,
+        "seconds": sum(d["seconds"] for d in loaded),
+        "parts": [str(q) for q in parts],
+        "config": dataclasses.asdict(cfg) | {"base": c0["base"], "albedo": c0["albedo"]},
+        "fit_config": loaded[0]["fit_config"],
+        "pooled": _pooled(groups, cfg),
+        "groups": groups,
+        "scaling": _scaling(groups, cfg) if complete else None,
+        "fits": fits,
+    })
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/mu_low")
+    ap.add_argument("--replicates", type=int, default=MuLowConfig.replicates)
+    ap.add_argument("--frames", type=int, nargs="+", default=list(MuLowConfig.frames))
+    ap.add_argument("--n1", type=float, nargs="+", default=list(MuLowConfig.n1))
+    ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
+    ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
+    ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
+    ap.add_argument("--variants", help=f"with --diagnose: a ';'-separated subset of {'; '.join(VARIANTS)}")
+    args = ap.parse_args(argv)
+    from tofjax.compile_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # parts run as separate processes: compile once per machine
+    if args.diagnose and not args.merge:
+        tofjax.enable_x64()
+        v = tuple(x for x in args.variants.split(";") if x) if args.variants else tuple(VARIANTS)
+        bad = [x for x in v if x not in VARIANTS]
+        if bad:
+            raise SystemExit(f"--variants: unknown variant {bad[0]!r}")
+        diagnose(Path(args.out), n1=args.n1[0], frames=args.frames[-1], replicates=min(args.replicates, 8), variants=v,
+                 overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_diagnose.json")
+        return
+    if args.merge and args.diagnose:
+        r = merge_diagnose(args.merge, Path(args.out), overwrite=args.overwrite)
+        print(json.dumps(r["bias_by_variant"], indent=1))
+        return
+    if args.merge:
+        r = merge(args.merge, Path(args.out), overwrite=args.overwrite)
+        print(json.dumps(r["pooled"], indent=1))
+        print(f"wrote {args.out}/mu_low.json")
+        return
+    try:
+        cfg = QUICK if args.quick else MuLowConfig(
+            n1=tuple(args.n1), frames=tuple(args.frames), replicates=args.replicates,
+            columns=tuple(c for c in args.columns.split(",") if c))
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    tofjax.enable_x64()
+    r = run(Path(args.out), cfg, overwrite=args.overwrite)
+    print(json.dumps(r["pooled"], indent=1))
+    print(json.dumps({k: {q: v[q] for q in ("sd", "sd_power_law_exponent", "frames_for_2sd_within_25pct_sqrt_law") if q in v}
+                      for k, v in (r["scaling"] or {}).items()}, indent=1))
+    print(f"wrote {args.out}/mu_low.json")
+
+
+if __name__ == "__main__":
+    main()
