@@ -174,13 +174,13 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
     for k, (cap, res) in tqdm(caps.items(), desc="posteriors", disable=not progress):
         t = time.perf_counter()
         if config.sampler == "nuts":
-            opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
+            opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=config.seed + k,
                                nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept,
                                gain_prior=config.gain_prior)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
-                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width,
+                walkers=config.walkers, max_steps=config.max_steps, seed=config.seed + k, progress=False, nuisance_width=config.nuisance_width,
                 gain_prior=config.gain_prior))
         post_s += time.perf_counter() - t
         row = rows[k]
