@@ -136,6 +136,9 @@ def comparison(rows) -> dict:
                 "within_90_98": 0.90 <= p <= 0.98,
                 "matches_nominal_95": abs(p - 0.95) <= 1.96 * nominal_se,
                 "z_vs_nominal": (p - 0.95) / nominal_se,
+                # the interval's width as a standard deviation of log(quantity): ln(hi / lo) / (2 x 1.96)
+                "median_sd_log": _median([math.log(r[key][q]["interval"][1] / r[key][q]["interval"][0]) / 3.92
+                                          for r in used if r[key][q]["interval"][0] > 0]),
             }
         e["paired_replicates"] = len(both)
         e["only_laplace_covers"] = sum(1 for r in both if r["laplace"][q]["covers"] and not r["posterior"][q]["covers"])
