@@ -112,6 +112,81 @@ def _summary(rows, key) -> dict:
     }
 
 
+def comparison(rows) -> dict:
+    """Per quantity, Laplace against posterior coverage: each p +- its binomial standard error
+    over its own replicates, whether it is within the 90-98% target, and whether it matches the
+    nominal 95% (within 1.96 nominal binomial errors, sqrt(0.95 x 0.05 / R)); on the replicates
+    with both intervals, how many only the Laplace one covers and how many only the posterior's
+    (the paired, McNemar, view of their difference)."""
+    out = {}
+    both = [r for r in rows if r.get("laplace") and r.get("posterior")]
+    for q in QUANTITIES:
+        e = {}
+        for key in ("laplace", "posterior"):
+            used = [r for r in rows if r.get(key)]
+            n = len(used)
+            if not n:
+                continue
+            p = sum(r[key][q]["covers"] for r in used) / n
+            nominal_se = math.sqrt(0.95 * 0.05 / n)
+            e[key] = {
+                "replicates": n,
+                "coverage": p,
+                "stderr": math.sqrt(max(p * (1 - p), 0.25 / n) / n),
+                "within_90_98": 0.90 <= p <= 0.98,
+                "matches_nominal_95": abs(p - 0.95) <= 1.96 * nominal_se,
+                "z_vs_nominal": (p - 0.95) / nominal_se,
+                # the interval's width as a standard deviation of log(quantity): ln(hi / lo) / (2 x 1.96)
+                "median_sd_log": _median([math.log(r[key][q]["interval"][1] / r[key][q]["interval"][0]) / 3.92
+                                          for r in used if r[key][q]["interval"][0] > 0]),
+            }
+        e["paired_replicates"] = len(both)
+        e["only_laplace_covers"] = sum(1 for r in both if r["laplace"][q]["covers"] and not r["posterior"][q]["covers"])
+        e["only_posterior_covers"] = sum(1 for r in both if r["posterior"][q]["covers"] and not r["laplace"][q]["covers"])
+        out[q] = e
+    return out
+
+
+def _finite(xs) -> np.ndarray:
+    a = np.asarray(xs, np.float64)
+    return a[np.isfinite(a)]
+
+
+def _median(xs) -> float:
+    a = _finite(xs)
+    return float(np.median(a)) if a.size else float("nan")
+
+
+def sampler_stats(rows) -> dict:
+    """ESS, R-hat, divergences and time of the NUTS posteriors (each replicate's ``posterior_seconds``:
+    finding the mode, warm-up and draws, compiling excluded)."""
+    post = [r for r in rows if "posterior_ess_min" in r]
+    if not post:
+        return {"posteriors": 0}
+    ess = np.array([r["posterior_ess_min"] for r in post])
+    rhat = np.array([r["posterior_rhat_max"] for r in post])
+    div = np.array([r["posterior_divergences"] for r in post])
+    sec = np.array([r.get("posterior_seconds", np.nan) for r in post])
+    pct = (10, 25, 50, 75, 90)
+    return {
+        "posteriors": len(post),
+        "ess_min_percentiles_10_25_50_75_90": [float(x) for x in np.percentile(ess, pct)],
+        "ess_min_at_least_200": int(np.sum(ess >= 200)),
+        **{f"ess_{q}_median": _median([r.get("posterior_ess_n1_mu", {}).get(q, np.nan) for r in post])
+           for q in QUANTITIES[:3]},
+        "rhat_max_percentiles_10_25_50_75_90": [float(x) for x in np.percentile(rhat, pct)],
+        "rhat_max_at_most_1_01": int(np.sum(rhat <= 1.01)),
+        "replicates_with_divergences": int(np.sum(div > 0)),
+        "divergences_total": int(div.sum()),
+        "divergences_median": float(np.median(div)),
+        "divergences_max": int(div.max()),
+        "seconds_per_posterior_median": _median(sec),
+        "seconds_per_posterior_percentiles_10_90": [float(x) for x in np.percentile(_finite(sec), (10, 90))]
+        if _finite(sec).size
+        else None,
+    }
+
+
 def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
     from tofjax.fit.nuts import NutsOptions, sample_nuts
     from tofjax.fit.posterior import PosteriorOptions, sample_posterior
@@ -140,6 +215,8 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
             "seconds_posteriors": post_s,
             "laplace": _summary(rows, "laplace"),
             "posterior": _summary(rows, "posterior"),
+            "comparison": comparison(rows),
+            "sampler_stats": sampler_stats(rows),
             "seconds_per_posterior": post_s / max(sum(1 for r in rows if r.get("posterior")), 1),
             "posterior_replicates_with_divergences": sum(1 for r in rows if r.get("posterior_divergences")),
             "posterior_ess_min_median": float(np.median([r["posterior_ess_min"] for r in rows if "posterior_ess_min" in r]))
@@ -174,13 +251,13 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
     for k, (cap, res) in tqdm(caps.items(), desc="posteriors", disable=not progress):
         t = time.perf_counter()
         if config.sampler == "nuts":
-            opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=k,
+            opts = NutsOptions(chains=config.chains, warmup=config.warmup, draws=config.draws, seed=config.seed + k,
                                nuisance_width=config.nuisance_width, pilot=config.pilot, target_accept=config.target_accept,
                                gain_prior=config.gain_prior)
             post = sample_nuts(cal, cap, res, opts)
         else:
             post = sample_posterior(cal, cap, res, PosteriorOptions(
-                walkers=config.walkers, max_steps=config.max_steps, seed=k, progress=False, nuisance_width=config.nuisance_width,
+                walkers=config.walkers, max_steps=config.max_steps, seed=config.seed + k, progress=False, nuisance_width=config.nuisance_width,
                 gain_prior=config.gain_prior))
         post_s += time.perf_counter() - t
         row = rows[k]
@@ -233,6 +310,8 @@ def merge(parts: list[dict]) -> dict:
         seconds_posteriors=sum(r["seconds_posteriors"] for r in parts),
         laplace=_summary(rows, "laplace"),
         posterior=_summary(rows, "posterior"),
+        comparison=comparison(rows),
+        sampler_stats=sampler_stats(rows),
         seconds_per_posterior=sum(r["seconds_posteriors"] for r in parts) / n_post,
         posterior_replicates_with_divergences=sum(1 for r in post if r.get("posterior_divergences")),
         posterior_ess_min_median=float(np.median([r["posterior_ess_min"] for r in post])) if post else float("nan"),
@@ -273,6 +352,27 @@ def markdown(r: dict) -> str:
                 + " | ".join(f"{100 * s['coverage'][q]:.0f} +- {100 * s['coverage_stderr'][q]:.0f}%" for q in QUANTITIES)
                 + f" | {100 * s['binomial_stderr']:.1f}% |"
             )
+    comp = r.get("comparison")
+    if comp:
+        lines += [
+            "",
+            "| quantity | Laplace | posterior | only Laplace covers | only posterior covers |",
+            "|---|---|---|---|---|",
+        ]
+
+        def cell(e):
+            if not e:
+                return "-"
+            tags = ("in 90-98%" if e["within_90_98"] else "outside 90-98%") + (
+                ", matches 95%" if e["matches_nominal_95"] else ", not 95%")
+            return f"{100 * e['coverage']:.1f} +- {100 * e['stderr']:.1f}% ({tags})"
+
+        for q in QUANTITIES:
+            e = comp[q]
+            lines.append(f"| {q} | {cell(e.get('laplace'))} | {cell(e.get('posterior'))} | {e['only_laplace_covers']} | "
+                         f"{e['only_posterior_covers']} |")
+        lines.append("")
+        lines.append("'matches 95%': within 1.96 nominal binomial errors of 0.95.")
     return "\n".join(lines) + "\n"
 
 
@@ -305,9 +405,12 @@ def main(argv=None):
     ap.add_argument("--config", default="configs/studies/coverage.toml")
     ap.add_argument("--out", default="out/coverage")
     ap.add_argument("--merge", nargs="+", metavar="JSON", help="merge these coverage.json (runs on different seeds) into --out")
+    ap.add_argument("--note", default=None, help="with --merge: a note stored in the merged coverage.json")
     args = ap.parse_args(argv)
     if args.merge:
         r = merge([json.loads(Path(p).read_text()) for p in args.merge])
+        if args.note:
+            r = {"note": args.note, **r}
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "coverage.json", json.dumps(r, indent=1))

@@ -208,3 +208,28 @@ def test_mu_low_study_quick(tmp_path):
     assert set(saved["pooled"]) == {"own frames=20", "independent frames=20"}
     merged = study.merge([tmp_path / "mu_low.json"], tmp_path / "m")
     assert merged["pooled"] == saved["pooled"]
+
+
+def test_coverage_comparison_and_sampler_stats():
+    """Laplace against posterior per quantity (target band, nominal 95% within 1.96 binomial
+    errors, the paired discordant counts) and the NUTS statistics, on hand-made rows."""
+    study = load("study_coverage")
+
+    def q(covers):
+        return {k: {"interval": [0, 1], "covers": covers, "width": 1.0} for k in study.QUANTITIES}
+
+    rows = [{"seed": i, "laplace": q(True)} for i in range(100)]  # Laplace: 100 of 100
+    for i in range(20):  # posterior on the first 20: 0 and 1 missed
+        rows[i] |= {"posterior": q(i > 1), "posterior_ess_min": 100.0 + 10 * i, "posterior_rhat_max": 1.0 + i / 1000,
+                    "posterior_divergences": int(i == 5) * 3, "posterior_seconds": 2.0,
+                    "posterior_ess_n1_mu": {"n1": 300.0, "mu_s_per_m": 200.0, "mu_a_per_m": 150.0}}
+    c = study.comparison(rows)["n1"]
+    assert c["laplace"]["coverage"] == 1.0 and not c["laplace"]["within_90_98"]
+    assert not c["laplace"]["matches_nominal_95"]  # 1.0 at 100: 2.29 nominal errors of 2.2% above 0.95
+    assert c["posterior"]["coverage"] == pytest.approx(0.9) and c["posterior"]["within_90_98"]
+    assert c["posterior"]["matches_nominal_95"]  # 0.90 at 20: 1.03 nominal errors of 4.9%
+    assert (c["paired_replicates"], c["only_laplace_covers"], c["only_posterior_covers"]) == (20, 2, 0)
+    s = study.sampler_stats(rows)
+    assert s["posteriors"] == 20 and s["ess_min_at_least_200"] == 10 and s["rhat_max_at_most_1_01"] == 11
+    assert (s["replicates_with_divergences"], s["divergences_total"], s["seconds_per_posterior_median"]) == (1, 3, 2.0)
+    assert study.sampler_stats(rows[20:]) == {"posteriors": 0}
