@@ -127,7 +127,7 @@ class FitDetector:
 
     def __init__(self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: FitDetectOptions,
                  n_baseline: int):
-        from .reconstruct import _params_with_optics, response_matrix
+        from .reconstruct import response_matrix
 
         if optical.optics != "guided":
             raise InversionError("--method fit needs a calibration with the guided optics (skin contacts); "
