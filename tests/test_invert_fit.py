@@ -14,25 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tofjax import load_scene
 from tofjax.config import ConfigError
 from tofjax.invert import match
 from tofjax.invert.correction import InversionError, OpticalParams
 from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
-from tofjax.scene import SensorPlacement
 
-EDGE_BIN, BINS = 30, 48
-
-
-def _small_scene():
-    sc = load_scene("optoskin").without_touches()
-    wg = dataclasses.replace(sc.waveguide, size_m=(0.15, 0.15))
-    sensors = (
-        SensorPlacement((0.0, 0.0), 45.0, name="A"),
-        SensorPlacement((0.15, 0.0), 135.0, name="B"),
-        SensorPlacement((0.0, 0.15), 315.0, name="C"),
-    )
-    return sc.replace(waveguide=wg, sensors=sensors, sensor=dataclasses.replace(sc.sensor, n_bins=BINS))
+from small_scenes import BINS, EDGE_BIN
+from small_scenes import three_sensor_square as _small_scene
 
 
 def _stand_in_change(scene, K):
