@@ -171,7 +171,8 @@ def test_left_out_components_are_not_traced(optoskin):
     jaxpr_full = jax.make_jaxpr(lambda p: base(p))(p)
     only_end = build_model(optoskin, components=("end",))
     jaxpr_end = jax.make_jaxpr(lambda p: only_end(p))(p)
-    assert len(jaxpr_end.eqns) < 0.6 * len(jaxpr_full.eqns)
+    # the model's call is one jitted equation: compare the printed programs, nested bodies included
+    assert len(str(jaxpr_end).splitlines()) < 0.6 * len(str(jaxpr_full).splitlines())
     # expm1 appears only in the multiple-scattering term: absent when that term is left out
     assert "expm1" in str(jaxpr_full) and "expm1" not in str(jaxpr_end)
     with pytest.raises(ConfigError, match="unknown component"):
@@ -278,9 +279,14 @@ def test_printed_paper_attenuation_survives():
 
     scene = load_scene("optoskin-paper").replace(touches=(Touch(position_m=(0.15, 0.15), radius_m=0.01, strength=1),))
     model, p = run(scene)
-    y = np.asarray(model(p))
-    assert np.isfinite(y).all()
-    g = jax.grad(lambda q: jnp.sum(model(q)))(p)
+
+    @jax.jit  # one compiled program for value and gradient (eager, this test took 35 s cold)
+    def value_and_grad(q):
+        y, vjp = jax.vjp(model, q)
+        return y, vjp(jnp.ones_like(y))[0]
+
+    y, g = value_and_grad(p)
+    assert np.isfinite(np.asarray(y)).all()
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(g))
 
 
