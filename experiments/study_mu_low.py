@@ -721,6 +721,7 @@ def main(argv=None):
     ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
     ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--model-error", type=float, default=FitConfig().model_error, help="FitConfig.model_error (the study's fits)")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
     ap.add_argument("--diagnose", action="store_true",
                     help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
@@ -776,7 +777,7 @@ def main(argv=None):
     except ValueError as e:
         raise SystemExit(str(e)) from None
     tofjax.enable_x64()
-    r = run(Path(args.out), cfg, overwrite=args.overwrite)
+    r = run(Path(args.out), cfg, FitConfig(model_error=args.model_error), overwrite=args.overwrite)
     print(json.dumps(r["pooled"], indent=1))
     print(json.dumps({k: {q: v[q] for q in ("sd", "sd_power_law_exponent", "frames_for_2sd_within_25pct_sqrt_law") if q in v}
                       for k, v in (r["scaling"] or {}).items()}, indent=1))
