@@ -599,6 +599,11 @@ OFFSET_VARIANTS = (
     "independent with tofjax's near-field law, scene without multiple scattering",
     "independent with tofjax's near-field law, no per-zone spreads",
     "independent with tofjax's near-field law, tofjax quadrature 4",
+    "independent, tofjax quadrature 4",
+    # tofjax's own simulator with 8 time nodes per bin (its discretisation converged), fitted
+    # with the default 2 and with 4: the offset of the default's time discretisation alone
+    "own at quadrature 8",
+    "own at quadrature 8, tofjax quadrature 4",
 )
 
 
@@ -632,12 +637,16 @@ def diagnose_offset(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 9
         truth = nominal.replace(waveguide=wg)
         opts = LEVELS[level]
         nospread = dataclasses.replace(opts, gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
-        lam = {"max": IndepRig.from_scene(truth, seed=200 + k, options=opts).expected(np.zeros((0, 3))),
+        from tofjax.model import ModelOptions
+        from tofjax.simulate import expected_counts
+
+        lam = {"own q8": np.asarray(expected_counts(truth, ModelOptions(quadrature=8))) if any(v.startswith("own") for v in variants) else None,
+               "max": IndepRig.from_scene(truth, seed=200 + k, options=opts).expected(np.zeros((0, 3))),
                "soft": _SoftNearRig.from_scene(truth, seed=200 + k, options=opts).expected(np.zeros((0, 3))),
                "soft nospread": _SoftNearRig.from_scene(truth, seed=200 + k, options=nospread).expected(np.zeros((0, 3)))}
         rows[str(n1)] = {}
         for v in variants:
-            which = ("soft nospread" if "per-zone" in v else "soft") if "near-field law" in v else "max"
+            which = "own q8" if v.startswith("own") else ("soft nospread" if "per-zone" in v else "soft") if "near-field law" in v else "max"
             cap = _noise_free(lam[which], truth, frames, "simulated (tests/indep_sim.py), noise-free")
             r = _fit_row(cal_for(v), cap, n1, MU_T)
             rows[str(n1)][v] = r
@@ -722,6 +731,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--model-error", type=float, default=FitConfig().model_error, help="FitConfig.model_error (the study's fits)")
+    ap.add_argument("--quadrature", type=int, default=FitConfig().quadrature, help="FitConfig.quadrature (the study's fits)")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
     ap.add_argument("--diagnose", action="store_true",
                     help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
@@ -748,7 +758,11 @@ def main(argv=None):
         return
     if args.offset:
         tofjax.enable_x64()
-        diagnose_offset(Path(args.out), args.offset, n1s=tuple(args.n1), frames=args.frames[-1], overwrite=args.overwrite)
+        v = tuple(x for x in args.variants.split(";") if x) if args.variants else OFFSET_VARIANTS
+        bad = [x for x in v if x not in OFFSET_VARIANTS]
+        if bad:
+            raise SystemExit(f"--variants: unknown variant {bad[0]!r}")
+        diagnose_offset(Path(args.out), args.offset, n1s=tuple(args.n1), frames=args.frames[-1], variants=v, overwrite=args.overwrite)
         print(f"wrote {args.out}/mu_low_offset.json")
         return
     if args.diagnose and not args.merge:
@@ -777,7 +791,7 @@ def main(argv=None):
     except ValueError as e:
         raise SystemExit(str(e)) from None
     tofjax.enable_x64()
-    r = run(Path(args.out), cfg, FitConfig(model_error=args.model_error), overwrite=args.overwrite)
+    r = run(Path(args.out), cfg, FitConfig(model_error=args.model_error, quadrature=args.quadrature), overwrite=args.overwrite)
     print(json.dumps(r["pooled"], indent=1))
     print(json.dumps({k: {q: v[q] for q in ("sd", "sd_power_law_exponent", "frames_for_2sd_within_25pct_sqrt_law") if q in v}
                       for k, v in (r["scaling"] or {}).items()}, indent=1))
