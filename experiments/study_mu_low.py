@@ -668,6 +668,44 @@ def diagnose_offset(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 9
     return result
 
 
+def quadrature_profile(out: Path, n1: float = 1.45, mu_ts=(0.05, 2.0), frames: int = 960, overwrite: bool = False) -> dict:
+    """Where tofjax's default quadrature (2 time nodes per bin) differs from its converged self
+    (8 nodes; 16 as the check of 8): the zone-mean relative difference and pull (photon noise of
+    ``frames`` frames) per bin, on the study's scene at each true mu_t."""
+    from tofjax.model import ModelOptions
+    from tofjax.simulate import expected_counts
+
+    path = check_output(out / "mu_low_quadrature_profile.json", overwrite=overwrite)
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    rows = {}
+    for mu_t in mu_ts:
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
+        truth = nominal.replace(waveguide=wg)
+        lam = {q: np.asarray(expected_counts(truth, ModelOptions(quadrature=q))) for q in (2, 8, 16)}
+        ref = lam[8]
+        rel = (lam[2] - ref) / np.maximum(ref, 1.0)
+        pull = (lam[2] - ref) / np.sqrt(np.maximum(ref, 1.0) / frames)
+        c1 = 299_792_458.0 / n1
+        rows[str(mu_t)] = {
+            "range_per_bin_m": c1 * truth.sensor.bin_width_s / 2,
+            "q2_vs_q8_zone_mean_rel_by_bin": rel.mean((0, 1)).round(5).tolist(),
+            "q2_vs_q8_zone_mean_pull_by_bin": pull.mean((0, 1)).round(2).tolist(),
+            "q8_vs_q16_rel_abs_max": float(np.max(np.abs(lam[8] - lam[16]) / np.maximum(lam[16], 1.0))),
+            "round_trip_decay_per_bin": float(1 - np.exp(-2 * mu_t * c1 * truth.sensor.bin_width_s / 2)),
+        }
+        print(f"mu_t {mu_t}: q2 - q8 zone-mean rel by bin 10-30 (%): {np.round(100 * rel.mean((0, 1))[10:30], 2).tolist()}")
+    result = {
+        "study": "tofjax's default quadrature (2 nodes per bin) against 8 nodes, per bin",
+        "data": "simulated (tofjax expected counts, noise-free)",
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+        "load_average": list(os.getloadavg()),
+        "truth": {"n1": n1, "albedo": ALBEDO, "frames_for_pull": frames},
+        "by_mu_t": rows,
+    }
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
 def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     """The variants of several ``--diagnose`` runs in one JSON (their load averages kept)."""
     path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
@@ -739,6 +777,7 @@ def main(argv=None):
                     help="the independent simulator's resolution levels, noise-free fits (writes mu_low_convergence.json)")
     ap.add_argument("--masks", metavar="LEVEL", help=f"noise-free fits with bins left out, the independent rig at LEVEL (one of {'; '.join(LEVELS)})")
     ap.add_argument("--offset", metavar="LEVEL", help="noise-free fits of the independent rig at LEVEL, one convention changed at a time")
+    ap.add_argument("--quadrature-profile", action="store_true", help="tofjax's quadrature 2 against 8 per bin (mu_low_quadrature_profile.json)")
     ap.add_argument("--variants", help=f"with --diagnose: a ';'-separated subset of {'; '.join(VARIANTS)}")
     args = ap.parse_args(argv)
     from tofjax.compile_cache import enable_compilation_cache
@@ -755,6 +794,11 @@ def main(argv=None):
         tofjax.enable_x64()
         diagnose_masks(Path(args.out), args.masks, n1s=tuple(args.n1), frames=args.frames[-1], overwrite=args.overwrite)
         print(f"wrote {args.out}/mu_low_masks.json")
+        return
+    if args.quadrature_profile:
+        tofjax.enable_x64()
+        quadrature_profile(Path(args.out), overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_quadrature_profile.json")
         return
     if args.offset:
         tofjax.enable_x64()
