@@ -97,8 +97,9 @@ class IndepOptions:
 
 #: The resolution at which the expected counts have stopped changing what a calibration reads
 #: from them (docs/results/mu_low_convergence.json: at mu_t = 0.05 /m the noise-free mu_t moves
-#: by 1 point or less between this, the next finer level and other jitters; the default moves it by
-#: 10-45 points). ~1.5 s per rig of 3 x 7 zones instead of 0.02 s: for studies and slow tests;
+#: by about 1 point between this, the next finer level and other jitters; at the default the
+#: jitter alone moves it with a 9-26-point sd). 1.5-7 s per rig of 3 x 7 zones (loaded VM) instead
+#: of 0.02-0.1 s: for studies and slow tests;
 #: the default stays the fast fixture (its coarse sampling matters only where attenuation is low).
 CONVERGED = IndepOptions(range_step_m=0.125e-3, angles_per_zone=96, end_rays=384)
 
