@@ -15,7 +15,7 @@ Then the batch speed-up: the same compiled fit run on ``batch`` captures as sepa
 and as one vmapped call (``tofjax.fit.fit_problem_batch``), from the same starts.
 
     python experiments/study_calib_independent.py --out out/calib_independent [--quick] [--overwrite]
-        [--columns own,independent] [--n1 1.3 ...] [--mu-t 4 ...] [--no-batch]
+        [--columns own,independent] [--n1 1.3 ...] [--mu-t 4 ...] [--no-batch] [--resolution converged|default]
     python experiments/study_calib_independent.py --merge out/a/calib_independent.json out/b/... --out out/all
 
 The whole grid takes longer than one 10-minute command on the shared 2-core VM: run it in
@@ -50,12 +50,17 @@ from tofjax.scene import SensorModel, load_scene
 from tofjax.simulate import simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from indep_sim import IndepRig  # noqa: E402
+from indep_sim import CONVERGED, IndepOptions, IndepRig  # noqa: E402
 from indep_sim import simulate as simulate_independent  # noqa: E402
 
 FULL = {"sensors": 3, "zones": 7, "bins": 128, "frames": 60, "n1": (1.3, 1.45, 1.6), "mu_t": (0.05, 0.5, 2.0, 4.0), "batch": 30}
 QUICK = {"sensors": 2, "zones": 3, "bins": 96, "frames": 30, "n1": (1.45,), "mu_t": (0.5,), "batch": 4}
 ALBEDO = 0.8  # mu_s / mu_t of the truths
+# The independent simulator's geometry resolution: "converged" (indep_sim.CONVERGED, where its
+# expected counts stop changing: docs/results/mu_low_convergence.json; the default) or "default"
+# (the fast fixture's, what this study used before: at mu_t = 0.05 /m its coarse sampling moved
+# the fitted mu_t by 10-45 points from rig to rig)
+RESOLUTIONS = {"converged": CONVERGED, "default": IndepOptions()}
 
 
 def _scene(base, sensors, zones, bins):
@@ -179,7 +184,7 @@ COLUMNS = ("own", "independent", "independent_scene_without_ms")
 
 
 def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False,
-        columns=COLUMNS, n1s=None, mu_ts=None, batch: bool = True) -> dict:
+        columns=COLUMNS, n1s=None, mu_ts=None, batch: bool = True, resolution: str = "converged") -> dict:
     path = check_output(out / "calib_independent.json", overwrite=overwrite)
     p = dict(QUICK if quick else FULL)
     grid = list(itertools.product(p["n1"], p["mu_t"]))  # seeds follow the full grid's order
@@ -196,7 +201,7 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
         truth = nominal.replace(waveguide=wg)
         truths.append({"n1": n1, "mu_t_per_m": mu_t, "albedo": ALBEDO, "grid_index": k})
         own = simulate(truth, p["frames"], seed=100 + k) if "own" in columns else None
-        rig = IndepRig.from_scene(truth, seed=200 + k)
+        rig = IndepRig.from_scene(truth, seed=200 + k, options=RESOLUTIONS[resolution])
         ind = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=p["frames"], seed=300 + k)
         todo = (("own", own, cal), ("independent", ind, cal), ("independent_scene_without_ms", ind, cal_no_ms))
         for name, cap, c in (t for t in todo if t[0] in columns):
@@ -211,18 +216,20 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
                     flush=True,
                 )
         # written after every truth: a part stopped by the 10-minute limit keeps what it fitted
-        atomic_write_text(path, json.dumps(_result(config, p, truths, rows, columns, None), indent=2))
+        atomic_write_text(path, json.dumps(_result(config, p, truths, rows, columns, None, resolution), indent=2))
     speed = None
     if batch:
         wg = dataclasses.replace(nominal.waveguide, n1=1.45, mu_s_per_m=0.4, mu_a_per_m=0.1)
         speed = batch_speed(cal, nominal.replace(waveguide=wg), p["frames"], p["batch"], seed=5000)
-    result = _result(config, p, truths, rows, columns, speed)
+    result = _result(config, p, truths, rows, columns, speed, resolution)
     atomic_write_text(path, json.dumps(result, indent=2))
     return result
 
 
-def _result(config, p, truths, rows, columns, speed) -> dict:
+def _result(config, p, truths, rows, columns, speed, resolution="converged") -> dict:
     return {
+        "independent_resolution": {"name": resolution} | {k: getattr(RESOLUTIONS[resolution], k)
+                                                           for k in ("range_step_m", "angles_per_zone", "end_rays", "fine")},
         "study": "calibration on own and independent simulated data",
         "data": "simulated (own: tofjax.simulate; independent: tests/indep_sim.py)",
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
@@ -251,6 +258,10 @@ def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
         truths.update({i: t for i, (t, _) in c.items()})
     first = loaded[0]
     result = {k: first[k] for k in ("study", "data", "machine", "scene", "fit_config")}
+    res = {json.dumps(d.get("independent_resolution")) for d in loaded}
+    if len(res) > 1:
+        raise SystemExit(f"--merge: the parts used different independent resolutions: {sorted(res)}")
+    result["independent_resolution"] = first.get("independent_resolution")
     result["load_average"] = [d["load_average"] for d in loaded]
     result["parts"] = [str(q) for q in parts]
     result["truths"] = [truths[i] for i in sorted(truths)]
@@ -275,6 +286,8 @@ def main(argv=None):
     ap.add_argument("--mu-t", type=float, nargs="+", help="only these true mu_t of the grid")
     ap.add_argument("--geodesic", choices=("on", "off"), default="on" if FitConfig().geodesic else "off",
                     help="FitConfig.geodesic: the Marquardt solver's geodesic acceleration")
+    ap.add_argument("--resolution", choices=tuple(RESOLUTIONS), default="converged",
+                    help="the independent simulator's geometry resolution (converged: indep_sim.CONVERGED)")
     ap.add_argument("--no-batch", action="store_true", help="skip the batch speed-up measurement")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' JSONs into --out instead of fitting")
     args = ap.parse_args(argv)
@@ -287,7 +300,7 @@ def main(argv=None):
             raise SystemExit(f"--columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
         tofjax.enable_x64()
         r = run(Path(args.out), args.quick, FitConfig(model_error=args.model_error, geodesic=args.geodesic == "on"), overwrite=args.overwrite,
-                columns=cols, n1s=args.n1, mu_ts=args.mu_t, batch=not args.no_batch)
+                columns=cols, n1s=args.n1, mu_ts=args.mu_t, batch=not args.no_batch, resolution=args.resolution)
     for name in COLUMNS:
         if name in r:
             print(name, json.dumps(r[name]["summary"]))

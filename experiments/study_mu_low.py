@@ -52,14 +52,16 @@ from tofjax.simulate import simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from indep_sim import IndepOptions, IndepRig  # noqa: E402
+from indep_sim import CONVERGED, IndepOptions, IndepRig  # noqa: E402
 from indep_sim import simulate as simulate_independent  # noqa: E402
 from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene  # noqa: E402
 
 MU_T = 0.05
 # independent_dense: the same rigs (same per-zone draws) with the geometry sampled 4x denser
 # (DENSE): the independent simulator's frozen sampling noise taken out
-COLUMNS = ("own", "independent", "independent_dense")
+# independent_converged: the same rigs at indep_sim.CONVERGED (0.125 mm, 96 angles, 384 edge
+# rays), where the expected counts stop changing (--convergence, mu_low_convergence.json)
+COLUMNS = ("own", "independent", "independent_dense", "independent_converged")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,7 +182,11 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
         wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * cfg.mu_t, mu_a_per_m=(1 - ALBEDO) * cfg.mu_t)
         truth = nominal.replace(waveguide=wg)
         rig = IndepRig.from_scene(truth, seed=200 + k)  # the calibration study's rig at this grid point
-        dense = IndepRig.from_scene(truth, seed=200 + k, options=DENSE) if "independent_dense" in cfg.columns else None
+        rigs = {"independent": rig}
+        if "independent_dense" in cfg.columns:
+            rigs["independent_dense"] = IndepRig.from_scene(truth, seed=200 + k, options=DENSE)
+        if "independent_converged" in cfg.columns:
+            rigs["independent_converged"] = IndepRig.from_scene(truth, seed=200 + k, options=CONVERGED)
         for col in cfg.columns:
             fits[col][str(n1)], groups[col][str(n1)] = {}, {}
             for fr in cfg.frames:
@@ -190,7 +196,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                     if col == "own":
                         cap = simulate(truth, fr, seed=seed)
                     else:
-                        cap = simulate_independent(rig if col == "independent" else dense, contacts=np.zeros((0, 3)), frames=fr, seed=seed)
+                        cap = simulate_independent(rigs[col], contacts=np.zeros((0, 3)), frames=fr, seed=seed)
                     t = time.perf_counter()
                     res = cal.fit(cap)
                     sec = time.perf_counter() - t
@@ -382,6 +388,324 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
     return result
 
 
+# ---- is the independent reference converged? ---------------------------------------------------
+# The independent simulator's geometry resolution, coarse to fine: (range step, jittered angles
+# per zone, far-edge rays per zone, fine time cells per bin). Each level halves the range step
+# and doubles the angles and rays (the first step is 4x); "fine64" is the finest geometry with
+# a 4x finer time grid.
+LEVELS = {
+    "default (1 mm, 12 angles, 48 edge rays)": IndepOptions(),
+    "dense (0.25 mm, 48, 192)": IndepOptions(range_step_m=0.25e-3, angles_per_zone=48, end_rays=192),
+    "denser (0.125 mm, 96, 384)": IndepOptions(range_step_m=0.125e-3, angles_per_zone=96, end_rays=384),
+    "densest (0.0625 mm, 192, 768)": IndepOptions(range_step_m=0.0625e-3, angles_per_zone=192, end_rays=768),
+    "densest, time grid 64 cells per bin": IndepOptions(range_step_m=0.0625e-3, angles_per_zone=192, end_rays=768, fine=64),
+}
+
+
+def _noise_free(lam: np.ndarray, scene, frames: int, source: str):
+    """The expected counts as a capture of ``frames`` identical frames: a fit to it weighs the
+    bins as ``frames`` frames would and returns the estimator's limit without photon noise."""
+    from tofjax.capture import Capture
+
+    return Capture(histograms=np.broadcast_to(lam, (frames, *lam.shape)), timestamps=np.arange(frames) / 9.0,
+                   scene=scene, source=source)
+
+
+def _fit_row(cal, cap, n1: float, mu_t: float) -> dict:
+    t = time.perf_counter()
+    res = cal.fit(cap)
+    se = _mu_t_stderr(res)
+    return {"result": res.result, "converged": bool(res.converged), "n1_rel_error": float(res.params.n1) / n1 - 1,
+            "mu_t_rel_error": float(res.params.mu_s_per_m + res.params.mu_a_per_m) / mu_t - 1,
+            "mu_t_stderr_rel": None if se is None else se / mu_t, "reduced_chi2": float(res.reduced_chi2),
+            "end_incidence_power": float(getattr(res.params, "end_incidence_power", np.nan)),
+            "seconds": time.perf_counter() - t}
+
+
+def convergence(out: Path, n1s=(1.3, 1.45, 1.6), frames: int = 960, geometry_seeds=(None, 1, 2), levels=tuple(LEVELS),
+                reference: str = "densest (0.0625 mm, 192, 768)",
+                config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+    """The independent simulator's expected counts at mu_t = 0.05 /m on the study's rigs (same
+    per-zone draws) at each resolution of ``LEVELS``, each with its own jitter (``geometry_seeds``;
+    None = the rig's seed stream, what the studies used). Per (n1, level, jitter): the change of
+    the expected counts against the ``reference`` level (mean of its jitters; the finest geometry
+    on the default time grid) and against the previous level, in units of the photon noise of
+    ``frames`` frames, and the noise-free fit (the expected counts as ``frames``
+    identical frames: the estimator's limit, the bias that no frame count removes)."""
+    path = check_output(out / "mu_low_convergence.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    cal = Calibrator(nominal, config)
+    rows: dict = {}
+    for n1 in n1s:
+        k = _grid_index(n1, MU_T)
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
+        truth = nominal.replace(waveguide=wg)
+        lams = {}
+        for name in levels:
+            for g in geometry_seeds:
+                t = time.perf_counter()
+                rig = IndepRig.from_scene(truth, seed=200 + k, options=dataclasses.replace(LEVELS[name], geometry_seed=g))
+                lams[name, g] = (rig.expected(np.zeros((0, 3))), time.perf_counter() - t)
+        means = {name: np.mean([lams[name, g][0] for g in geometry_seeds], 0) for name in levels}
+        ref = means[reference]
+        sig = np.sqrt(np.maximum(ref, 1.0) / frames)
+        rows[str(n1)] = {}
+        for i, name in enumerate(levels):
+            per = []
+            for g in geometry_seeds:
+                lam, sec = lams[name, g]
+                pull = (lam - ref) / sig
+                prev = (lam - means[levels[i - 1]]) / sig if i else None
+                zone_mean = pull.mean(axis=(0, 1)) * np.sqrt(pull.shape[0] * pull.shape[1])
+                fit = _fit_row(cal, _noise_free(lam, truth, frames, "simulated (tests/indep_sim.py), noise-free"), n1, MU_T)
+                per.append({"geometry_seed": g, "simulate_seconds": sec,
+                            "pull_mean_square_vs_reference": float((pull**2).mean()),
+                            "pull_abs_max_vs_reference": float(np.abs(pull).max()),
+                            "zone_mean_pull_abs_max": float(np.abs(zone_mean).max()),
+                            "zone_mean_pull_worst_bin": int(np.argmax(np.abs(zone_mean))),
+                            "pull_mean_square_vs_previous_level": None if prev is None else float((prev**2).mean()),
+                            "rel_change_abs_max_vs_reference": float(np.max(np.abs(lam - ref) / np.maximum(ref, 1.0))),
+                            "noise_free_fit": fit})
+                if progress:
+                    print(f"n1 {n1:.2f} {name:38s} jitter {g}: pull ms {per[-1]['pull_mean_square_vs_reference']:8.3f} max {per[-1]['pull_abs_max_vs_reference']:6.2f}  "
+                          f"fit mu_t {100 * fit['mu_t_rel_error']:+6.1f}% n1 {100 * fit['n1_rel_error']:+.3f}% chi2 {fit['reduced_chi2']:.2f}", flush=True)
+            e = np.array([q["noise_free_fit"]["mu_t_rel_error"] for q in per])
+            rows[str(n1)][name] = {"jitters": per, "mu_t_bias_mean": float(e.mean()), "mu_t_bias_jitter_sd": float(e.std(ddof=1)) if len(e) > 1 else None,
+                                   "pull_mean_square_mean": float(np.mean([q["pull_mean_square_vs_reference"] for q in per]))}
+        result = {
+            "study": "is the independent simulator's reference converged at mu_t = 0.05 /m? (resolution of its sampled geometry)",
+            "data": "simulated (tests/indep_sim.py, the calibration study's rig per n1; expected counts, noise-free fits)",
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+            "load_average": list(os.getloadavg()),
+            "truth": {"mu_t_per_m": MU_T, "albedo": ALBEDO, "frames_weighting": frames},
+            "levels": {k: {q: getattr(LEVELS[k], q) for q in ("range_step_m", "angles_per_zone", "end_rays", "fine")} for k in levels},
+            "geometry_seeds": list(geometry_seeds),
+            "reference_level": reference,
+            "note": "pull = (expected counts - the reference level's, mean over its jitters) / photon noise of frames_weighting frames "
+                    "(vs_previous_level: against the previous level's mean); "
+                    "noise_free_fit: the expected counts fitted as frames_weighting identical frames (the bias no frame count removes)",
+            "by_n1": rows,
+            "seconds": time.perf_counter() - t0,
+        }
+        atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+# ---- which part of the histogram drives the offset? ----------------------------------------------
+MASKS = ("none", "near range to 3 cm", "near range to 6 cm", "far edge", "near range to 3 cm and far edge")
+
+
+class _SoftNearRig(IndepRig):
+    """The independent rig with tofjax's near-field law 1/(r^2 + h^2) instead of its own
+    1/max(r, 0.6 h)^2 (a diagnosis of one convention; the fixture itself is unchanged)."""
+
+    def _falloff(self, r):
+        return 1.0 / (r**2 + self.scene.waveguide.thickness_m**2)
+
+
+def _masks(rig: IndepRig, truth) -> dict:
+    """Per (sensor, zone, bin) masks (True = left out) by the time of each bin's centre: the near
+    range (the light-entry peak and the light from the first 3 or 6 cm, plus 300 ps of pulse) and
+    the far edge (from 200 ps before the zone's nearest edge return to the end)."""
+    S, Z, B = truth.shape
+    bw = truth.sensor.bin_width_s
+    t = (np.arange(B) + 0.5) * bw
+    t0 = rig.emission_time_s
+    near = {d: np.broadcast_to(t <= t0 + 2 * d / rig.c1 + 300e-12, (S, Z, B)) for d in (0.03, 0.06)}
+    lmin = np.array([rig._edge[i][1].min() for i in range(S * Z)]).reshape(S, Z)
+    far = t[None, None, :] >= t0 + 2 * lmin[..., None] / rig.c1 - 200e-12
+    return {"none": np.zeros((S, Z, B), bool), "near range to 3 cm": near[0.03], "near range to 6 cm": near[0.06],
+            "far edge": far, "near range to 3 cm and far edge": near[0.03] | far}
+
+
+def _fit_masked(cal, cap, mask, n1, mu_t) -> dict:
+    """A fit with the masked bins' standard deviations x 1e6 (they then weigh nothing)."""
+    import jax.numpy as jnp
+
+    import importlib
+
+    C = importlib.import_module("tofjax.fit.calibrate")  # the module (tofjax.fit.calibrate is also the function)
+    orig = C._data
+
+    def masked(capture, dtype, model_error=0.0):
+        mean, sig = orig(capture, dtype, model_error)
+        return mean, jnp.where(jnp.asarray(mask), sig * 1e6, sig)
+
+    C._data = masked
+    try:
+        row = _fit_row(cal, cap, n1, mu_t)
+    finally:
+        C._data = orig
+    row["bins_masked"] = int(mask.sum())
+    return row
+
+
+def diagnose_masks(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 960, masks=MASKS,
+                   config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+    """Noise-free fits (expected counts as ``frames`` frames) of own data, the independent rig at
+    resolution ``level`` and the same with tofjax's near-field law, with parts of the histogram
+    left out (``MASKS``): which part carries the offset of mu_t that no frame count removes."""
+    from tofjax.simulate import expected_counts
+
+    path = check_output(out / "mu_low_masks.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    cal = Calibrator(nominal, config)
+    rows: dict = {}
+    for n1 in n1s:
+        k = _grid_index(n1, MU_T)
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
+        truth = nominal.replace(waveguide=wg)
+        rig = IndepRig.from_scene(truth, seed=200 + k, options=LEVELS[level])
+        soft = _SoftNearRig.from_scene(truth, seed=200 + k, options=LEVELS[level])
+        mk = _masks(rig, truth)
+        data = {"own": np.asarray(expected_counts(truth)), "independent": rig.expected(np.zeros((0, 3))),
+                "independent with tofjax's near-field law": soft.expected(np.zeros((0, 3)))}
+        rows[str(n1)] = {}
+        for dname, lam in data.items():
+            cap = _noise_free(lam, truth, frames, f"simulated ({dname}), noise-free")
+            rows[str(n1)][dname] = {}
+            for m in masks:
+                r = _fit_masked(cal, cap, mk[m], n1, MU_T)
+                rows[str(n1)][dname][m] = r
+                if progress:
+                    print(f"n1 {n1:.2f} {dname:42s} mask {m:32s}: mu_t {100 * r['mu_t_rel_error']:+6.1f}% "
+                          f"(stderr {100 * (r['mu_t_stderr_rel'] or np.nan):.1f}%) n1 {100 * r['n1_rel_error']:+.3f}% chi2 {r['reduced_chi2']:.2f}", flush=True)
+            result = {
+                "study": "low attenuation: which part of the histogram carries the offset of mu_t (noise-free fits with bins left out)",
+                "data": "simulated (own: tofjax expected counts; independent: tests/indep_sim.py at the converged resolution; noise-free)",
+                "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+                "load_average": list(os.getloadavg()),
+                "truth": {"mu_t_per_m": MU_T, "albedo": ALBEDO, "frames_weighting": frames},
+                "independent_level": level,
+                "independent_options": dataclasses.asdict(LEVELS[level]),
+                "masks": {"near range to 3 cm": "bins whose centre is before emission + 2 (3 cm) / c1 + 300 ps",
+                          "near range to 6 cm": "the same to 6 cm", "far edge": "bins from 200 ps before the zone's nearest edge return on"},
+                "note": "mu_t_stderr_rel: the Laplace standard error at frames_weighting frames (the masked fit's)",
+                "by_n1": rows,
+                "seconds": time.perf_counter() - t0,
+            }
+            atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+OFFSET_VARIANTS = (
+    "independent",
+    "independent, tofjax 32 rays per zone",
+    "independent, FitConfig.model_error 0.01",
+    "independent with tofjax's near-field law",
+    "independent with tofjax's near-field law, tofjax 32 rays per zone",
+    "independent with tofjax's near-field law, scene without multiple scattering",
+    "independent with tofjax's near-field law, no per-zone spreads",
+    "independent with tofjax's near-field law, tofjax quadrature 4",
+    "independent, tofjax quadrature 4",
+    # tofjax's own simulator with 8 time nodes per bin (its discretisation converged), fitted
+    # with the default 2 and with 4: the offset of the default's time discretisation alone
+    "own at quadrature 8",
+    "own at quadrature 8, tofjax quadrature 4",
+)
+
+
+def diagnose_offset(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 960, variants=OFFSET_VARIANTS,
+                    config: FitConfig = FitConfig(), progress: bool = True, overwrite: bool = False) -> dict:
+    """Noise-free fits (the expected counts as ``frames`` frames) of the independent rig at
+    resolution ``level`` with one thing changed at a time: the rig's near-field law set to
+    tofjax's, tofjax tracing 32 rays per zone (default 8) or 4 time nodes per bin, the nominal
+    scene stating no multiple scattering, the rig's per-zone spreads off, a model-error floor."""
+    path = check_output(out / "mu_low_offset.json", overwrite=overwrite)
+    t0 = time.perf_counter()
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    no_ms = nominal.replace(waveguide=dataclasses.replace(nominal.waveguide, multiple_scattering=0.0))
+    cals = {}
+
+    def cal_for(v):
+        key = ("rays32" if "32 rays" in v else "no_ms" if "multiple scattering" in v else "me01" if "model_error" in v
+               else "q4" if "quadrature 4" in v else "base")
+        if key not in cals:
+            cals[key] = {"rays32": lambda: _calibrator_with_rays(nominal, config, 32),
+                         "no_ms": lambda: Calibrator(no_ms, config),
+                         "me01": lambda: Calibrator(nominal, dataclasses.replace(config, model_error=0.01)),
+                         "q4": lambda: Calibrator(nominal, dataclasses.replace(config, quadrature=4)),
+                         "base": lambda: Calibrator(nominal, config)}[key]()
+        return cals[key]
+
+    rows: dict = {}
+    for n1 in n1s:
+        k = _grid_index(n1, MU_T)
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
+        truth = nominal.replace(waveguide=wg)
+        opts = LEVELS[level]
+        nospread = dataclasses.replace(opts, gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
+        from tofjax.model import ModelOptions
+        from tofjax.simulate import expected_counts
+
+        lam = {"own q8": np.asarray(expected_counts(truth, ModelOptions(quadrature=8))) if any(v.startswith("own") for v in variants) else None,
+               "max": IndepRig.from_scene(truth, seed=200 + k, options=opts).expected(np.zeros((0, 3))),
+               "soft": _SoftNearRig.from_scene(truth, seed=200 + k, options=opts).expected(np.zeros((0, 3))),
+               "soft nospread": _SoftNearRig.from_scene(truth, seed=200 + k, options=nospread).expected(np.zeros((0, 3)))}
+        rows[str(n1)] = {}
+        for v in variants:
+            which = "own q8" if v.startswith("own") else ("soft nospread" if "per-zone" in v else "soft") if "near-field law" in v else "max"
+            cap = _noise_free(lam[which], truth, frames, "simulated (tests/indep_sim.py), noise-free")
+            r = _fit_row(cal_for(v), cap, n1, MU_T)
+            rows[str(n1)][v] = r
+            if progress:
+                print(f"n1 {n1:.2f} {v:75s}: mu_t {100 * r['mu_t_rel_error']:+6.1f}% n1 {100 * r['n1_rel_error']:+.3f}% chi2 {r['reduced_chi2']:.3f}", flush=True)
+            result = {
+                "study": "low attenuation: the offset of mu_t that no frame count removes, one convention changed at a time (noise-free fits)",
+                "data": "simulated (tests/indep_sim.py at the converged resolution, expected counts; noise-free)",
+                "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+                "load_average": list(os.getloadavg()),
+                "truth": {"mu_t_per_m": MU_T, "albedo": ALBEDO, "frames_weighting": frames},
+                "independent_level": level,
+                "near_field_laws": {"independent": "1 / max(r, 0.6 h)^2", "tofjax": "1 / (r^2 + d^2), d fitted (near_field_m)"},
+                "note": "reduced_chi2 of a noise-free fit: the misfit alone (at frames_weighting frames a noisy fit adds ~1)",
+                "by_n1": rows,
+                "seconds": time.perf_counter() - t0,
+            }
+            atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
+def quadrature_profile(out: Path, n1: float = 1.45, mu_ts=(0.05, 2.0), frames: int = 960, overwrite: bool = False) -> dict:
+    """Where tofjax's default quadrature (2 time nodes per bin) differs from its converged self
+    (8 nodes; 16 as the check of 8): the zone-mean relative difference and pull (photon noise of
+    ``frames`` frames) per bin, on the study's scene at each true mu_t."""
+    from tofjax.model import ModelOptions
+    from tofjax.simulate import expected_counts
+
+    path = check_output(out / "mu_low_quadrature_profile.json", overwrite=overwrite)
+    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    rows = {}
+    for mu_t in mu_ts:
+        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
+        truth = nominal.replace(waveguide=wg)
+        lam = {q: np.asarray(expected_counts(truth, ModelOptions(quadrature=q))) for q in (2, 8, 16)}
+        ref = lam[8]
+        rel = (lam[2] - ref) / np.maximum(ref, 1.0)
+        pull = (lam[2] - ref) / np.sqrt(np.maximum(ref, 1.0) / frames)
+        c1 = 299_792_458.0 / n1
+        rows[str(mu_t)] = {
+            "range_per_bin_m": c1 * truth.sensor.bin_width_s / 2,
+            "q2_vs_q8_zone_mean_rel_by_bin": rel.mean((0, 1)).round(5).tolist(),
+            "q2_vs_q8_zone_mean_pull_by_bin": pull.mean((0, 1)).round(2).tolist(),
+            "q8_vs_q16_rel_abs_max": float(np.max(np.abs(lam[8] - lam[16]) / np.maximum(lam[16], 1.0))),
+            "round_trip_decay_per_bin": float(1 - np.exp(-2 * mu_t * c1 * truth.sensor.bin_width_s / 2)),
+        }
+        print(f"mu_t {mu_t}: q2 - q8 zone-mean rel by bin 10-30 (%): {np.round(100 * rel.mean((0, 1))[10:30], 2).tolist()}")
+    result = {
+        "study": "tofjax's default quadrature (2 nodes per bin) against 8 nodes, per bin",
+        "data": "simulated (tofjax expected counts, noise-free)",
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only, shared with other agents (loaded)",
+        "load_average": list(os.getloadavg()),
+        "truth": {"n1": n1, "albedo": ALBEDO, "frames_for_pull": frames},
+        "by_mu_t": rows,
+    }
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
 def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     """The variants of several ``--diagnose`` runs in one JSON (their load averages kept)."""
     path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
@@ -444,14 +768,47 @@ def main(argv=None):
     ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
     ap.add_argument("--quick", action="store_true", help="a tiny scene, 2 replicates (what the test runs)")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--model-error", type=float, default=FitConfig().model_error, help="FitConfig.model_error (the study's fits)")
+    ap.add_argument("--quadrature", type=int, default=FitConfig().quadrature, help="FitConfig.quadrature (the study's fits)")
     ap.add_argument("--merge", nargs="+", type=Path, help="merge these parts' mu_low.json into --out instead of fitting")
     ap.add_argument("--diagnose", action="store_true",
                     help="the bias's cause at the first --n1 and the last --frames (writes mu_low_diagnose.json)")
+    ap.add_argument("--convergence", action="store_true",
+                    help="the independent simulator's resolution levels, noise-free fits (writes mu_low_convergence.json)")
+    ap.add_argument("--masks", metavar="LEVEL", help=f"noise-free fits with bins left out, the independent rig at LEVEL (one of {'; '.join(LEVELS)})")
+    ap.add_argument("--offset", metavar="LEVEL", help="noise-free fits of the independent rig at LEVEL, one convention changed at a time")
+    ap.add_argument("--quadrature-profile", action="store_true", help="tofjax's quadrature 2 against 8 per bin (mu_low_quadrature_profile.json)")
     ap.add_argument("--variants", help=f"with --diagnose: a ';'-separated subset of {'; '.join(VARIANTS)}")
     args = ap.parse_args(argv)
     from tofjax.compile_cache import enable_compilation_cache
 
     enable_compilation_cache()  # parts run as separate processes: compile once per machine
+    if args.convergence:
+        tofjax.enable_x64()
+        convergence(Path(args.out), n1s=tuple(args.n1), frames=args.frames[-1], overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_convergence.json")
+        return
+    if args.masks:
+        if args.masks not in LEVELS:
+            raise SystemExit(f"--masks: unknown level {args.masks!r}")
+        tofjax.enable_x64()
+        diagnose_masks(Path(args.out), args.masks, n1s=tuple(args.n1), frames=args.frames[-1], overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_masks.json")
+        return
+    if args.quadrature_profile:
+        tofjax.enable_x64()
+        quadrature_profile(Path(args.out), overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_quadrature_profile.json")
+        return
+    if args.offset:
+        tofjax.enable_x64()
+        v = tuple(x for x in args.variants.split(";") if x) if args.variants else OFFSET_VARIANTS
+        bad = [x for x in v if x not in OFFSET_VARIANTS]
+        if bad:
+            raise SystemExit(f"--variants: unknown variant {bad[0]!r}")
+        diagnose_offset(Path(args.out), args.offset, n1s=tuple(args.n1), frames=args.frames[-1], variants=v, overwrite=args.overwrite)
+        print(f"wrote {args.out}/mu_low_offset.json")
+        return
     if args.diagnose and not args.merge:
         tofjax.enable_x64()
         v = tuple(x for x in args.variants.split(";") if x) if args.variants else tuple(VARIANTS)
@@ -478,7 +835,7 @@ def main(argv=None):
     except ValueError as e:
         raise SystemExit(str(e)) from None
     tofjax.enable_x64()
-    r = run(Path(args.out), cfg, overwrite=args.overwrite)
+    r = run(Path(args.out), cfg, FitConfig(model_error=args.model_error, quadrature=args.quadrature), overwrite=args.overwrite)
     print(json.dumps(r["pooled"], indent=1))
     print(json.dumps({k: {q: v[q] for q in ("sd", "sd_power_law_exponent", "frames_for_2sd_within_25pct_sqrt_law") if q in v}
                       for k, v in (r["scaling"] or {}).items()}, indent=1))

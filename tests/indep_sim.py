@@ -87,6 +87,21 @@ class IndepOptions:
     touch_points: int = 96
     fine: int = 16
     touch_radius_m: float = 0.006
+    #: Resolution and jitter of the sampled geometry (defaults: the fast fixture; the study of
+    #: experiments/study_mu_low.py --convergence shows where the data stop changing, see
+    #: ``CONVERGED``). ``geometry_seed``: None draws the jitter from the rig's seed stream (after
+    #: the per-zone draws, as always); an int draws it from its own stream, so the same rig
+    #: (same per-zone draws) can be sampled again with other jitter.
+    geometry_seed: int | None = None
+
+
+#: The resolution at which the expected counts have stopped changing what a calibration reads
+#: from them (docs/results/mu_low_convergence.json: at mu_t = 0.05 /m the noise-free mu_t moves
+#: by about 1 point between this, the next finer level and other jitters; at the default the
+#: jitter alone moves it with a 9-26-point sd). 1.5-7 s per rig of 3 x 7 zones (loaded VM) instead
+#: of 0.02-0.1 s: for studies and slow tests;
+#: the default stays the fast fixture (its coarse sampling matters only where attenuation is low).
+CONVERGED = IndepOptions(range_step_m=0.125e-3, angles_per_zone=96, end_rays=384)
 
 
 def _wrap(a):
@@ -131,7 +146,7 @@ class IndepRig:
         xt = sm.crosstalk_counts * np.clip(1 + options.crosstalk_spread * rng.standard_normal((S, Z)), 0.2, 2.0)
         amb = sm.ambient_counts * np.clip(1 + options.ambient_spread * rng.standard_normal((S, Z)), 0.1, 2.0)
         rig = cls(scene, options, gain, xt, amb, sm.emission_time + options.emission_offset_s, seed)
-        rig._sample_geometry(rng)
+        rig._sample_geometry(rng if options.geometry_seed is None else np.random.default_rng(options.geometry_seed))
         return rig
 
     # ---- geometry ---------------------------------------------------------------------------
