@@ -201,3 +201,39 @@ def test_log_fraction_coordinates_round_trip_and_jacobian():
     h = 1e-6
     du = (np.asarray(_to_fit(jnp.asarray(w + h), idx)[0]) - np.asarray(_to_fit(jnp.asarray(w - h), idx)[0]))[:4] / (2 * h)
     assert float(_to_fit(jnp.asarray(w), idx)[1]) == pytest.approx(np.sum(np.log(du)), rel=1e-5, abs=1e-5)
+
+
+def test_ridge_shear_is_a_volume_preserving_bijection():
+    """NUTS's sheared coordinates (tofjax/fit/nuts.py ``unshear``): the other coordinates
+    measured from the ridge's line in log albedo. The map is a bijection (its inverse
+    ``y = x - b (a(x_i) - a_ref)`` recovers y, past the albedo's bound too), its Jacobian
+    determinant is 1 (no log-Jacobian term: finite differences), it is the identity at the
+    centre and to first order the covariance's regression there (the albedo decorrelated),
+    and without a sampled log albedo it is the identity."""
+    import jax.numpy as jnp
+
+    from tofjax.fit.nuts import _unshear_np, ridge_shear, unshear
+    from tofjax.fit.posterior import STEEP
+
+    rng = np.random.default_rng(0)
+    P = 4
+    A = rng.normal(size=(P, P))
+    cov = A @ A.T + 0.1 * np.eye(P)
+    centre = np.array([-0.16, 1.0, 2.0, 3.0])
+    coords = ("albedo", "b", "c", "d")
+    ridge, cy = ridge_shear(coords, (0,), centre, cov)
+    rj = tuple(jnp.asarray(x) for x in ridge)
+    np.testing.assert_allclose(_unshear_np(centre, ridge), centre, atol=1e-14)
+    np.testing.assert_allclose(cy[0, 1:], 0.0, atol=1e-9 * cy[0, 0])  # albedo decorrelated from the rest
+    for y0 in (-0.3, -0.01, 0.05, 0.4):  # the last two past the bound (log albedo saturates at 0)
+        y = centre + 0.3 * rng.normal(size=P)
+        y[0] = y0
+        x = np.asarray(unshear(jnp.asarray(y), rj))
+        np.testing.assert_allclose(x, _unshear_np(y, ridge), atol=1e-12)
+        a = -np.logaddexp(0.0, -STEEP * x[0]) / STEEP
+        np.testing.assert_allclose(x - ridge[0] * (a - ridge[2]), y, atol=1e-12)  # the inverse
+        h = 1e-6
+        J = np.stack([(_unshear_np(y + h * e, ridge) - _unshear_np(y - h * e, ridge)) / (2 * h) for e in np.eye(P)], 1)
+        assert np.log(abs(np.linalg.det(J))) == pytest.approx(0.0, abs=1e-7)
+    ident, c2 = ridge_shear(coords, (), centre, cov)
+    assert not np.any(ident[0]) and c2 is cov

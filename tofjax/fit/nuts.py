@@ -36,7 +36,7 @@ import numpy as np
 
 from ..capture import Capture
 from .calibrate import CalibrationError, CalibrationResult, Calibrator
-from .posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, LogDensity, _value_and_grad, log_density, log_prob, posterior_mode, summarise
+from .posterior import STEEP, GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, LogDensity, _value_and_grad, log_density, log_prob, posterior_mode, summarise
 
 __all__ = ["NutsOptions", "NutsResult", "sample_nuts", "diagnostics"]
 
@@ -68,6 +68,7 @@ class NutsOptions:
     max_tree_depth: int = 10
     dense: bool = True
     pilot: bool = False
+    shear: bool = False
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
@@ -112,6 +113,7 @@ class NutsResult:
             "warmup": self.options.warmup,
             "draws": self.options.draws,
             "pilot": self.options.pilot,
+            "shear": self.options.shear,
             "start": self.options.start,
             "start_info": self.start_info,
             "target_accept": self.options.target_accept,
@@ -165,7 +167,7 @@ def diagnostics(names: list[str], chains: np.ndarray) -> dict[str, Any]:
 
 
 @eqx.filter_jit
-def _run(problem, template, args, idx, flat0, chol, key, z_start, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
+def _run(problem, template, args, idx, flat0, chol, key, z_start, ridge, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
     """Warm-up and draws of one chain as one scan over one NUTS kernel: Stan's window
     adaptation (blackjax's ``window_adaptation.base`` and schedule) updates the step size and
     mass matrix during the first ``warmup`` steps and is frozen after, at its final values.
@@ -178,7 +180,7 @@ def _run(problem, template, args, idx, flat0, chol, key, z_start, warmup: int, d
     from blackjax.adaptation.window_adaptation import base, build_schedule
 
     def logdensity(z):
-        return log_prob(problem, template, args, flat0 + chol @ z, idx)
+        return log_prob(problem, template, args, unshear(flat0 + chol @ z, ridge), idx)
 
     with warnings.catch_warnings():  # blackjax 1.7 marks base() deprecated (staged_adaptation is its successor)
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -209,6 +211,46 @@ def _run(problem, template, args, idx, flat0, chol, key, z_start, warmup: int, d
 
 
 _COMPILED: dict = {}
+
+
+def unshear(y, ridge):
+    """The samplers' coordinates ``x`` (:func:`~tofjax.fit.posterior.log_prob`'s) of the
+    sheared ones ``y``: ``x = y + b (a(y_i) - a_ref)`` with ``a(w) = -softplus(-STEEP w) / STEEP``
+    the log albedo of its coordinate ``w = y_i`` (``ridge = (b, e_i, a_ref)``, ``e_i`` one-hot,
+    ``b_i = 0``). A triangular map with unit diagonal: its Jacobian determinant is 1. In ``y``
+    the other coordinates are measured from the ridge's line in log albedo, so where the
+    albedo saturates at 1 (``w`` past 0) they stay on the ridge's end instead of running off it;
+    zeros (``b = e = 0``): the identity."""
+    b, e, a_ref = ridge
+    a = -jax.nn.softplus(-STEEP * (y @ e)) / STEEP
+    return y + b * (a - a_ref)
+
+
+def ridge_shear(coords, idx, centre, cov):
+    """``(ridge, cov_y)``: the shear of :func:`unshear` about ``centre`` (the albedo's
+    coordinate: the one whose bound p = 1 ends the albedo / end reflectance / interface
+    ridge) and the covariance ``cov`` carried to ``y``; ``ridge`` of zeros where the albedo is
+    not sampled as log p. ``b``: each coordinate's regression on log albedo under ``cov``."""
+    P = len(centre)
+    zeros = (np.zeros(P), np.zeros(P), 0.0)
+    if "albedo" not in coords or coords.index("albedo") not in idx:
+        return zeros, cov
+    i = coords.index("albedo")
+    slope = 1.0 / (1.0 + np.exp(STEEP * centre[i]))  # da/dw at the centre
+    b = cov[:, i] / (slope * cov[i, i])
+    b[i] = 0.0
+    e = np.zeros(P)
+    e[i] = 1.0
+    a_ref = -np.logaddexp(0.0, -STEEP * centre[i]) / STEEP
+    jac = np.eye(P) - slope * np.outer(b, e)  # dy/dx at the centre
+    cy = jac @ cov @ jac.T
+    return (b, e, float(a_ref)), 0.5 * (cy + cy.T)
+
+
+def _unshear_np(y, ridge):
+    b, e, a_ref = ridge
+    a = -np.logaddexp(0.0, -STEEP * (y @ e)) / STEEP
+    return y + b * (a - a_ref)[..., None]
 
 
 def _whitening(cov: np.ndarray) -> np.ndarray:
@@ -270,14 +312,17 @@ def sample_nuts(
         grads = mode_info["gradient_evaluations"]
     else:
         centre, cov, mode_info, grads = ld.flat0, ld.laplace_cov, {"used": "fit"}, 0
+    ridge = ridge_shear(ld.coords, ld.idx, np.asarray(centre, np.float64), cov) if options.shear else ((np.zeros(P), np.zeros(P), 0.0), cov)
+    ridge, cov = ridge
     chol = _whitening(cov)
+    ridge_j = tuple(jnp.asarray(x, dtype) for x in ridge)
     runs = [k_chains, k_main] if options.pilot else [k_chains]
     for i, k in enumerate(runs):
         keys = jax.random.split(k, options.chains)
         outs = []
         for c in range(options.chains):  # one compiled program serves every chain, the pilot and the run
             run_args = (ld.problem, ld.template, ld.args, ld.idx, jnp.asarray(centre, dtype), jnp.asarray(chol, dtype),
-                        keys[c], jnp.asarray(z0[c], dtype))
+                        keys[c], jnp.asarray(z0[c], dtype), ridge_j)
             t = time.perf_counter()
             compiled = _compiled(run_args, statics)
             compile_s += time.perf_counter() - t
@@ -287,14 +332,14 @@ def sample_nuts(
         zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.stack(x) for x in zip(*outs))
         grads += int(nsteps.sum() + warm_steps.sum())
         if i + 1 < len(runs):  # the pilot: whiten the run by its draws' mean and covariance
-            flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
+            flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)  # sheared (y)
             pooled = flats.reshape(-1, P)
             c = np.cov(pooled.T).reshape(P, P)
             if np.all(np.isfinite(c)) and np.linalg.eigvalsh(c).min() > 0:
                 centre, chol = pooled.mean(0), _whitening(c)
                 z0 = np.linalg.solve(chol, (flats[:, -1, :] - centre).T).T  # continue from the pilot's last draws
     C, N = zs.shape[:2]
-    flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)
+    flats = _unshear_np(centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs), ridge)
     phys = ld.to_physical(flats.reshape(C * N, P)).reshape(C, N, -1)
     diag = diagnostics(ld.names, phys)
     return NutsResult(
