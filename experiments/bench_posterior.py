@@ -161,6 +161,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
         "pilot": nuts.pilot,
+        "shear": nuts.shear,
         "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
         "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
@@ -201,14 +202,17 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    dflt = NutsOptions()  # the library's defaults (one place)
     ap.add_argument("--scene", default="optoskin")
     ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--chains", type=int, default=4)
-    ap.add_argument("--warmup", type=int, default=250)
-    ap.add_argument("--draws", type=int, default=700)
+    ap.add_argument("--chains", type=int, default=dflt.chains)
+    ap.add_argument("--warmup", type=int, default=dflt.warmup)
+    ap.add_argument("--draws", type=int, default=dflt.draws)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
-    ap.add_argument("--target-accept", type=float, default=0.95)
-    ap.add_argument("--max-tree-depth", type=int, default=10)
+    ap.add_argument("--target-accept", type=float, default=dflt.target_accept)
+    ap.add_argument("--max-tree-depth", type=int, default=dflt.max_tree_depth)
+    ap.add_argument("--shear", action=argparse.BooleanOptionalAction, default=dflt.shear,
+                    help="NUTS: shear the coordinates along the albedo ridge (NutsOptions.shear)")
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
     ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
@@ -228,7 +232,8 @@ def main(argv=None):
     check_output(out / "posterior.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
-                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot)
+                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
+                       shear=a.shear)
     r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():

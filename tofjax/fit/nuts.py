@@ -69,6 +69,7 @@ class NutsOptions:
     dense: bool = True
     pilot: bool = False
     shear: bool = False
+    ridge_tail: bool = False
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
@@ -114,6 +115,7 @@ class NutsResult:
             "draws": self.options.draws,
             "pilot": self.options.pilot,
             "shear": self.options.shear,
+            "ridge_tail": self.options.ridge_tail,
             "start": self.options.start,
             "start_info": self.start_info,
             "target_accept": self.options.target_accept,
@@ -180,7 +182,8 @@ def _run(problem, template, args, idx, flat0, chol, key, z_start, ridge, warmup:
     from blackjax.adaptation.window_adaptation import base, build_schedule
 
     def logdensity(z):
-        return log_prob(problem, template, args, unshear(flat0 + chol @ z, ridge), idx)
+        x, log_jac = unshear(flat0 + chol @ z, ridge)
+        return log_prob(problem, template, args, x, idx) + log_jac
 
     with warnings.catch_warnings():  # blackjax 1.7 marks base() deprecated (staged_adaptation is its successor)
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -214,27 +217,43 @@ _COMPILED: dict = {}
 
 
 def unshear(y, ridge):
-    """The samplers' coordinates ``x`` (:func:`~tofjax.fit.posterior.log_prob`'s) of the
-    sheared ones ``y``: ``x = y + b (a(y_i) - a_ref)`` with ``a(w) = -softplus(-STEEP w) / STEEP``
-    the log albedo of its coordinate ``w = y_i`` (``ridge = (b, e_i, a_ref)``, ``e_i`` one-hot,
-    ``b_i = 0``). A triangular map with unit diagonal: its Jacobian determinant is 1. In ``y``
-    the other coordinates are measured from the ridge's line in log albedo, so where the
-    albedo saturates at 1 (``w`` past 0) they stay on the ridge's end instead of running off it;
-    zeros (``b = e = 0``): the identity."""
-    b, e, a_ref = ridge
+    """The samplers' coordinates ``x`` (:func:`~tofjax.fit.posterior.log_prob`'s) of NUTS's
+    ridge coordinates ``y``, and ``log |det dx/dy|``. ``ridge = (b, e_i, a_ref, m, s, alpha)``
+    (``e_i`` one-hot on the albedo's coordinate, ``b_i = 0``):
+
+    1. the ridge's low end compressed: ``y_i = m + s T((y_i - m) / s)`` with ``T(v) = v`` for
+       ``v >= 0`` and ``asinh(alpha v) / alpha`` below (C2 at 0; ``alpha = 0``: the identity);
+    2. the shear ``x = y + b (a(y_i) - a_ref)``, ``a(w) = -softplus(-STEEP w) / STEEP`` the log
+       albedo of its coordinate ``w``: triangular with unit diagonal (determinant 1). The other
+       coordinates are measured from the ridge's line in log albedo, so where the albedo
+       saturates at 1 (``w`` past 0) they stay at the ridge's end instead of running off it.
+
+    Zeros for ``b``, ``e`` and ``alpha`` (``s = 1``): the identity."""
+    b, e, a_ref, m, s, alpha = ridge
+    yi = y @ e
+    v = (yi - m) / s
+    neg = jnp.minimum(v, 0.0)
+    al = jnp.maximum(alpha, 1e-9)
+    t = jnp.arcsinh(al * neg) / al + jnp.maximum(v, 0.0)
+    log_jac = -0.5 * jnp.log1p((al * neg) ** 2)
+    y = y + e * (m + s * t - yi)
     a = -jax.nn.softplus(-STEEP * (y @ e)) / STEEP
-    return y + b * (a - a_ref)
+    return y + b * (a - a_ref), log_jac
+
+
+def _identity(P):
+    return (np.zeros(P), np.zeros(P), 0.0, 0.0, 1.0, 0.0)
 
 
 def ridge_shear(coords, idx, centre, cov):
-    """``(ridge, cov_y)``: the shear of :func:`unshear` about ``centre`` (the albedo's
+    """``(ridge, cov_y)``: the shear of :func:`unshear` about ``centre`` (on the albedo's
     coordinate: the one whose bound p = 1 ends the albedo / end reflectance / interface
-    ridge) and the covariance ``cov`` carried to ``y``; ``ridge`` of zeros where the albedo is
-    not sampled as log p. ``b``: each coordinate's regression on log albedo under ``cov``."""
+    ridge; no compression yet, ``alpha = 0``) and the covariance ``cov`` carried to ``y``;
+    the identity where the albedo is not sampled as log p. ``b``: each coordinate's
+    regression on log albedo under ``cov``."""
     P = len(centre)
-    zeros = (np.zeros(P), np.zeros(P), 0.0)
     if "albedo" not in coords or coords.index("albedo") not in idx:
-        return zeros, cov
+        return _identity(P), cov
     i = coords.index("albedo")
     slope = 1.0 / (1.0 + np.exp(STEEP * centre[i]))  # da/dw at the centre
     b = cov[:, i] / (slope * cov[i, i])
@@ -244,21 +263,45 @@ def ridge_shear(coords, idx, centre, cov):
     a_ref = -np.logaddexp(0.0, -STEEP * centre[i]) / STEEP
     jac = np.eye(P) - slope * np.outer(b, e)  # dy/dx at the centre
     cy = jac @ cov @ jac.T
-    return (b, e, float(a_ref)), 0.5 * (cy + cy.T)
+    return (b, e, float(a_ref), float(centre[i]), float(np.sqrt(cy[i, i])), 0.0), 0.5 * (cy + cy.T)
+
+
+def fit_tail(ridge, centre, logdensity, at: float = 2.0):
+    """``ridge`` with ``alpha`` chosen so that the compressed coordinate sees the ridge's low
+    end as a unit normal would at ``at`` standard deviations: where the log-density there
+    (the albedo's coordinate ``at`` sd below ``centre``, the others on the ridge's line) has
+    fallen by ``D`` more than the normal's ``at^2 / 2``, ``T(-sqrt(2 D)) = -at``. ``alpha = 0``
+    where it has not (a tail as heavy as the normal's or heavier is left alone)."""
+    b, e, a_ref, m, s, _ = ridge
+    if not np.any(e):
+        return ridge
+    y = np.asarray(centre, np.float64) - at * s * e
+    drop = float(logdensity(centre) - logdensity(_unshear_np(y, ridge)[0]))
+    if not np.isfinite(drop):
+        drop = 1e6
+    if drop <= at * at / 2:
+        return ridge
+    v = np.sqrt(2.0 * drop)  # T(-v) = -at: asinh(alpha v) / alpha = at, decreasing in alpha
+    lo, hi = 0.0, 1.0
+    while np.arcsinh(hi * v) / hi > at:
+        hi *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.arcsinh(mid * v) / mid > at else (lo, mid)
+    return (b, e, a_ref, m, s, 0.5 * (lo + hi))
 
 
 def _unshear_np(y, ridge):
-    b, e, a_ref = ridge
+    b, e, a_ref, m, s, alpha = ridge
+    y = np.asarray(y, np.float64)
+    yi = y @ e
+    v = (yi - m) / s
+    neg = np.minimum(v, 0.0)
+    al = max(alpha, 1e-9)
+    t = np.arcsinh(al * neg) / al + np.maximum(v, 0.0)
+    y = y + e * (m + s * t - yi)[..., None]
     a = -np.logaddexp(0.0, -STEEP * (y @ e)) / STEEP
-    return y + b * (a - a_ref)[..., None]
-
-
-def _whitening(cov: np.ndarray) -> np.ndarray:
-    """``L`` with ``L L^T = cov``, the Cholesky factor taken of the correlation matrix (each
-    axis scaled first, so coordinates of very different scales stay well conditioned)."""
-    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / scale[:, None] / scale[None, :]
-    return scale[:, None] * np.linalg.cholesky(corr + 1e-10 * np.eye(len(scale)))
+    return y + b * (a - a_ref)[..., None], -0.5 * np.log1p((al * neg) ** 2)
 
 
 def _compiled(run_args, statics):
@@ -312,8 +355,14 @@ def sample_nuts(
         grads = mode_info["gradient_evaluations"]
     else:
         centre, cov, mode_info, grads = ld.flat0, ld.laplace_cov, {"used": "fit"}, 0
-    ridge = ridge_shear(ld.coords, ld.idx, np.asarray(centre, np.float64), cov) if options.shear else ((np.zeros(P), np.zeros(P), 0.0), cov)
-    ridge, cov = ridge
+    ridge, cov = ridge_shear(ld.coords, ld.idx, np.asarray(centre, np.float64), cov) if options.shear else (_identity(P), cov)
+    if options.shear and options.ridge_tail:
+        t = time.perf_counter()
+        ridge = fit_tail(ridge, np.asarray(centre, np.float64), lambda f: float(_value_and_grad(
+            ld.problem, ld.template, ld.args, jnp.asarray(f, dtype), ld.idx)[0]))
+        grads += 2
+        wall += time.perf_counter() - t
+        mode_info["ridge_tail_alpha"] = ridge[5]
     chol = _whitening(cov)
     ridge_j = tuple(jnp.asarray(x, dtype) for x in ridge)
     runs = [k_chains, k_main] if options.pilot else [k_chains]
@@ -339,7 +388,7 @@ def sample_nuts(
                 centre, chol = pooled.mean(0), _whitening(c)
                 z0 = np.linalg.solve(chol, (flats[:, -1, :] - centre).T).T  # continue from the pilot's last draws
     C, N = zs.shape[:2]
-    flats = _unshear_np(centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs), ridge)
+    flats = _unshear_np(centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs), ridge)[0]
     phys = ld.to_physical(flats.reshape(C * N, P)).reshape(C, N, -1)
     diag = diagnostics(ld.names, phys)
     return NutsResult(
