@@ -70,6 +70,7 @@ class NutsOptions:
     pilot: bool = False
     shear: bool = False
     ridge_tail: bool = False
+    adapt_mass: bool = True
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
@@ -116,6 +117,7 @@ class NutsResult:
             "pilot": self.options.pilot,
             "shear": self.options.shear,
             "ridge_tail": self.options.ridge_tail,
+            "adapt_mass": self.options.adapt_mass,
             "start": self.options.start,
             "start_info": self.start_info,
             "target_accept": self.options.target_accept,
@@ -169,7 +171,8 @@ def diagnostics(names: list[str], chains: np.ndarray) -> dict[str, Any]:
 
 
 @eqx.filter_jit
-def _run(problem, template, args, idx, flat0, chol, key, z_start, ridge, warmup: int, draws: int, dense: bool, target_accept: float, depth: int):
+def _run(problem, template, args, idx, flat0, chol, key, z_start, ridge, warmup: int, draws: int, dense: bool, target_accept: float, depth: int,
+         adapt_mass: bool = True):
     """Warm-up and draws of one chain as one scan over one NUTS kernel: Stan's window
     adaptation (blackjax's ``window_adaptation.base`` and schedule) updates the step size and
     mass matrix during the first ``warmup`` steps and is frozen after, at its final values.
@@ -202,6 +205,8 @@ def _run(problem, template, args, idx, flat0, chol, key, z_start, ridge, warmup:
         final_step, final_imm = adapt_final(adapt)
         step_size = jnp.where(warm, adapt.step_size, final_step)
         imm = jnp.where(warm, adapt.inverse_mass_matrix, final_imm)
+        if not adapt_mass:  # the whitened coordinates' identity: only the step size adapts
+            imm = jnp.ones_like(imm) if imm.ndim == 1 else jnp.eye(imm.shape[0], dtype=imm.dtype)
         state, info = kernel(k, state, logdensity, step_size, imm, depth)
         updated = adapt_update(adapt, (st, end), state.position, info.acceptance_rate)
         adapt = jax.tree_util.tree_map(lambda u, a: jnp.where(warm, u, a), updated, adapt)
@@ -304,6 +309,14 @@ def _unshear_np(y, ridge):
     return y + b * (a - a_ref)[..., None], -0.5 * np.log1p((al * neg) ** 2)
 
 
+def _whitening(cov: np.ndarray) -> np.ndarray:
+    """``L`` with ``L L^T = cov``, the Cholesky factor taken of the correlation matrix (each
+    axis scaled first, so coordinates of very different scales stay well conditioned)."""
+    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / scale[:, None] / scale[None, :]
+    return scale[:, None] * np.linalg.cholesky(corr + 1e-10 * np.eye(len(scale)))
+
+
 def _compiled(run_args, statics):
     """The compiled sampler for these shapes and settings, compiled ahead of time (so the
     sampling is timed without it) and kept for the next call of the same shapes."""
@@ -342,7 +355,7 @@ def sample_nuts(
     key = jax.random.PRNGKey(options.seed)
     k_start, k_chains, k_main = jax.random.split(key, 3)
     z0 = jax.random.normal(k_start, (options.chains, P), dtype)  # draws from the Laplace approximation
-    statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth)
+    statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth, options.adapt_mass)
     compile_s = wall = 0.0
     if options.start == "mode":
         t = time.perf_counter()
