@@ -11,17 +11,21 @@ and of one batch of ``--walkers`` values (an emcee step) side by side, and sampl
   compiled ahead of time, so ``wall_s`` is warm (finding the mode, warm-up and draws;
   ``compile_s`` beside it). ``gradient_evaluations`` counts every one (mode included).
 - emcee (:func:`tofjax.fit.posterior.sample_posterior`'s sampler): ``--walkers`` walkers for
-  ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in.
+  ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in. The
+  stretch move (emcee's default, a = 2), vectorised over the walkers, which start at the fit
+  jittered by 0.1 Laplace sd; its generator seeded (``seed`` in the JSON): unseeded (before),
+  its min ESS varied between 79 and 256 over two runs of the same settings.
 
 Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-normalised
 split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
-load-independent figures. Writes ``posterior.json`` in ``--out``. The defaults (NUTS 4 x
-(250 + 700) at target acceptance 0.95, the light-entry width held at the fit; 32 walkers x
-3000 steps) made 55k gradients and 96k values on the default baseline: NUTS 51 s and emcee
-46 s at load 0.8-1.6 (docs/results/posterior.json), 206 s and 202 s at load 17-21
-(posterior_loaded.json; the same NUTS draws: the seeds are fixed).
+load-independent figures. Writes ``posterior.json`` in ``--out``. NUTS's settings are
+:class:`~tofjax.fit.nuts.NutsOptions`' defaults unless given (4 x (250 + 700) at target
+acceptance 0.95, dense mass matrix, the ridge shear; the light-entry width held at the fit);
+with 32 walkers x 3000 steps they made about 55k gradients and 96k values on the default
+baseline (docs/results/posterior.json; before the shear: posterior_idle.json,
+posterior_loaded.json).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
