@@ -24,7 +24,7 @@ load-independent figures. Writes ``posterior.json`` in ``--out``. NUTS's setting
 :class:`~tofjax.fit.nuts.NutsOptions`' defaults unless given (4 x (250 + 700) at target
 acceptance 0.95, dense mass matrix, the ridge shear; the light-entry width held at the fit);
 with 32 walkers x 3000 steps they made about 55k gradients and 96k values on the default
-baseline (docs/results/posterior.json; before the shear: posterior_idle.json,
+baseline (docs/results/posterior.json; before the shear: posterior_noshear.json, posterior_idle.json,
 posterior_loaded.json).
 
     python experiments/bench_posterior.py --out out/bench_posterior
