@@ -23,7 +23,7 @@ against the gains) ends where the albedo reaches its bound 1; in the samplers' c
 others runs on, off the ridge, into a wall where trajectories diverged (4 divergences in
 4 x 700 draws on the default baseline). Sheared, past the bound the other coordinates stay
 at the ridge's end and the density falls off smoothly (the change of variables' exponential
-tail): no divergence in any of eight sheared runs (docs/results/posterior_variants.json).
+tail): no divergence in any of nine sheared runs against 1-11 per run unsheared (docs/results/posterior_variants.json).
 
 Warm-up and sampling of one chain are one compiled program with one NUTS kernel (the window
 adaptation is driven by hand, so the kernel is not compiled twice), compiled once per problem
