@@ -11,17 +11,21 @@ and of one batch of ``--walkers`` values (an emcee step) side by side, and sampl
   compiled ahead of time, so ``wall_s`` is warm (finding the mode, warm-up and draws;
   ``compile_s`` beside it). ``gradient_evaluations`` counts every one (mode included).
 - emcee (:func:`tofjax.fit.posterior.sample_posterior`'s sampler): ``--walkers`` walkers for
-  ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in.
+  ``--emcee-steps`` steps, no early stop; the first quarter is discarded as burn-in. The
+  stretch move (emcee's default, a = 2), vectorised over the walkers, which start at the fit
+  jittered by 0.1 Laplace sd; its generator seeded (``seed`` in the JSON): unseeded (before),
+  its min ESS varied between 79 and 256 over two runs of the same settings.
 
 Both are diagnosed by ArviZ on the physical parameters (bulk and tail ESS, rank-normalised
 split R-hat; emcee's walkers count as chains, which they are not quite: they are coupled
 through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up included; emcee:
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
-load-independent figures. Writes ``posterior.json`` in ``--out``. The defaults (NUTS 4 x
-(250 + 700) at target acceptance 0.95, the light-entry width held at the fit; 32 walkers x
-3000 steps) made 55k gradients and 96k values on the default baseline: NUTS 51 s and emcee
-46 s at load 0.8-1.6 (docs/results/posterior.json), 206 s and 202 s at load 17-21
-(posterior_loaded.json; the same NUTS draws: the seeds are fixed).
+load-independent figures. Writes ``posterior.json`` in ``--out``. NUTS's settings are
+:class:`~tofjax.fit.nuts.NutsOptions`' defaults unless given (4 x (250 + 700) at target
+acceptance 0.95, dense mass matrix, the ridge shear; the light-entry width held at the fit);
+with 32 walkers x 3000 steps they made about 55k gradients and 96k values on the default
+baseline (docs/results/posterior.json; before the shear: posterior_noshear.json, posterior_idle.json,
+posterior_loaded.json).
 
     python experiments/bench_posterior.py --out out/bench_posterior
 """
@@ -55,6 +59,9 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
     start = ld.flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(walkers, P))
     ld.batch(start)  # compile outside the timing
     sampler = emcee.EnsembleSampler(walkers, P, ld.batch, vectorize=True)
+    # emcee draws its stretch moves from NumPy's global generator, unseeded: its min ESS varied
+    # 79-256 between two runs of the same settings. Seeded, a rerun gives the same chain.
+    sampler.random_state = np.random.RandomState(seed).get_state()
     t = time.perf_counter()
     sampler.run_mcmc(start, steps, progress=False)
     wall = time.perf_counter() - t
@@ -66,6 +73,8 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
     return {
         "walkers": walkers,
         "steps": steps,
+        "move": "stretch (emcee's default, a = 2)",
+        "seed": seed,
         "burn_in": steps // 4,
         "wall_s": wall,
         "ess_min": d["ess_min"],
@@ -161,6 +170,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
         "pilot": nuts.pilot,
+        "shear": nuts.shear,
         "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
         "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
@@ -201,14 +211,17 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    dflt = NutsOptions()  # the library's defaults (one place)
     ap.add_argument("--scene", default="optoskin")
     ap.add_argument("--frames", type=int, default=100)
-    ap.add_argument("--chains", type=int, default=4)
-    ap.add_argument("--warmup", type=int, default=250)
-    ap.add_argument("--draws", type=int, default=700)
+    ap.add_argument("--chains", type=int, default=dflt.chains)
+    ap.add_argument("--warmup", type=int, default=dflt.warmup)
+    ap.add_argument("--draws", type=int, default=dflt.draws)
     ap.add_argument("--nuisance-width", type=float, default=NUISANCE_WIDTH)
-    ap.add_argument("--target-accept", type=float, default=0.95)
-    ap.add_argument("--max-tree-depth", type=int, default=10)
+    ap.add_argument("--target-accept", type=float, default=dflt.target_accept)
+    ap.add_argument("--max-tree-depth", type=int, default=dflt.max_tree_depth)
+    ap.add_argument("--shear", action=argparse.BooleanOptionalAction, default=dflt.shear,
+                    help="NUTS: shear the coordinates along the albedo ridge (NutsOptions.shear)")
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
     ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
@@ -228,7 +241,8 @@ def main(argv=None):
     check_output(out / "posterior.json", overwrite=a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
-                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot)
+                       target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
+                       shear=a.shear)
     r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():

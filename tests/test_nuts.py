@@ -201,3 +201,53 @@ def test_log_fraction_coordinates_round_trip_and_jacobian():
     h = 1e-6
     du = (np.asarray(_to_fit(jnp.asarray(w + h), idx)[0]) - np.asarray(_to_fit(jnp.asarray(w - h), idx)[0]))[:4] / (2 * h)
     assert float(_to_fit(jnp.asarray(w), idx)[1]) == pytest.approx(np.sum(np.log(du)), rel=1e-5, abs=1e-5)
+
+
+def test_ridge_coordinates_are_a_bijection_with_the_right_log_jacobian():
+    """NUTS's ridge coordinates (tofjax/fit/nuts.py ``unshear``): the low end of the albedo's
+    coordinate compressed (asinh), then the other coordinates measured from the ridge's line
+    in log albedo (a shear). The map is a bijection (inverted by hand below, past the
+    albedo's bound too), its log-Jacobian is ``log |det|`` of finite differences, JAX and
+    NumPy agree, it is the identity at the centre, the shear decorrelates the albedo there,
+    ``fit_tail`` finds the asinh scale that puts a known tail drop at 2 sd, and without a
+    sampled log albedo it is the identity."""
+    import jax.numpy as jnp
+
+    from tofjax.fit.nuts import _unshear_np, fit_tail, ridge_shear, unshear
+    from tofjax.fit.posterior import STEEP
+
+    rng = np.random.default_rng(0)
+    P = 4
+    A = rng.normal(size=(P, P))
+    cov = A @ A.T + 0.1 * np.eye(P)
+    centre = np.array([-0.16, 1.0, 2.0, 3.0])
+    coords = ("albedo", "b", "c", "d")
+    sheared, cy = ridge_shear(coords, (0,), centre, cov)
+    np.testing.assert_allclose(cy[0, 1:], 0.0, atol=1e-9 * cy[0, 0])  # albedo decorrelated from the rest
+    s = sheared[4]
+    # a toy log-density whose low end along the albedo falls as 8 at 2 sd (a unit normal: 2)
+    ridge = fit_tail(sheared, centre, lambda x: -8.0 * float(((x[0] - centre[0]) / (2 * s)) ** 2))
+    v = np.sqrt(16.0)
+    assert ridge[5] > 0 and np.arcsinh(ridge[5] * v) / ridge[5] == pytest.approx(2.0, rel=1e-9)
+    assert fit_tail(sheared, centre, lambda x: -0.5 * float(((x[0] - centre[0]) / s) ** 2))[5] == 0.0
+    rj = tuple(jnp.asarray(x) for x in ridge)
+    np.testing.assert_allclose(_unshear_np(centre, ridge)[0], centre, atol=1e-14)
+    b, e, a_ref, m, _, al = ridge
+    for y0 in (-0.9, -0.3, -0.01, 0.05, 0.4):  # the last two past the bound (log albedo saturates at 0)
+        y = centre + 0.3 * rng.normal(size=P)
+        y[0] = y0
+        x, lj = unshear(jnp.asarray(y), rj)
+        xn, ljn = _unshear_np(y, ridge)
+        np.testing.assert_allclose(np.asarray(x), xn, atol=1e-12)
+        assert float(lj) == pytest.approx(float(ljn), abs=1e-12)
+        a = -np.logaddexp(0.0, -STEEP * xn[0]) / STEEP  # the inverse, by hand
+        back = xn - b * (a - a_ref)
+        vb = (back[0] - m) / s
+        back[0] = m + s * (np.sinh(al * min(vb, 0.0)) / al + max(vb, 0.0))
+        np.testing.assert_allclose(back, y, atol=1e-12)
+        h = 1e-6
+        J = np.stack([(_unshear_np(y + h * d, ridge)[0] - _unshear_np(y - h * d, ridge)[0]) / (2 * h) for d in np.eye(P)], 1)
+        assert np.log(abs(np.linalg.det(J))) == pytest.approx(float(ljn), abs=1e-7)
+    ident, c2 = ridge_shear(coords, (), centre, cov)
+    assert not np.any(ident[0]) and not np.any(ident[1]) and c2 is cov
+    np.testing.assert_allclose(_unshear_np(centre + 0.1, ident)[0], centre + 0.1, atol=1e-14)

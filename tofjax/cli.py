@@ -115,7 +115,8 @@ def _cmd_calibrate(a) -> int:
     if a.mcmc == "nuts" and result.converged:
         from .fit.nuts import NutsOptions, plot_nuts, sample_nuts
 
-        opts = NutsOptions(chains=a.chains or 4, warmup=a.warmup or 500, draws=a.draws or 1000)
+        given = {k: getattr(a, k) for k in ("chains", "warmup", "draws") if getattr(a, k) is not None}
+        opts = NutsOptions(**given)  # the library's defaults for what is not given (one place)
         post = sample_nuts(calibrator, cap, result, opts)
         report["posterior"] = post.summary()
         atomic_write_text(out, json.dumps(report, indent=2))
@@ -353,9 +354,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--allow-unconverged", action="store_true", help="exit 0 even if the fit did not converge")
     s.add_argument("--mcmc", nargs="?", const="emcee", choices=("emcee", "nuts"),
                    help="also sample the posterior: emcee (the default, derivative-free) or nuts (blackjax, gradients)")
-    s.add_argument("--chains", type=int, default=None, help="NUTS chains (default 4)")
-    s.add_argument("--warmup", type=int, default=None, help="NUTS warm-up steps per chain (default 500)")
-    s.add_argument("--draws", type=int, default=None, help="NUTS draws per chain (default 1000)")
+    s.add_argument("--chains", type=int, default=None, help="NUTS chains (default: the library's, tofjax.fit.nuts.NutsOptions)")
+    s.add_argument("--warmup", type=int, default=None, help="NUTS warm-up steps per chain (default: the library's, tofjax.fit.nuts.NutsOptions)")
+    s.add_argument("--draws", type=int, default=None, help="NUTS draws per chain (default: the library's, tofjax.fit.nuts.NutsOptions)")
     s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
     s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
