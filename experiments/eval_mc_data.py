@@ -194,7 +194,8 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
                   cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
-                  no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit")) -> dict:
+                  no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit"),
+                  fit_variants: dict | None = None) -> dict:
     """Six-contact detection with the calibrated optics: full, model and fit methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
@@ -214,13 +215,19 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
            "calibration_forced": forced, "optics": optical.optics, "methods": {},
            "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
-    for m in methods:
+    fit_variants = dict(fit_variants or {})
+    runs = [m for m in methods if m != "fit"] + (["fit", *[f"fit:{v}" for v in fit_variants]] if "fit" in methods else [])
+    fit_det = None
+    for m in runs:
         t = time.perf_counter()
-        if m == "fit":
+        if m.startswith("fit"):
             from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
 
-            inv = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
-                                     n_baseline=baseline_frames)
+            if fit_det is None:  # built once; the variants share its responses and compiled model
+                fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
+                                             n_baseline=baseline_frames)
+            inv = fit_det if m == "fit" else fit_det.with_options(
+                dataclasses.replace(FitDetectOptions(), **fit_variants[m[4:]]))
         else:
             inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
                                  baseline_frames=base.histograms)
@@ -235,9 +242,10 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
         score["seconds"] = time.perf_counter() - t
         if getattr(inv, "reconstructor", None) is not None:
             score["contact_response"] = inv.reconstructor.response
-        if m == "fit":
+        if m.startswith("fit"):
             score["options"] = repr(inv.options)
-            score["seconds_what"] = "building (signed responses on the 5 mm grid, compiling) and every frame"
+            score["seconds_what"] = ("building (signed responses on the 5 mm grid, compiling) and every frame" if m == "fit"
+                                     else "every frame (the detector built for 'fit' reused)")
             score["reduced_chi2_touch_frames_median"] = float(np.nanmedian(res.chi2 / res.dof))
             score["contacts_found_per_frame"] = np.bincount([len(d.touches) for d in res.detections]).tolist()
         out["methods"][m] = score
@@ -359,7 +367,7 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
         progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
-        methods=("full", "model", "fit"), skip_l2: bool = False) -> dict:
+        methods=("full", "model", "fit"), skip_l2: bool = False, fit_variants: dict | None = None) -> dict:
     import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
@@ -398,6 +406,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "baseline_relative_noise": transported_noise,
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
+                     "fit_variants": fit_variants or {},
                      "skip_l2": skip_l2,
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
@@ -431,7 +440,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         if progress:
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
-                                                 baseline_frames, seed, progress, exposure=exposure, methods=methods)
+                                                 baseline_frames, seed, progress, exposure=exposure, methods=methods,
+                                                 fit_variants=fit_variants)
     if not skip_l2:
         if progress:
             print("touch L2: noise and model error ...", flush=True)
@@ -475,6 +485,9 @@ def main(argv=None):
     ap.add_argument("--exposure", type=float, default=1.0,
                     help="the sensor's iterations per frame relative to the scene's: every count times this")
     ap.add_argument("--methods", default="full,model,fit", help="detection methods, comma-separated")
+    ap.add_argument("--fit-variants", default="{}",
+                    help='JSON: name -> FitDetectOptions fields, each scored as method "fit:name" next to "fit" '
+                         '(the defaults), e.g. \'{"n5": {"n_sigma": 5}}\'')
     ap.add_argument("--skip-l2", action="store_true",
                     help="leave out the guided-vs-Monte-Carlo L2 and the first-order touch (they do not depend on the "
                          "detectors; minutes of Monte Carlo on a loaded machine)")
@@ -482,13 +495,23 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
         ap.error(f"--exposure: must be a finite number > 0, got {a.exposure!r}")
+    from tofjax.config import ConfigError
+    from tofjax.invert.greedy import FitDetectOptions
+
+    try:
+        variants = json.loads(a.fit_variants)
+
+        for v in variants.values():
+            dataclasses.replace(FitDetectOptions(), **v)
+    except (ValueError, TypeError, AttributeError, ConfigError) as e:
+        ap.error(f"--fit-variants: {e}")
     tofjax.enable_x64()
     if a.generate:
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
             overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
-            methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2)
+            methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2, fit_variants=variants)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 
