@@ -243,6 +243,13 @@ class FitDetector:
 
     def fit_frame(self, histogram) -> tuple[np.ndarray, float, np.ndarray]:
         """Contacts (n, 3: x_m, y_m, strength), the final chi-square, and the first evidence map (cells)."""
+        state = self.search_frame(histogram)
+        contacts, chi = self.finish_frame(state, self.options.n_sigma)
+        return contacts, chi, state[4]
+
+    def search_frame(self, histogram):
+        """The search before the backward pruning: (theta, active, chi, y, first evidence map); the part of
+        :meth:`fit_frame` that does not depend on ``n_sigma`` (see :meth:`finish_frame`)."""
         o, K = self.options, self.K
         y = (np.asarray(histogram, float).ravel() - self.base) / self.sigma
         theta = np.zeros(3 * K)
@@ -271,7 +278,13 @@ class FitDetector:
                 if c + thr_add * len(a) < best[0]:
                     best = (c + thr_add * len(a), t, a, c, rr)
             _, theta, active, chi, r = best
-        thr = o.n_sigma**2
+        return theta, active, chi, y, first[0]
+
+    def finish_frame(self, state, n_sigma: float) -> tuple[np.ndarray, float]:
+        """The backward pruning at ``n_sigma`` of a :meth:`search_frame` state: contacts (n, 3) and chi-square."""
+        o, K = self.options, self.K
+        theta, active, chi, y, _ = state
+        thr = n_sigma**2
         if len(active) and o.overdispersion:
             phi = max(1.0, chi / max(len(y) - 3 * len(active), 1))
             thr = thr * phi
@@ -280,7 +293,7 @@ class FitDetector:
         out = np.stack([theta[active], theta[K + active], theta[2 * K + active]], -1) if len(active) else np.zeros((0, 3))
         if o.min_strength > 0:
             out = out[out[:, 2] >= o.min_strength]
-        return out, chi, first[0]
+        return out, chi
 
     def _search(self, theta, active, chi, r, y, thr_add, first):
         """Forward selection, relocation and splits from the current fit, in rounds (see ``rounds``)."""
@@ -416,26 +429,35 @@ class FitDetector:
 
     # -- frames ----------------------------------------------------------------------------------
     def process(self, histograms, *, detect: bool = True) -> FitResult:
+        return self.process_levels(histograms, (self.options.n_sigma,), detect=detect)[0]
+
+    def process_levels(self, histograms, n_sigmas, *, detect: bool = True) -> list[FitResult]:
+        """:meth:`process` at several thresholds ``n_sigmas`` at the cost of one: the search (forward selection,
+        relocation, splits, starts) does not depend on ``n_sigma``, only the final pruning does."""
         h = np.asarray(histograms, float)
         if h.ndim != 4 or h.shape[1:] != self.scene.shape:
             raise InversionError(f"histograms have shape {h.shape[1:]} per frame, the scene {self.scene.shape}")
-        F = len(h)
+        F, L = len(h), len(n_sigmas)
         maps = np.zeros((F, self.grid.ny * self.grid.nx))
         ok = np.ones(F, bool)
-        chi2 = np.full(F, np.nan)
-        dets = []
+        chi2 = np.full((L, F), np.nan)
+        dets = [[] for _ in range(L)]
         for i in range(F):
             bad = ~np.isfinite(h[i]) | (h[i] >= self._sat)
             if bad.any():
                 ok[i] = False
-                dets.append(Detection())
+                for d in dets:
+                    d.append(Detection())
                 continue
-            contacts, chi2[i], first = self.fit_frame(h[i])
-            maps[i, self.cells] = first
-            dets.append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s), "component": 0}
-                                           for x, yy, s in contacts]))
-        return FitResult(maps.reshape(F, self.grid.ny, self.grid.nx), ok, self.grid, "fit",
-                         dets if detect else None, None, chi2, int(self.sigma.size))
+            state = self.search_frame(h[i])
+            maps[i, self.cells] = state[4]
+            for lv, n in enumerate(n_sigmas):
+                contacts, chi2[lv, i] = self.finish_frame(state, n)
+                dets[lv].append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s),
+                                                    "component": 0} for x, yy, s in contacts]))
+        m = maps.reshape(F, self.grid.ny, self.grid.nx)
+        return [FitResult(m, ok, self.grid, "fit", dets[lv] if detect else None, None, chi2[lv], int(self.sigma.size))
+                for lv in range(L)]
 
 
 def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: float):
