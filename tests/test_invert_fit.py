@@ -106,6 +106,9 @@ def test_fast_threshold_is_in_noise_units(stand_in):
         found = [len(det.with_options(dataclasses.replace(opts, n_sigma=n, n_sigma_forward=n)).process(
             frame[None]).detections[0].touches) for n in (9.0, 15.0)]
         assert found == [1, 0], (scale, found)
+        # the search once, pruned at both thresholds: the same answer
+        levels = det.with_options(dataclasses.replace(opts, n_sigma_forward=9.0)).process_levels(frame[None], (9.0, 15.0))
+        assert [len(r.detections[0].touches) for r in levels] == [1, 0], scale
     with pytest.raises(ConfigError, match="cell_m"):
         det.with_options(dataclasses.replace(opts, cell_m=0.01))
 
