@@ -194,7 +194,8 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
                   cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
-                  no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit")) -> dict:
+                  no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit"),
+                  fit_variants: dict | None = None, fit_n_sigmas=()) -> dict:
     """Six-contact detection with the calibrated optics: full, model and fit methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
@@ -214,36 +215,77 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     out = {"configs": len(contacts), "frames_per_config": frames_per_config, "contacts": int(truth.shape[0] * 6),
            "calibration_forced": forced, "optics": optical.optics, "methods": {},
            "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
-    for m in methods:
+    fit_variants = dict(fit_variants or {})
+    levels = [float(n) for n in (fit_n_sigmas or ())]
+    runs = [m for m in methods if m != "fit"] + (["fit", *[f"fit:{v}" for v in fit_variants]] if "fit" in methods else [])
+    fit_det = None
+    snr = np.repeat(np.asarray(out["information_limit"]["per_contact_snr_guided_model"].pop("values")).reshape(
+        len(contacts), -1), frames_per_config, axis=0).ravel()
+    scores = {}
+    for m in runs:
         t = time.perf_counter()
-        if m == "fit":
+        if m.startswith("fit"):
             from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
 
-            inv = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
-                                     n_baseline=baseline_frames)
+            if fit_det is None:  # built once; the variants share its responses and compiled model
+                fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
+                                             n_baseline=baseline_frames)
+            inv = fit_det if m == "fit" else fit_det.with_options(
+                dataclasses.replace(FitDetectOptions(), **fit_variants[m[4:]]))
+            lv = [inv.options.n_sigma, *levels] if m == "fit" else [inv.options.n_sigma]
+            names = [m, *[f"fit_n_sigma_{n:g}" for n in levels]] if m == "fit" else [m]
+            results = inv.process_levels(H, lv)
+            quiets = inv.process_levels(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms, lv)
         else:
             inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
                                  baseline_frames=base.histograms)
-        res = inv.process(H)
-        score, found = eval_touch._score(res.detections, truth, cfg.match_radius_m)
-        quiet = inv.process(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms)
-        score["no_touch_frames"] = no_touch_frames
-        score["false_per_no_touch_frame"] = float(np.mean([len(d.touches) for d in quiet.detections]))
-        found = np.concatenate(found)
-        score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
-        score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
-        score["seconds"] = time.perf_counter() - t
-        if getattr(inv, "reconstructor", None) is not None:
-            score["contact_response"] = inv.reconstructor.response
-        if m == "fit":
-            score["options"] = repr(inv.options)
-            score["seconds_what"] = "building (signed responses on the 5 mm grid, compiling) and every frame"
-            score["reduced_chi2_touch_frames_median"] = float(np.nanmedian(res.chi2 / res.dof))
-            score["contacts_found_per_frame"] = np.bincount([len(d.touches) for d in res.detections]).tolist()
+            names = [m]
+            results = [inv.process(H)]
+            quiets = [inv.process(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms)]
+        for name, res, quiet in zip(names, results, quiets):
+            score, found = eval_touch._score(res.detections, truth, cfg.match_radius_m)
+            score["no_touch_frames"] = no_touch_frames
+            score["false_per_no_touch_frame"] = float(np.mean([len(d.touches) for d in quiet.detections]))
+            score["false_on_no_touch_frames"] = int(sum(len(d.touches) for d in quiet.detections))
+            found = np.concatenate(found)
+            score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
+            score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
+            score["recall_by_contact_snr"] = _recall_by_snr(found, snr)
+            score["seconds"] = time.perf_counter() - t
+            if getattr(inv, "reconstructor", None) is not None:
+                score["contact_response"] = inv.reconstructor.response
+            if name.startswith("fit"):
+                score["options"] = repr(dataclasses.replace(inv.options, n_sigma=lv[names.index(name)]))
+                score["seconds_what"] = ("building (signed responses on the 5 mm grid, compiling) and every frame, "
+                                         "all n_sigma levels" if m == "fit" else "every frame (the detector built for "
+                                         "'fit' reused)")
+                score["reduced_chi2_touch_frames_median"] = float(np.nanmedian(res.chi2 / res.dof))
+                score["contacts_found_per_frame"] = np.bincount([len(d.touches) for d in res.detections]).tolist()
+            scores[name] = score
+    for m, score in scores.items():
         out["methods"][m] = score
         if progress:
             print(f"  {m}: P {score['precision']:.3f} R {score['recall']:.3f} err {score['mean_error_cm']:.2f} cm", flush=True)
     return out
+
+
+SNR_BINS = (0.0, 3.0, 5.0, 8.0, 12.0, np.inf)
+
+
+def _recall_by_snr(found: np.ndarray, snr: np.ndarray) -> dict:
+    """Recall of the contacts in bins of their matched-filter SNR (``information_limit``), and the SNR of the
+    contacts missed: how far a detector's misses are the noise's (SNR below ~5) or the search's."""
+    rows = []
+    for lo, hi in zip(SNR_BINS[:-1], SNR_BINS[1:]):
+        sel = (snr >= lo) & (snr < hi)
+        rows.append({"snr_from": lo, "snr_to": None if np.isinf(hi) else hi, "contacts": int(sel.sum()),
+                     "recall": float(found[sel].mean()) if sel.any() else None})
+    missed = snr[~found]
+    return {"what": "recall of the contacts whose one-frame matched-filter SNR (guided model, known position) is in "
+                    "[snr_from, snr_to); the missed contacts' SNR", "bins": rows,
+            "missed": int(missed.size), "missed_below_5": int(np.sum(missed < 5)),
+            "missed_snr_quantiles_10_50_90": np.quantile(missed, [0.1, 0.5, 0.9]).tolist() if missed.size else None,
+            "recall_of_contacts_above_5": float(found[snr >= 5].mean()) if (snr >= 5).any() else None}
 
 
 def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_expected: list[np.ndarray],
@@ -272,7 +314,8 @@ def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_e
                 "what": "matched-filter SNR of each contact alone in one frame (known position and strength; the "
                         "guided model's signed skin-contact response at the true optics; Poisson noise)",
                 "quantiles_10_25_50_75_90": np.quantile(snr, [0.1, 0.25, 0.5, 0.75, 0.9]).tolist(),
-                "share_above_4": float(np.mean(snr > 4)), "share_above_5": float(np.mean(snr > 5))},
+                "share_above_4": float(np.mean(snr > 4)), "share_above_5": float(np.mean(snr > 5)),
+                "values": snr.tolist()},
             "frame_change_snr": {
                 "what": "sqrt(sum (touch - baseline)^2 / baseline) of each configuration's expected frame (six contacts)",
                 "median": float(np.median(frame)), "min": float(frame.min()), "max": float(frame.max())}}
@@ -359,7 +402,8 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
         progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
-        methods=("full", "model", "fit"), skip_l2: bool = False) -> dict:
+        methods=("full", "model", "fit"), skip_l2: bool = False, fit_variants: dict | None = None,
+        fit_n_sigmas=()) -> dict:
     import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
@@ -398,6 +442,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "baseline_relative_noise": transported_noise,
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
+                     "fit_variants": fit_variants or {}, "fit_n_sigmas": list(fit_n_sigmas),
                      "skip_l2": skip_l2,
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
@@ -431,7 +476,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         if progress:
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
-                                                 baseline_frames, seed, progress, exposure=exposure, methods=methods)
+                                                 baseline_frames, seed, progress, exposure=exposure, methods=methods,
+                                                 fit_variants=fit_variants, fit_n_sigmas=fit_n_sigmas)
     if not skip_l2:
         if progress:
             print("touch L2: noise and model error ...", flush=True)
@@ -475,6 +521,12 @@ def main(argv=None):
     ap.add_argument("--exposure", type=float, default=1.0,
                     help="the sensor's iterations per frame relative to the scene's: every count times this")
     ap.add_argument("--methods", default="full,model,fit", help="detection methods, comma-separated")
+    ap.add_argument("--fit-variants", default="{}",
+                    help='JSON: name -> FitDetectOptions fields, each scored as method "fit:name" next to "fit" '
+                         '(the defaults), e.g. \'{"n5": {"n_sigma": 5}}\'')
+    ap.add_argument("--fit-n-sigmas", default="",
+                    help='--method fit also at these thresholds (comma-separated), scored as "fit_n_sigma_N" from the '
+                         'same search (only the final pruning depends on n_sigma)')
     ap.add_argument("--skip-l2", action="store_true",
                     help="leave out the guided-vs-Monte-Carlo L2 and the first-order touch (they do not depend on the "
                          "detectors; minutes of Monte Carlo on a loaded machine)")
@@ -482,13 +534,30 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
         ap.error(f"--exposure: must be a finite number > 0, got {a.exposure!r}")
+    from tofjax.config import ConfigError
+    from tofjax.invert.greedy import FitDetectOptions
+
+    try:
+        variants = json.loads(a.fit_variants)
+
+        for v in variants.values():
+            dataclasses.replace(FitDetectOptions(), **v)
+    except (ValueError, TypeError, AttributeError, ConfigError) as e:
+        ap.error(f"--fit-variants: {e}")
+    try:
+        levels = tuple(float(x) for x in a.fit_n_sigmas.split(",") if x.strip())
+    except ValueError as e:
+        ap.error(f"--fit-n-sigmas: {e}")
+    if not all(n >= 0 and np.isfinite(n) for n in levels):
+        ap.error(f"--fit-n-sigmas: each must be a finite number >= 0, got {a.fit_n_sigmas!r}")
     tofjax.enable_x64()
     if a.generate:
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
             overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
-            methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2)
+            methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2, fit_variants=variants,
+            fit_n_sigmas=levels)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 

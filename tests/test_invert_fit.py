@@ -106,6 +106,9 @@ def test_fast_threshold_is_in_noise_units(stand_in):
         found = [len(det.with_options(dataclasses.replace(opts, n_sigma=n, n_sigma_forward=n)).process(
             frame[None]).detections[0].touches) for n in (9.0, 15.0)]
         assert found == [1, 0], (scale, found)
+        # the search once, pruned at both thresholds: the same answer
+        levels = det.with_options(dataclasses.replace(opts, n_sigma_forward=9.0)).process_levels(frame[None], (9.0, 15.0))
+        assert [len(r.detections[0].touches) for r in levels] == [1, 0], scale
     with pytest.raises(ConfigError, match="cell_m"):
         det.with_options(dataclasses.replace(opts, cell_m=0.01))
 
@@ -162,3 +165,38 @@ def test_slow_guided_model_two_contacts():
     k, _ = match(res.detections[0].positions(), truth[:, :2], 0.01)
     assert k == 2 and len(res.detections[0].touches) == 2, res.detections[0].touches
     assert [len(d.touches) for d in res.detections[1:]] == [0, 0]
+
+
+def _frame(sc, base, truth, K):
+    theta = np.zeros(3 * K)
+    n = len(truth)
+    theta[:n], theta[K : K + n], theta[2 * K : 2 * K + n] = np.asarray(truth).T
+    return base + np.asarray(_stand_in_change(sc, K)(jnp.asarray(theta))).reshape(sc.shape)
+
+
+def test_fast_split_and_multi_start_leave_local_optima(stand_in):
+    """Noise-free frames (stand-in model) where one greedy pass ends in a local optimum:
+    (a) one contact fitted between two true ones: the split move replaces it by two, each within 1 cm of a
+    true contact, and the chi-square falls more than fourfold; (b) two contacts the greedy search (with
+    relocation and splits) places wrongly (none within 1 cm, chi-square ~30): a second start from the next
+    local maximum of the first evidence map finds both (chi-square ~0)."""
+    sc, base, optical = stand_in
+    K = 3
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=K, iterations=4, relocate_candidates=2, n_sigma=5.0)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=10**9)
+    # (a) the split move
+    truth = np.array([[0.06, 0.07, 0.8], [0.09, 0.08, 0.8]])
+    y = (_frame(sc, base, truth, K).ravel() - det.base) / det.sigma
+    t = np.zeros(3 * K)
+    t[0], t[K], t[2 * K] = 0.075, 0.075, 1.0
+    t, chi, r = det._refit(t, np.array([0]), y)
+    t2, act, chi2, _ = det._split(t, np.array([0]), chi, r, y, 16.0)
+    assert len(act) == 2 and chi2 < chi / 4, (chi, chi2)
+    assert match(np.c_[t2[act], t2[K + act]], truth[:, :2], 0.01)[0] == 2, t2
+    # (b) multi-start
+    truth = np.array([[0.109, 0.076, 0.658], [0.061, 0.12, 0.591]])
+    frame = _frame(sc, base, truth, K)[None]
+    one, two = (det.with_options(dataclasses.replace(opts, starts=s)).process(frame) for s in (1, 2))
+    assert match(one.detections[0].positions(), truth[:, :2], 0.01)[0] < 2 and one.chi2[0] > 16.0, one.chi2
+    assert len(two.detections[0].touches) == 2 and match(two.detections[0].positions(), truth[:, :2], 0.01)[0] == 2
+    assert two.chi2[0] < 1.0

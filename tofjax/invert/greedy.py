@@ -72,6 +72,14 @@ class FitDetectOptions:
     - ``relocate``: after the forward selection, move each contact to the best position the
       residual without it proposes (its ``relocate_candidates`` best local maxima), when that lowers
       the chi-square.
+    - ``split``: after relocating, try replacing each contact (strongest first) by two, at the best
+      ``split_candidates`` pairs of local maxima of the residual without it; kept when the chi-square
+      falls by more than ``n_sigma_forward^2``.
+    - ``rounds``: after a split (or relocation) changed the fit, resume the forward selection and the
+      moves at most this many more times (0: one greedy pass, then relocation only).
+    - ``starts``: multi-start: the whole search is also run from each of the ``starts - 1`` next best local
+      maxima of the first evidence map as the first contact; the fit with the lowest chi-square plus
+      ``n_sigma_forward^2`` per contact is kept (default 1: off; each start costs a whole search).
     - ``min_strength``: an extra floor on a contact's fitted strength (the model's coupling, 0-1;
       default 0: none)."""
 
@@ -87,6 +95,10 @@ class FitDetectOptions:
     prune: bool = True
     relocate: bool = True
     relocate_candidates: int = 3
+    split: bool = True
+    split_candidates: int = 2
+    rounds: int = 1
+    starts: int = 1
     min_strength: float = 0.0
 
     def __post_init__(self):
@@ -100,6 +112,8 @@ class FitDetectOptions:
                 raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
         if self.max_contacts < 1 or self.iterations < 1:
             raise ConfigError("max_contacts and iterations must be >= 1")
+        if self.rounds < 0 or min(self.split_candidates, self.relocate_candidates, self.starts) < 1:
+            raise ConfigError("rounds must be >= 0; split_candidates, relocate_candidates and starts >= 1")
 
 
 @dataclass
@@ -229,6 +243,13 @@ class FitDetector:
 
     def fit_frame(self, histogram) -> tuple[np.ndarray, float, np.ndarray]:
         """Contacts (n, 3: x_m, y_m, strength), the final chi-square, and the first evidence map (cells)."""
+        state = self.search_frame(histogram)
+        contacts, chi = self.finish_frame(state, self.options.n_sigma)
+        return contacts, chi, state[4]
+
+    def search_frame(self, histogram):
+        """The search before the backward pruning: (theta, active, chi, y, first evidence map); the part of
+        :meth:`fit_frame` that does not depend on ``n_sigma`` (see :meth:`finish_frame`)."""
         o, K = self.options, self.K
         y = (np.asarray(histogram, float).ravel() - self.base) / self.sigma
         theta = np.zeros(3 * K)
@@ -236,24 +257,34 @@ class FitDetector:
         active = np.zeros(0, int)
         chi, r = float(y @ y), y
         thr_add = o.n_sigma_forward**2
-        first = None
-        while len(active) < K:
-            j, s, gain, gmap = self._propose(r, theta, active)
-            if first is None:
-                first = np.sqrt(np.maximum(gmap, 0.0))
-            if not gain > thr_add:
-                break
-            k = len(active)
-            t = theta.copy()
-            t[k], t[K + k], t[2 * K + k] = self.centres[j, 0], self.centres[j, 1], s
-            act = np.append(active, k)
-            t, chi_new, r_new = self._refit(t, act, y)
-            if chi - chi_new <= thr_add:
-                break
-            theta, active, chi, r = t, act, chi_new, r_new
-        if o.relocate and len(active) > 1:
-            theta, chi, r = self._relocate(theta, active, chi, r, y)
-        thr = o.n_sigma**2
+        first = []
+        theta, active, chi, r = self._search(theta, active, chi, r, y, thr_add, first)
+        if o.starts > 1:
+            # multi-start: the search again from each of the next best local maxima of the first evidence map as
+            # the first contact; the fit with the lowest chi-square plus n_sigma_forward^2 per contact wins
+            best = (chi + thr_add * len(active), theta, active, chi, r)
+            c0 = np.maximum(first[0], 0.0) ** 2
+            for j in self._local_maxima(c0, o.starts)[1:]:
+                if not c0[j] > thr_add:
+                    break
+                t = np.zeros(3 * K)
+                t[:K], t[K : 2 * K] = self.centres[0]
+                t[0], t[K] = self.centres[j]
+                t[2 * K] = float(np.clip(np.sqrt(c0[j] / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                t, c, rr = self._refit(t, np.array([0]), y)
+                if float(y @ y) - c <= thr_add:
+                    continue
+                t, a, c, rr = self._search(t, np.array([0]), c, rr, y, thr_add, first)
+                if c + thr_add * len(a) < best[0]:
+                    best = (c + thr_add * len(a), t, a, c, rr)
+            _, theta, active, chi, r = best
+        return theta, active, chi, y, first[0]
+
+    def finish_frame(self, state, n_sigma: float) -> tuple[np.ndarray, float]:
+        """The backward pruning at ``n_sigma`` of a :meth:`search_frame` state: contacts (n, 3) and chi-square."""
+        o, K = self.options, self.K
+        theta, active, chi, y, _ = state
+        thr = n_sigma**2
         if len(active) and o.overdispersion:
             phi = max(1.0, chi / max(len(y) - 3 * len(active), 1))
             thr = thr * phi
@@ -262,7 +293,80 @@ class FitDetector:
         out = np.stack([theta[active], theta[K + active], theta[2 * K + active]], -1) if len(active) else np.zeros((0, 3))
         if o.min_strength > 0:
             out = out[out[:, 2] >= o.min_strength]
-        return out, chi, first
+        return out, chi
+
+    def _search(self, theta, active, chi, r, y, thr_add, first):
+        """Forward selection, relocation and splits from the current fit, in rounds (see ``rounds``)."""
+        o = self.options
+        for round_ in range(1 + o.rounds):
+            theta, active, chi, r = self._forward(theta, active, chi, r, y, thr_add, first)
+            if o.relocate and len(active) > 1:
+                theta, chi, r = self._relocate(theta, active, chi, r, y)
+            if not (o.split and round_ < o.rounds and len(active)):
+                break
+            n_before = len(active)
+            theta, active, chi, r = self._split(theta, active, chi, r, y, thr_add)
+            if len(active) == n_before:
+                break  # no split kept: another round would repeat this one
+        return theta, active, chi, r
+
+    def _forward(self, theta, active, chi, r, y, thr_add, first):
+        """Forward selection from the current fit: add the proposal's best cell and refit all, while the
+        chi-square falls by more than ``thr_add``. ``first`` receives the first evidence map."""
+        K = self.K
+        while len(active) < K:
+            j, s, gain, gmap = self._propose(r, theta, active)
+            if not first:
+                first.append(np.sqrt(np.maximum(gmap, 0.0)))
+            if not gain > thr_add:
+                break
+            k = self._free_slot(active)
+            t = theta.copy()
+            t[k], t[K + k], t[2 * K + k] = self.centres[j, 0], self.centres[j, 1], s
+            act = np.append(active, k)
+            t, chi_new, r_new = self._refit(t, act, y)
+            if chi - chi_new <= thr_add:
+                break
+            theta, active, chi, r = t, act, chi_new, r_new
+        if not first:  # every slot taken before a proposal (cannot happen with K >= 1 from an empty fit)
+            first.append(np.zeros(len(self.cells)))
+        return theta, active, chi, r
+
+    def _free_slot(self, active):
+        return int(np.setdiff1d(np.arange(self.K), active)[0])
+
+    def _split(self, theta, active, chi, r, y, thr_add):
+        """Replace one contact by two (strongest first): remove it, put two contacts at the best pairs of local
+        maxima (at least ``min_separation_m`` apart) of the proposal of the residual without it, refit all;
+        kept when the chi-square falls by more than ``thr_add`` (the extra contact's price). Undoes a greedy
+        pick that sat between two contacts and explains both well enough that neither is proposed again."""
+        o, K = self.options, self.K
+        for k in active[np.argsort(-theta[2 * K + active])]:
+            if len(active) >= K:
+                break
+            t0 = theta.copy()
+            t0[2 * K + k] = 0.0
+            _, r0 = self._chi2(t0, y)
+            others = active[active != k]
+            _, _, _, gain = self._propose(r0, t0, others)
+            peaks = self._local_maxima(gain, o.split_candidates + 1)
+            pairs = [(a, b) for i, a in enumerate(peaks) for b in peaks[i + 1 :]
+                     if np.hypot(*(self.centres[a] - self.centres[b])) >= o.min_separation_m][: o.split_candidates]
+            best = None
+            k2 = self._free_slot(active)
+            act = np.append(active, k2)
+            for a, b in pairs:
+                t = t0.copy()
+                for slot, j in ((k, a), (k2, b)):
+                    t[slot], t[K + slot] = self.centres[j]
+                    t[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                t, cc, rr = self._refit(t, act, y, iterations=2)  # a quick look; the winner is refitted
+                if cc < chi - thr_add and (best is None or cc < best[1]):
+                    best = (t, cc, rr)
+            if best is not None:
+                theta, chi, r = self._refit(best[0], act, y)
+                active = act
+        return theta, active, chi, r
 
     def _relocate(self, theta, active, chi, r, y):
         """Move each contact (weakest first) to where the residual without it wants a contact (the
@@ -325,26 +429,35 @@ class FitDetector:
 
     # -- frames ----------------------------------------------------------------------------------
     def process(self, histograms, *, detect: bool = True) -> FitResult:
+        return self.process_levels(histograms, (self.options.n_sigma,), detect=detect)[0]
+
+    def process_levels(self, histograms, n_sigmas, *, detect: bool = True) -> list[FitResult]:
+        """:meth:`process` at several thresholds ``n_sigmas`` at the cost of one: the search (forward selection,
+        relocation, splits, starts) does not depend on ``n_sigma``, only the final pruning does."""
         h = np.asarray(histograms, float)
         if h.ndim != 4 or h.shape[1:] != self.scene.shape:
             raise InversionError(f"histograms have shape {h.shape[1:]} per frame, the scene {self.scene.shape}")
-        F = len(h)
+        F, L = len(h), len(n_sigmas)
         maps = np.zeros((F, self.grid.ny * self.grid.nx))
         ok = np.ones(F, bool)
-        chi2 = np.full(F, np.nan)
-        dets = []
+        chi2 = np.full((L, F), np.nan)
+        dets = [[] for _ in range(L)]
         for i in range(F):
             bad = ~np.isfinite(h[i]) | (h[i] >= self._sat)
             if bad.any():
                 ok[i] = False
-                dets.append(Detection())
+                for d in dets:
+                    d.append(Detection())
                 continue
-            contacts, chi2[i], first = self.fit_frame(h[i])
-            maps[i, self.cells] = first
-            dets.append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s), "component": 0}
-                                           for x, yy, s in contacts]))
-        return FitResult(maps.reshape(F, self.grid.ny, self.grid.nx), ok, self.grid, "fit",
-                         dets if detect else None, None, chi2, int(self.sigma.size))
+            state = self.search_frame(h[i])
+            maps[i, self.cells] = state[4]
+            for lv, n in enumerate(n_sigmas):
+                contacts, chi2[lv, i] = self.finish_frame(state, n)
+                dets[lv].append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s),
+                                                    "component": 0} for x, yy, s in contacts]))
+        m = maps.reshape(F, self.grid.ny, self.grid.nx)
+        return [FitResult(m, ok, self.grid, "fit", dets[lv] if detect else None, None, chi2[lv], int(self.sigma.size))
+                for lv in range(L)]
 
 
 def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: float):
