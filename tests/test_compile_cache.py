@@ -108,6 +108,7 @@ def test_second_process_reads_the_stored_program(tmp_path):
     assert first == {"y": 0.5 * (0 * 4 + 1 * 4 + 2 * 4), "traces": 1}
     assert second == {"y": first["y"], "traces": 0}
     assert len(list((tmp_path / "programs").glob("*.exported"))) == 1
+    assert len(list((tmp_path / "programs").glob("*.xla"))) == 1
 
 
 def test_call_stored_in_process(tmp_path, monkeypatch):
@@ -131,12 +132,19 @@ def test_call_stored_in_process(tmp_path, monkeypatch):
     got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
     assert all(bool(jnp.all(a == b)) for a, b in zip(got, want))
     (entry,) = tmp_path.glob("*.exported")
-    # a truncated entry is dropped and traced afresh, never an error
-    entry.write_bytes(entry.read_bytes()[:50])
+    (compiled,) = tmp_path.glob("*.xla")  # the compiled executable beside the exported program
+    # a truncated entry is dropped and traced (compiled) afresh, never an error
+    for e in (entry, compiled):
+        e.write_bytes(e.read_bytes()[:50])
     monkeypatch.setattr(compile_cache, "_loaded", {})
     got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
     assert bool(jnp.all(got[0] == want[0]))
-    assert entry.stat().st_size > 50
+    assert entry.stat().st_size > 50 and compiled.stat().st_size > 50
+    # the executable alone is enough: the exported program is not read
+    entry.unlink()
+    monkeypatch.setattr(compile_cache, "_loaded", {})
+    got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
+    assert bool(jnp.all(got[0] == want[0])) and not entry.exists()
     # another static value is another program
     compile_cache.call_stored("holder", jax.jit(fn), (Holder(jnp.arange(4.0), "b"), args[1]), **plain)
     assert len(list(tmp_path.glob("*.exported"))) == 2
