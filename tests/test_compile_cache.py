@@ -193,3 +193,16 @@ def test_cli_calibration_through_the_store(tmp_path):
     for o in outs[1:]:
         assert o["parameters"] == outs[0]["parameters"]
         assert o["reduced_chi2"] == outs[0]["reduced_chi2"]
+
+
+def test_core_command_parser_is_the_full_parsers():
+    """A core command (calibrate, ...) parses without the extension packages' parsers, to the
+    same arguments; ``--help`` and the other commands still see every command."""
+    from tofjax.cli import _CORE, build_parser
+
+    line = ["calibrate", "b.h5", "--out", "c.json", "--mcmc", "--max-steps", "7", "--overwrite"]
+    core, full = build_parser(extensions=False), build_parser()
+    a, b = vars(core.parse_args(line)), vars(full.parse_args(line))
+    assert a == b
+    sub = next(x for x in core._actions if hasattr(x, "choices") and isinstance(x.choices, dict))
+    assert set(sub.choices) == set(_CORE)
