@@ -25,6 +25,13 @@ keeps *exported* programs (:mod:`jax.export`: the traced and lowered StableHLO) 
 and a hash of tofjax's own source. A later process deserialises the program instead of tracing
 it, and its compilation is then a hit in the XLA cache. ``$TOFJAX_PROGRAM_STORE=0`` turns only
 this part off.
+
+Lowering a stored program and looking it up in the XLA cache still costs a new process about a
+second; the store therefore also keeps the *compiled executable* of each program
+(``<key>-<machine>.xla``, :mod:`jax.experimental.serialize_executable`, keyed further by the
+backend, the host CPU's features and ``$XLA_FLAGS``), which a later process loads and runs
+directly. What remains of a warm start is then mostly loading that executable, whose cost
+grows with its number of kernels (see ``experiments/first_fit_kernels.py``).
 """
 
 from __future__ import annotations
