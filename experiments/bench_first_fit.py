@@ -20,12 +20,22 @@ reported, with the warm/off ratio measured side by side in one run. The times ar
 processes (imports, reading the capture, the fit, writing the JSON), since that is what a user
 waits for.
 
+``--trees main=/work/main,branch=.`` runs the same processes for several source trees (each on
+``PYTHONPATH``, interleaved within every repeat so that they share the machine's load) and
+reports each tree's medians and their ratios. ``--profile`` also runs every tree's warm process
+under ``experiments/_first_fit_probe.py`` (``--repeats`` times) and writes
+``first_fit_profile.json``: the median seconds of each stage (interpreter start, the imports of
+jax, equinox, optimistix and tofjax, reading the capture, the timing and envelope starts, loading
+the stored programs, the joint fit, the Laplace covariance, writing the JSON) and JAX's own
+compile events. ``--modes`` picks among off, cold, warm and warm_xla_only (default all).
+
 Writes ``first_fit.json`` to ``--out``. Its fast check in the test suite is
 ``tests/test_compile_cache.py::test_second_process_reads_the_cache`` (two processes, one
 program): the benchmark itself compiles a calibration several times and belongs outside the
 suite's budget.
 
     python experiments/bench_first_fit.py --out out/bench [--scene optoskin] [--frames 20] [--repeats 3]
+        [--trees main=/work/main,branch=.] [--modes cold,warm] [--profile]
 """
 
 from __future__ import annotations
@@ -43,8 +53,13 @@ import time
 from pathlib import Path
 
 
-def _run(cmd: list[str], cache: str, store: str = "1") -> float:
-    env = dict(os.environ, TOFJAX_COMPILATION_CACHE=cache, TOFJAX_PROGRAM_STORE=store)
+ROOT = Path(__file__).resolve().parents[1]
+PROBE = Path(__file__).resolve().parent / "_first_fit_probe.py"
+MODES = ("off", "cold", "warm", "warm_xla_only")
+
+
+def _run(cmd: list[str], cache: str, store: str = "1", tree: Path = ROOT) -> float:
+    env = dict(os.environ, TOFJAX_COMPILATION_CACHE=cache, TOFJAX_PROGRAM_STORE=store, PYTHONPATH=str(tree))
     t0 = time.perf_counter()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -53,55 +68,136 @@ def _run(cmd: list[str], cache: str, store: str = "1") -> float:
     return wall
 
 
+def _stages(probe: dict) -> dict[str, float]:
+    """Seconds per stage of one probed process (calls of the same stage summed)."""
+    out: dict[str, float] = {"interpreter start": probe["interpreter_start_s"]}
+    for mod, secs in probe["imports_s"]:
+        out[f"import {mod}"] = secs
+    for name, t0, t1, _ in probe["events"]:
+        out[name] = out.get(name, 0.0) + (t1 - t0)
+    for name, (n, secs) in probe["jax_events_s"].items():
+        out[f"jax: {name.rsplit('/', 1)[-1]} ({n} events)"] = secs
+    out["probe total (after interpreter start)"] = probe["probe_total_s"]
+    return out
+
+
+def _git(tree: Path) -> str:
+    done = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain", "--", "tofjax"], capture_output=True, text=True)
+    return done.stdout.strip() + ("+uncommitted" if dirty.stdout.strip() else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True)
     p.add_argument("--scene", default="optoskin")
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--trees", default=f"this={ROOT}", help="label=path,... source trees to compare (default: this one)")
+    p.add_argument("--modes", default=",".join(MODES), help=f"among {', '.join(MODES)}")
+    p.add_argument("--profile", action="store_true", help="also profile each tree's warm process stage by stage")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    trees = {k: Path(v).resolve() for k, v in (t.split("=", 1) for t in a.trees.split(","))}
+    modes = [m for m in a.modes.split(",") if m]
+    if set(modes) - set(MODES):
+        raise SystemExit(f"--modes: unknown {sorted(set(modes) - set(MODES))}")
     tofjax = [sys.executable, "-m", "tofjax.cli"]
+    times = {t: {m: [] for m in modes} for t in trees}
+    profiles: dict[str, list[dict]] = {t: [] for t in trees}
     with tempfile.TemporaryDirectory() as tmp:
         cap = Path(tmp) / "baseline.h5"
         _run(tofjax + ["simulate", a.scene, "--frames", str(a.frames), "--out", str(cap)], "0")
-        fit = tofjax + ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
-        times: dict[str, list[float]] = {"off": [], "cold": [], "warm": [], "warm_xla_only": []}
+        fit_args = ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
+        fit = tofjax + fit_args
         for r in range(a.repeats):
-            folder = Path(tmp) / f"cache{r}"
-            times["off"].append(_run(fit, "0"))
-            times["cold"].append(_run(fit, str(folder)))
-            times["warm"].append(_run(fit, str(folder)))
-            xla_only = Path(tmp) / f"xla{r}"
-            _run(fit, str(xla_only), store="0")
-            times["warm_xla_only"].append(_run(fit, str(xla_only), store="0"))
-            shutil.rmtree(xla_only, ignore_errors=True)
-            entries = sum(1 for _ in folder.rglob("*") if _.is_file())
-            shutil.rmtree(folder, ignore_errors=True)
-            print(f"repeat {r}: off {times['off'][-1]:.1f} s, cold {times['cold'][-1]:.1f} s, "
-                  f"warm {times['warm'][-1]:.1f} s, warm without the program store {times['warm_xla_only'][-1]:.1f} s "
-                  f"({entries} cache files)", flush=True)
-    med = {k: statistics.median(v) for k, v in times.items()}
+            for label, tree in trees.items():
+                folder = Path(tmp) / f"cache-{label}-{r}"
+                t = times[label]
+                if "off" in modes:
+                    t["off"].append(_run(fit, "0", tree=tree))
+                if "cold" in modes or "warm" in modes or a.profile:
+                    cold = _run(fit, str(folder), tree=tree)
+                    if "cold" in modes:
+                        t["cold"].append(cold)
+                if "warm" in modes:
+                    t["warm"].append(_run(fit, str(folder), tree=tree))
+                if a.profile:
+                    probe = Path(tmp) / "probe.json"
+                    _run([sys.executable, str(PROBE), str(probe)] + fit_args, str(folder), tree=tree)
+                    profiles[label].append(_stages(json.loads(probe.read_text())))
+                if "warm_xla_only" in modes:
+                    xla_only = Path(tmp) / f"xla-{label}-{r}"
+                    _run(fit, str(xla_only), store="0", tree=tree)
+                    t["warm_xla_only"].append(_run(fit, str(xla_only), store="0", tree=tree))
+                    shutil.rmtree(xla_only, ignore_errors=True)
+                entries = sum(1 for _ in folder.rglob("*") if _.is_file())
+                shutil.rmtree(folder, ignore_errors=True)
+                print(f"repeat {r} {label}: " + ", ".join(f"{m} {v[-1]:.1f} s" for m, v in t.items() if v)
+                      + f" ({entries} cache files), load {os.getloadavg()[0]:.1f}", flush=True)
+    med = {lab: {m: statistics.median(v) for m, v in t.items() if v} for lab, t in times.items()}
+    machine = {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0],
+               "what": "the shared 2-core CPU VM, loaded by other sessions (see load_average_1min)",
+               "PYTHONDONTWRITEBYTECODE": os.environ.get("PYTHONDONTWRITEBYTECODE", "")}
     report = {
         "what": "wall time of a whole `tofjax calibrate` process on a simulated baseline",
+        "data": "simulated (tofjax simulate)",
         "scene": a.scene,
         "frames": a.frames,
         "repeats": a.repeats,
+        "trees": {lab: {"path": str(tree), "commit": _git(tree)} for lab, tree in trees.items()},
         "seconds": times,
         "median_s": med,
-        "warm_over_off": med["warm"] / med["off"],
-        "warm_over_warm_xla_only": med["warm"] / med["warm_xla_only"],
         "load_average_1min": os.getloadavg()[0],
-        "cold_over_off": med["cold"] / med["off"],
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "machine": machine,
     }
+    for lab, m in med.items():
+        if "warm" in m and "off" in m:
+            report.setdefault("warm_over_off", {})[lab] = m["warm"] / m["off"]
+        if "warm" in m and "warm_xla_only" in m:
+            report.setdefault("warm_over_warm_xla_only", {})[lab] = m["warm"] / m["warm_xla_only"]
+        if "cold" in m and "off" in m:
+            report.setdefault("cold_over_off", {})[lab] = m["cold"] / m["off"]
+    labels = list(trees)
+    if len(labels) > 1:
+        ref = labels[0]
+        report["ratio_to_" + ref] = {
+            lab: {m: med[lab][m] / med[ref][m] for m in med[lab] if m in med[ref]} for lab in labels[1:]
+        }
+    if len(labels) == 1:  # the layout of earlier runs: one tree, flat
+        report["seconds"], report["median_s"] = times[labels[0]], med[labels[0]]
+        for k in ("warm_over_off", "warm_over_warm_xla_only", "cold_over_off"):
+            if k in report:
+                report[k] = report[k][labels[0]]
     from tofjax.outputs import atomic_write_text
 
     atomic_write_text(out / "first_fit.json", json.dumps(report, indent=2))
-    print(f"median: off {med['off']:.1f} s, cold {med['cold']:.1f} s, warm {med['warm']:.1f} s, "
-          f"warm without the program store {med['warm_xla_only']:.1f} s "
-          f"(warm/off {report['warm_over_off']:.2f}); wrote {out / 'first_fit.json'}")
+    for lab, m in med.items():
+        print(f"median {lab}: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.items()))
+    if a.profile:
+        stages = {}
+        for lab, runs in profiles.items():
+            names = list(dict.fromkeys(k for run in runs for k in run))
+            stages[lab] = {k: statistics.median(run.get(k, 0.0) for run in runs) for k in names}
+        prof = {
+            "what": "stages of a warm `tofjax calibrate` process (median seconds over repeats), from "
+                    "experiments/_first_fit_probe.py; nested stages are included in their parents "
+                    "(the stored programs' load inside the timing, envelope and joint-fit stages)",
+            "data": "simulated (tofjax simulate)",
+            "scene": a.scene,
+            "frames": a.frames,
+            "repeats": a.repeats,
+            "trees": report["trees"],
+            "median_s": stages,
+            "warm_process_median_s": {lab: med[lab].get("warm") for lab in med},
+            "load_average_1min": os.getloadavg()[0],
+            "machine": machine,
+        }
+        atomic_write_text(out / "first_fit_profile.json", json.dumps(prof, indent=2))
+        for lab, st in stages.items():
+            print(f"profile {lab}: " + ", ".join(f"{k} {v:.2f}" for k, v in st.items()))
+    print(f"wrote {out / 'first_fit.json'}")
     return 0
 
 

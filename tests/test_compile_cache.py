@@ -108,6 +108,7 @@ def test_second_process_reads_the_stored_program(tmp_path):
     assert first == {"y": 0.5 * (0 * 4 + 1 * 4 + 2 * 4), "traces": 1}
     assert second == {"y": first["y"], "traces": 0}
     assert len(list((tmp_path / "programs").glob("*.exported"))) == 1
+    assert len(list((tmp_path / "programs").glob("*.xla"))) == 1
 
 
 def test_call_stored_in_process(tmp_path, monkeypatch):
@@ -131,12 +132,14 @@ def test_call_stored_in_process(tmp_path, monkeypatch):
     got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
     assert all(bool(jnp.all(a == b)) for a, b in zip(got, want))
     (entry,) = tmp_path.glob("*.exported")
-    # a truncated entry is dropped and traced afresh, never an error
-    entry.write_bytes(entry.read_bytes()[:50])
+    (compiled,) = tmp_path.glob("*.xla")  # the compiled executable beside the exported program
+    # a truncated entry is dropped and traced (compiled) afresh, never an error
+    for e in (entry, compiled):
+        e.write_bytes(e.read_bytes()[:50])
     monkeypatch.setattr(compile_cache, "_loaded", {})
     got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
     assert bool(jnp.all(got[0] == want[0]))
-    assert entry.stat().st_size > 50
+    assert entry.stat().st_size > 50 and compiled.stat().st_size > 50
     # another static value is another program
     compile_cache.call_stored("holder", jax.jit(fn), (Holder(jnp.arange(4.0), "b"), args[1]), **plain)
     assert len(list(tmp_path.glob("*.exported"))) == 2
@@ -144,6 +147,11 @@ def test_call_stored_in_process(tmp_path, monkeypatch):
     got = compile_cache.call_stored("holder", jax.jit(fn), (Holder(jnp.arange(4.0), object()), args[1]), **plain)
     assert bool(jnp.all(got[0] == want[0]))
     assert len(list(tmp_path.glob("*.exported"))) == 2
+    # the executable alone is enough: the exported program is not read
+    entry.unlink()
+    monkeypatch.setattr(compile_cache, "_loaded", {})
+    got = compile_cache.call_stored("holder", jax.jit(fn), args, **plain)
+    assert bool(jnp.all(got[0] == want[0])) and not entry.exists()
 
 
 def test_program_store_follows_the_environment(tmp_path, monkeypatch):
@@ -185,3 +193,16 @@ def test_cli_calibration_through_the_store(tmp_path):
     for o in outs[1:]:
         assert o["parameters"] == outs[0]["parameters"]
         assert o["reduced_chi2"] == outs[0]["reduced_chi2"]
+
+
+def test_core_command_parser_is_the_full_parsers():
+    """A core command (calibrate, ...) parses without the extension packages' parsers, to the
+    same arguments; ``--help`` and the other commands still see every command."""
+    from tofjax.cli import _CORE, build_parser
+
+    line = ["calibrate", "b.h5", "--out", "c.json", "--mcmc", "--max-steps", "7", "--overwrite"]
+    core, full = build_parser(extensions=False), build_parser()
+    a, b = vars(core.parse_args(line)), vars(full.parse_args(line))
+    assert a == b
+    sub = next(x for x in core._actions if hasattr(x, "choices") and isinstance(x.choices, dict))
+    assert set(sub.choices) == set(_CORE)

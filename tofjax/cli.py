@@ -314,7 +314,13 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: The commands this module defines; a command line for one of them needs no other package's parser.
+_CORE = ("simulate", "plot", "demo", "calibrate", "scene")
+
+
+def build_parser(extensions: bool = True) -> argparse.ArgumentParser:
+    """The ``tofjax`` parser; ``extensions=False`` leaves out the commands of the packages built
+    on the foundation (their modules import SciPy, the detector, ...: ~0.5 s of a ``calibrate``)."""
     p = _Parser(
         prog="tofjax",
         description="Time-of-flight FTIR tactile sensors: simulate, plot, calibrate and invert.",
@@ -370,6 +376,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene", help="scene TOML file, or a built-in name")
     s.add_argument("--toml", action="store_true", help="print the scene with every default filled in")
     s.set_defaults(func=_cmd_scene)
+    if not extensions:
+        _add_overwrite(p)
+        return p
 
     # Subcommands of the packages built on the foundation, each registered by its own module.
     from .force.cli import register as register_force  # train, predict, table, force-data (issue 5)
@@ -390,7 +399,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    command = next((w for w in words if not w.startswith("-")), None)
+    # ``--help`` lists every command; a core command parses the same without the others
+    core = command in _CORE and not any(w in ("-h", "--help") for w in words[: words.index(command)])
+    args = build_parser(extensions=not core).parse_args(argv)
     # Fitting and gradients need float64; set it here, at the entry point, never on import.
     from . import enable_compilation_cache, enable_x64
 

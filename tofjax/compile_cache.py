@@ -25,6 +25,13 @@ keeps *exported* programs (:mod:`jax.export`: the traced and lowered StableHLO) 
 and a hash of tofjax's own source. A later process deserialises the program instead of tracing
 it, and its compilation is then a hit in the XLA cache. ``$TOFJAX_PROGRAM_STORE=0`` turns only
 this part off.
+
+Lowering a stored program and looking it up in the XLA cache still costs a new process about a
+second; the store therefore also keeps the *compiled executable* of each program
+(``<key>-<machine>.xla``, :mod:`jax.experimental.serialize_executable`, keyed further by the
+backend, the host CPU's features and ``$XLA_FLAGS``), which a later process loads and runs
+directly. What remains of a warm start is then mostly loading that executable, whose cost
+grows with its number of kernels (see ``experiments/first_fit_kernels.py``).
 """
 
 from __future__ import annotations
@@ -150,7 +157,8 @@ _loaded: dict[str, tuple[Callable, Any]] = {}
 
 
 def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, from_plain: Callable) -> Any:
-    """``fn(*args)`` through the program store: traced once per machine, not once per process.
+    """``fn(*args)`` through the program store: traced and compiled once per machine, not once
+    per process.
 
     **Arguments:**
 
@@ -163,6 +171,11 @@ def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, fro
     **Returns:** ``fn(*args)``. Where the store is off, the arguments have no stable key (an
     object known only by its address) or the program cannot be exported or read back, the
     function runs as a plain ``jax.jit`` program and nothing is stored.
+
+    A later process first looks for the compiled executable (``<key>-<machine>.xla``,
+    :mod:`jax.experimental.serialize_executable`), which it loads without tracing, lowering or
+    hashing the program; then for the exported program (``<key>.exported``), which it lowers and
+    compiles (a hit in the XLA cache where that holds it) and whose executable it then stores.
     """
     import equinox as eqx
     import jax
@@ -181,17 +194,132 @@ def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, fro
     except _Unkeyable:
         return direct()
     if key not in _loaded:
-        program = _read_program(folder, key) or _export_program(folder, key, fn, to_plain, treedef, static, leaves)
+        program = _read_executable(folder, key)
         if program is None:
-            return direct()
+            exported = _read_program(folder, key) or _export_program(folder, key, fn, to_plain, treedef, static, leaves)
+            if exported is None:
+                return direct()
+            program = _compile_program(folder, key, *exported, leaves)
         _loaded[key] = program
     call, out_def = _loaded[key]
-    out = call(*leaves)
+    try:
+        out = call(*leaves)
+    except TypeError:  # a compiled program takes only the argument types it was compiled for
+        del _loaded[key]
+        return direct()
     return from_plain(jax.tree_util.tree_unflatten(out_def, out), args)
 
 
-def _read_program(folder: Path, key: str):
+@functools.lru_cache(maxsize=1)
+def _machine() -> str:
+    """What a compiled executable is specific to: the backend and its devices, the host CPU's
+    instruction set and the XLA flags (the program key already pins the code and versions)."""
+    import platform
+
     import jax
+
+    devices = jax.devices()
+    client = devices[0].client
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        pass
+    parts = [client.platform, client.platform_version, str(len(devices)), devices[0].device_kind, platform.machine(),
+             cpu, os.environ.get("XLA_FLAGS", "")]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
+
+
+def _executable_path(folder: Path, key: str) -> Path:
+    return folder / f"{key}-{_machine()}.xla"
+
+
+def _lapack_ready() -> bool:
+    """Initialise JAX's CPU LAPACK kernels, which JAX itself does only while lowering a linear
+    algebra operation: a loaded executable that calls them (a Cholesky solve) would otherwise
+    jump to an unset function pointer. ``False`` where this JAX has no such hook (then no
+    executable is loaded: the exported program is lowered instead, which initialises them)."""
+    try:
+        from jax._src.lax import linalg
+
+        linalg.initialize_lapack()
+        return True
+    except Exception:
+        return False
+
+
+def _read_executable(folder: Path, key: str):
+    """A stored compiled executable and its output structure, or ``None``."""
+    from jax.experimental import serialize_executable
+
+    if not _lapack_ready():
+        return None
+    path = _executable_path(folder, key)
+    try:
+        blob = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return None
+    try:
+        payload, in_tree, out_tree, out_def = pickle.loads(blob)
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # a truncated or foreign entry: drop it and compile afresh
+        path.unlink(missing_ok=True)
+        return None
+    return compiled, out_def
+
+
+def _compile_program(folder: Path, key: str, exported, out_def, leaves):
+    """``exported`` compiled for ``leaves`` (from the XLA cache where it holds the program), its
+    executable stored for the next process; ``jax.jit(exported.call)`` where that fails."""
+    import jax
+    from jax.experimental import serialize_executable
+
+    from .outputs import atomic_path
+
+    hits = _cache_hits()
+    try:
+        compiled = jax.jit(exported.call).lower(*leaves).compile()
+    except Exception:
+        return jax.jit(exported.call), out_def
+    if _cache_hits() != hits:
+        # read back from the XLA cache, not compiled here: such an executable serialises without
+        # its kernels' code (a later load fails), so none is stored; the next process again
+        # lowers the exported program and reads the XLA cache
+        return compiled, out_def
+    try:
+        payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+        blob = pickle.dumps((payload, in_tree, out_tree, out_def))
+        with atomic_path(_executable_path(folder, key), overwrite=True) as tmp:
+            Path(tmp).write_bytes(blob)
+    except Exception:  # not serialisable here, or a read-only cache: the work goes on
+        pass
+    return compiled, out_def
+
+
+_hits = [0]
+
+
+@functools.lru_cache(maxsize=1)
+def _count_cache_hits() -> None:
+    import jax.monitoring
+
+    def count(event, *_, **__):
+        if event == "/jax/compilation_cache/cache_retrieval_time_sec":
+            _hits[0] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+
+
+def _cache_hits() -> int:
+    """How many programs this process has read from the XLA cache so far."""
+    _count_cache_hits()
+    return _hits[0]
+
+
+def _read_program(folder: Path, key: str):
     from jax import export
 
     path = folder / f"{key}.exported"
@@ -205,7 +333,7 @@ def _read_program(folder: Path, key: str):
         for p in (path, folder / f"{key}.tree"):
             p.unlink(missing_ok=True)
         return None
-    return jax.jit(exported.call), out_def
+    return exported, out_def
 
 
 def _export_program(folder: Path, key: str, fn: Callable, to_plain: Callable, treedef, static, leaves):
@@ -239,4 +367,4 @@ def _export_program(folder: Path, key: str, fn: Callable, to_plain: Callable, tr
                 Path(tmp).write_bytes(data)
     except Exception:  # a read-only cache must not stop the work
         pass
-    return jax.jit(exported.call), out_def[-1]
+    return exported, out_def[-1]
