@@ -66,24 +66,35 @@ def worker(a) -> dict:
     kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
     out: dict = {"solver": type(solver).__name__}
 
-    caps = [simulate(scene, a.frames, seed=1000 + i) for i in range(a.captures)]
+    caps = [("own", simulate(scene, a.frames, seed=1000 + i)) for i in range(a.captures)]
+    if a.indep:
+        sys.path.insert(0, str(ROOT / "tests"))
+        from indep_sim import IndepRig
+        from indep_sim import simulate as simulate_independent
+        from tofjax.capture import Capture
+
+        for i in range(a.indep):
+            rig = IndepRig.from_scene(scene, seed=200 + i)
+            c = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=a.frames, seed=300 + i)
+            caps.append(("independent", c if isinstance(c, Capture) else Capture(scene, np.asarray(c))))
     t = time.perf_counter()
-    cal.fit(caps[0])
+    cal.fit(caps[0][1])
     out["first_fit_s"] = time.perf_counter() - t
     fits, times = [], []
     for r in range(a.repeats):
-        for i, c in enumerate(caps):
+        for i, (kind, c) in enumerate(caps):
             t = time.perf_counter()
             res = cal.fit(c)
             times.append(time.perf_counter() - t)
             if r == 0:
-                fits.append({"steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
+                fits.append({"data": kind, "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
                              "values": _flat(res.values), "stderr": _flat(res.stderr),
-                             "loss": res.loss_history[-1]})
+                             "loss": res.loss_history[-1], "loss_history": res.loss_history,
+                             "stages": res.stages})
     out["warm_fit_s"] = statistics.median(times)
     out["warm_fit_all_s"] = times
     out["fits"] = fits
-
+    out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype)
     # compile of the fit program alone: a new problem object of the same structure is a
     # cache hit in eqx.filter_jit, so compile through a fresh jit of the same function
     d0, s0 = _data(caps[0], dtype)
@@ -93,6 +104,8 @@ def worker(a) -> dict:
     import equinox as eqx
 
     calmod = sys.modules["tofjax.fit.calibrate"]
+    if a.no_compile:
+        return _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw)
     fresh = eqx.filter_jit(calmod._fit)
     args = (pb, objective, solver, start, d0, s0, base, anchor, cfg.max_steps, cfg.loss_tol, cfg.gn_first, True)
     t = time.perf_counter()
@@ -101,13 +114,24 @@ def worker(a) -> dict:
     t = time.perf_counter()
     jax.block_until_ready(fresh(*args))
     out["compile_s"] = first - (time.perf_counter() - t)
+    return _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw)
 
+
+def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.fit.calibrate import _data, fit_problem, fit_problem_batch
+    from tofjax.simulate import simulate
+
+    fits = out["fits"]
     if a.reference:
         from tofjax.fit.solve import MarquardtLM
 
         tight = MarquardtLM(rtol=1e-12, atol=1e-12)
         refs = []
-        for c, f in zip(caps, fits):
+        for (_, c), f in zip(caps, fits):
             d, g = _data(c, dtype)
             res = cal.fit(c)
             sol = jax.device_get(fit_problem(pb, objective, tight, res.params, d, g, base, anchor_of(cfg, pb, scene, base, c, dtype),
@@ -154,6 +178,77 @@ def worker(a) -> dict:
     return out
 
 
+def stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype) -> list:
+    """Per capture: the time of each stage of a warm fit (timing start, envelope, the compiled fit
+    without and with the covariance), the fit's steps and time per step, and (where this
+    checkout's solver has ``trace``) the damping, gain ratio and Gauss-Newton predicted decrease
+    of every step."""
+    import inspect
+
+    import jax
+    import jax.flatten_util
+    import numpy as np
+
+    from tofjax.fit import solve as solve_mod
+    from tofjax.fit._start import envelope_candidates, timing_start
+    from tofjax.fit.calibrate import _anchor, _data, fit_problem
+
+    pb = cal.problem
+    kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
+    traced = "trace" in inspect.signature(solve_mod.solve_marquardt).parameters
+    rows = []
+    for kind, c in caps:
+        d, g = _data(c, dtype)
+        row = {"data": kind}
+        t = time.perf_counter()
+        st, found = timing_start(pb, np.asarray(d), c.n_frames, scene, base)
+        row["timing_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        start = envelope_candidates(pb, st, d, g, 1)[0]
+        row["envelope_s"] = time.perf_counter() - t
+        anchor = _anchor(st, found, cfg, dtype)
+        for cov in (False, True):
+            best = None
+            for _ in range(max(a.repeats, 2)):
+                t = time.perf_counter()
+                sol = jax.block_until_ready(fit_problem(pb, objective, solver, start, d, g, base, anchor, **kw, with_cov=cov))
+                dt = time.perf_counter() - t
+                best = dt if best is None else min(best, dt)
+            row["fit_with_cov_s" if cov else "fit_s"] = best
+        row["steps"] = int(sol.steps)
+        row["fit_s_per_step"] = row["fit_s"] / max(int(sol.steps), 1)
+        h = np.asarray(sol.history)
+        row["loss_history"] = h[np.isfinite(h)].tolist()
+        if traced:
+            row["trace"] = _trace(pb, solver, start, d, g, base, anchor, cfg)
+        rows.append(row)
+    return rows
+
+
+def _trace(pb, solver, start, d, g, base, anchor, cfg) -> dict:
+    """The first fit from ``start`` again with ``solve_marquardt(trace=True)``."""
+    import equinox as eqx
+    import jax
+    import jax.flatten_util
+    import numpy as np
+
+    from tofjax.fit.solve import solve_marquardt
+
+    @eqx.filter_jit
+    def run(pb, solver, start, data, sigma, prior_params, anchor):
+        p0, _, _, _ = pb.profile(start, data, sigma)
+        u0 = pb.pack_jax(p0, pb.nonlinear)
+        prior = pb.pack_jax(prior_params, pb.nonlinear)
+        prior["n1_anchor"] = anchor
+        f0, unravel = jax.flatten_util.ravel_pytree(u0)
+        return solve_marquardt(lambda f, a: pb.residuals(unravel(f), a), solver, f0, (p0, data, sigma, prior),
+                               max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, trace=True)
+
+    out = jax.device_get(run(pb, solver, start, d, g, base, anchor))
+    n = int(out.steps) + 1  # a stop by the Gauss-Newton rule records its last look too
+    return {k: np.asarray(v)[:n].tolist() for k, v in out.trace.items() if k != "y"}
+
+
 def anchor_of(cfg, pb, scene, base, capture, dtype):
     import numpy as np
 
@@ -193,6 +288,8 @@ def main(argv=None) -> int:
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
     p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
     p.add_argument("--reference-steps", type=int, default=400)
+    p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
+    p.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
@@ -208,14 +305,15 @@ def main(argv=None) -> int:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
-                   "--reference-steps", str(a.reference_steps)] + (["--reference"] if a.reference and name == "this" else [])
+                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
+                + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else [])
             env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
             t = time.perf_counter()
             done = subprocess.run(cmd, env=env, capture_output=True, text=True)
             if done.returncode:
                 raise SystemExit(f"{name} ({tree}) failed:\n{done.stderr[-3000:]}")
             runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
-            print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name]['compile_s']:.1f} s"
+            print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name].get('compile_s', float('nan')):.1f} s"
                   + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
     report = {
         "what": "calibration fit speed on simulated baselines (issue 13 targets)",
@@ -231,10 +329,21 @@ def main(argv=None) -> int:
         report["this_vs_reference"] = _compare(this["fits"], [{"values": r["values"]} for r in this["reference"]])
     if "baseline" in runs:
         b = runs["baseline"]
-        report["ratios_baseline_over_this"] = {
-            "warm_fit": b["warm_fit_s"] / this["warm_fit_s"], "compile": b["compile_s"] / this["compile_s"],
-        } | ({"batch_call": b["batch"]["batch_s"] / this["batch"]["batch_s"]} if a.batch else {})
+        report["ratios_baseline_over_this"] = {"warm_fit": b["warm_fit_s"] / this["warm_fit_s"]} | (
+            {"compile": b["compile_s"] / this["compile_s"]} if "compile_s" in this else {}
+        ) | ({"batch_call": b["batch"]["batch_s"] / this["batch"]["batch_s"]} if a.batch else {})
         report["this_vs_baseline"] = _compare(this["fits"], b["fits"])
+        for kind in ("own", "independent"):
+            pairs = [(x, y) for x, y in zip(this["fits"], b["fits"]) if x.get("data", "own") == kind]
+            if pairs:
+                report[f"this_vs_baseline_{kind}"] = _compare([x for x, _ in pairs], [y for _, y in pairs])
+        report["steps"] = {name: {"warm_fits": [f["steps"] for f in r["fits"]],
+                                  "fit_alone": [st["steps"] for st in r["stage_times"]],
+                                  "fit_s_per_step": [st["fit_s_per_step"] for st in r["stage_times"]]}
+                           for name, r in runs.items() if "stage_times" in r}
+        report["stage_medians_s"] = {
+            name: {k: statistics.median(st[k] for st in r["stage_times"]) for k in ("timing_s", "envelope_s", "fit_s", "fit_with_cov_s")}
+            for name, r in runs.items() if "stage_times" in r}
         if "reference" in this:
             report["baseline_vs_reference"] = _compare(
                 [{"values": r["values"], "stderr": f["stderr"]} for r, f in zip(this["reference"], this["fits"])], b["fits"])
