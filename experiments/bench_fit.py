@@ -276,6 +276,28 @@ def _compare(fa: list, fb: list) -> dict:
     return {"max_stderr": worst, "where": worst_key, "per_parameter": named}
 
 
+def compare_study(before: Path, after: Path) -> dict:
+    """Two runs of experiments/study_calib_independent.py (e.g. main and this branch) on the same
+    slice: per truth and column, both end points and the change of mu_t in its Laplace standard
+    error (the study reports mu_t's) and of n1."""
+    b, a = json.loads(before.read_text()), json.loads(after.read_text())
+    rows = {}
+    for col in ("own", "independent"):
+        out = []
+        for rb, ra, t in zip(b[col]["fits"], a[col]["fits"], b["truths"]):
+            se = (rb["mu_t_stderr_rel"] or float("nan")) * t["mu_t_per_m"]
+            out.append({"truth": t, "result": [rb["result"], ra["result"]], "n1": [rb["n1"], ra["n1"]],
+                        "mu_t_per_m": [rb["mu_t_per_m"], ra["mu_t_per_m"]], "mu_t_stderr": se,
+                        "mu_t_change_in_stderr": (ra["mu_t_per_m"] - rb["mu_t_per_m"]) / se,
+                        "n1_change": ra["n1"] - rb["n1"], "reduced_chi2": [rb["reduced_chi2"], ra["reduced_chi2"]]})
+        rows[col] = {"fits": out, "max_abs_mu_t_change_in_stderr": max(abs(r["mu_t_change_in_stderr"]) for r in out),
+                     "max_abs_n1_change": max(abs(r["n1_change"]) for r in out),
+                     "summary_before": b[col]["summary"], "summary_after": a[col]["summary"]}
+    return {"what": "study_calib_independent slice, before (first file) and after (second file)", "simulated": True,
+            "before": str(before), "after": str(after), "scene": b["scene"], "machine": b["machine"],
+            "load_average": [b["load_average"], a["load_average"]]} | rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
@@ -290,8 +312,18 @@ def main(argv=None) -> int:
     p.add_argument("--reference-steps", type=int, default=400)
     p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
     p.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    p.add_argument("--compare-study", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
+                   help="instead: compare two calib_independent.json of the same slice; writes fit_bench_study_slice.json")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.compare_study:
+        from tofjax.outputs import atomic_write_text
+
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        rep = compare_study(*a.compare_study)
+        atomic_write_text(Path(a.out) / "fit_bench_study_slice.json", json.dumps(rep, indent=2))
+        print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk.startswith("max")} for k, v in rep.items() if k in ("own", "independent")}))
+        return 0
     if a.worker:
         Path(a.out).write_text(json.dumps(worker(a)))
         return 0
