@@ -94,11 +94,12 @@ def worker(a) -> dict:
     out["warm_fit_s"] = statistics.median(times)
     out["warm_fit_all_s"] = times
     out["fits"] = fits
-    out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype)
+    if not a.no_stages:
+        out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype)
     # compile of the fit program alone: a new problem object of the same structure is a
     # cache hit in eqx.filter_jit, so compile through a fresh jit of the same function
-    d0, s0 = _data(caps[0], dtype)
-    st, found = timing_start(pb, np.asarray(d0), caps[0].n_frames, scene, base)
+    d0, s0 = _data(caps[0][1], dtype)
+    st, found = timing_start(pb, np.asarray(d0), caps[0][1].n_frames, scene, base)
     start = envelope_candidates(pb, st, d0, s0, 1)[0]
     anchor = _anchor(st, found, cfg, dtype)
     import equinox as eqx
@@ -298,6 +299,16 @@ def compare_study(before: Path, after: Path) -> dict:
             "load_average": [b["load_average"], a["load_average"]]} | rows
 
 
+def _collect(name, proc, runs, a):
+    p_, dest, tree, t = proc
+    _, err = p_.communicate()
+    if p_.returncode:
+        raise SystemExit(f"{name} ({tree}) failed:\n{err[-3000:]}")
+    runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
+    print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name].get('compile_s', float('nan')):.1f} s"
+          + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
@@ -312,6 +323,8 @@ def main(argv=None) -> int:
     p.add_argument("--reference-steps", type=int, default=400)
     p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
     p.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    p.add_argument("--no-stages", action="store_true", help="skip the per-stage times and the trace")
+    p.add_argument("--parallel", action="store_true", help="run the two checkouts at the same time (a loaded machine: same load for both)")
     p.add_argument("--compare-study", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
                    help="instead: compare two calib_independent.json of the same slice; writes fit_bench_study_slice.json")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -332,28 +345,30 @@ def main(argv=None) -> int:
     trees = {"this": str(ROOT)} | ({"baseline": str(Path(a.baseline).resolve())} if a.baseline else {})
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
+        procs = {}
         for name, tree in trees.items():
             dest = Path(tmp) / f"{name}.json"
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
                    "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
-                + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else [])
+                + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
+                + (["--no-stages"] if a.no_stages else [])
             env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
-            t = time.perf_counter()
-            done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-            if done.returncode:
-                raise SystemExit(f"{name} ({tree}) failed:\n{done.stderr[-3000:]}")
-            runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
-            print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name].get('compile_s', float('nan')):.1f} s"
-                  + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
+            procs[name] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), dest, tree,
+                           time.perf_counter())
+            if not a.parallel:
+                _collect(name, procs[name], runs, a)
+        if a.parallel:
+            for name, p_ in procs.items():
+                _collect(name, p_, runs, a)
     report = {
         "what": "calibration fit speed on simulated baselines (issue 13 targets)",
         "simulated": True,
         "scene": a.scene, "frames": a.frames, "captures": a.captures, "repeats": a.repeats,
         "runs": runs,
         "targets": {"warm_fit_s": 0.05, "compile_s": 10.0, "batch_speedup": 10.0},
-        "load_average_1min_end": os.getloadavg()[0],
+        "load_average_1min_end": os.getloadavg()[0], "parallel": a.parallel,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
     }
     this = runs["this"]
@@ -373,6 +388,7 @@ def main(argv=None) -> int:
                                   "fit_alone": [st["steps"] for st in r["stage_times"]],
                                   "fit_s_per_step": [st["fit_s_per_step"] for st in r["stage_times"]]}
                            for name, r in runs.items() if "stage_times" in r}
+        report["warm_steps"] = {name: [f["steps"] for f in r["fits"]] for name, r in runs.items()}
         report["stage_medians_s"] = {
             name: {k: statistics.median(st[k] for st in r["stage_times"]) for k in ("timing_s", "envelope_s", "fit_s", "fit_with_cov_s")}
             for name, r in runs.items() if "stage_times" in r}

@@ -561,12 +561,3 @@ def test_structured_jacobian_of_the_linear_parts_equals_autodiff(small, zone_end
     a, b = np.asarray(jax.jit(jax.jacfwd(ours))(flat)), np.asarray(jax.jit(jax.jacfwd(plain))(flat))
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())
 
-
-def test_marquardt_trials_cut_the_step_count(fitted, small):
-    """Each step tries several dampings, each with its geodesic acceleration (tofjax.fit.solve):
-    near the optimum the fit no longer crawls along the curved valley of the poorly determined
-    directions. On these three baselines main (one damping per step) took 21 + 23 + 37 = 81
-    steps, the trials 15 + 7 + 14 = 36 (measured)."""
-    cal, res, _ = fitted
-    steps = [res.steps] + [cal.fit(simulate(small, 60, seed=s)).steps for s in (4, 5)]
-    assert sum(steps) <= 55, steps

@@ -162,10 +162,15 @@ class MarquardtLM(eqx.Module):
       loss wins, so the acceleration is used only where it helps. Why: near the optimum the
       calibration crawls along a curved valley (albedo, end reflectance and interface
       backscatter against the profiled gains) where every straight damped step gains about a
-      tenth of what is left (docs/results/fit_bench.json, ``trace``): 40-55 steps on the
-      default scene, about half that with the trials. ``()``: one damping per step (before
-      2026-11; ``geodesic`` then applies).
-    - The fit stops when the Gauss-Newton model says less than ``loss_tol`` of the loss is left
+      tenth of what is left (experiments/bench_fit.py, ``trace``). Off by default (``()``: one
+      damping per step, ``geodesic`` then applies): with ``(1e-3, 1e-2, 1e-1, 1, 10)`` the
+      default scene's own baselines took 16 and 8 steps instead of 55 and 14, but independent
+      baselines 16 and 21 instead of 14 and 17, the warm ``Calibrator.fit`` was no faster (675 ms
+      against 599 ms, both checkouts side by side on the loaded 2-core VM,
+      docs/results/fit_bench_warmfit.json) and the compiled fit is larger (the small test scene
+      compiled in 3.5 min against 2.4 min, side by side, loaded); the end points agree within
+      0.07 Laplace standard errors (fit_bench_warmfit.json, fit_bench_study_slice.json).
+    - With ``lambda_trials``, the fit also stops when the Gauss-Newton model says less than ``loss_tol`` of the loss is left
       (``0.5 g^T (J^T J)^-1 g``, a statistical criterion independent of the damping), or when an
       accepted step lowers the loss by less than ``loss_tol``.
     """
@@ -173,7 +178,7 @@ class MarquardtLM(eqx.Module):
     rtol: float = 1e-7
     atol: float = 1e-7
     lambda0: float = 1e-3
-    lambda_trials: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
+    lambda_trials: tuple[float, ...] = ()
     trial_geodesic: bool = True
     geodesic: bool = False
     geodesic_h: float = 0.0
