@@ -95,7 +95,13 @@ def worker(a) -> dict:
     out["warm_fit_all_s"] = times
     out["fits"] = fits
     if not a.no_stages:
-        out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype)
+        st_solver = solver
+        if a.lambda_trials:
+            import dataclasses
+
+            st_solver = dataclasses.replace(solver, lambda_trials=tuple(a.lambda_trials))
+            out["stage_solver"] = repr(st_solver)
+        out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, st_solver, objective, dtype)
     # compile of the fit program alone: a new problem object of the same structure is a
     # cache hit in eqx.filter_jit, so compile through a fresh jit of the same function
     d0, s0 = _data(caps[0][1], dtype)
@@ -324,6 +330,7 @@ def main(argv=None) -> int:
     p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
     p.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     p.add_argument("--no-stages", action="store_true", help="skip the per-stage times and the trace")
+    p.add_argument("--lambda-trials", type=float, nargs="+", help="the per-stage times with MarquardtLM(lambda_trials=...)")
     p.add_argument("--parallel", action="store_true", help="run the two checkouts at the same time (a loaded machine: same load for both)")
     p.add_argument("--compare-study", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
                    help="instead: compare two calib_independent.json of the same slice; writes fit_bench_study_slice.json")
@@ -353,7 +360,8 @@ def main(argv=None) -> int:
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
                    "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
-                + (["--no-stages"] if a.no_stages else [])
+                + (["--no-stages"] if a.no_stages else []) \
+                + (["--lambda-trials", *map(str, a.lambda_trials)] if a.lambda_trials else [])
             env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
             procs[name] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), dest, tree,
                            time.perf_counter())
