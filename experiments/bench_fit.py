@@ -66,33 +66,53 @@ def worker(a) -> dict:
     kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
     out: dict = {"solver": type(solver).__name__}
 
-    caps = [simulate(scene, a.frames, seed=1000 + i) for i in range(a.captures)]
+    caps = [("own", simulate(scene, a.frames, seed=1000 + i)) for i in range(a.captures)]
+    if a.indep:
+        sys.path.insert(0, str(ROOT / "tests"))
+        from indep_sim import IndepRig
+        from indep_sim import simulate as simulate_independent
+        from tofjax.capture import Capture
+
+        for i in range(a.indep):
+            rig = IndepRig.from_scene(scene, seed=200 + i)
+            c = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=a.frames, seed=300 + i)
+            caps.append(("independent", c if isinstance(c, Capture) else Capture(scene, np.asarray(c))))
     t = time.perf_counter()
-    cal.fit(caps[0])
+    cal.fit(caps[0][1])
     out["first_fit_s"] = time.perf_counter() - t
     fits, times = [], []
     for r in range(a.repeats):
-        for i, c in enumerate(caps):
+        for i, (kind, c) in enumerate(caps):
             t = time.perf_counter()
             res = cal.fit(c)
             times.append(time.perf_counter() - t)
             if r == 0:
-                fits.append({"steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
+                fits.append({"data": kind, "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
                              "values": _flat(res.values), "stderr": _flat(res.stderr),
-                             "loss": res.loss_history[-1]})
+                             "loss": res.loss_history[-1], "loss_history": res.loss_history,
+                             "stages": res.stages})
     out["warm_fit_s"] = statistics.median(times)
     out["warm_fit_all_s"] = times
     out["fits"] = fits
+    if not a.no_stages:
+        st_solver = solver
+        if a.lambda_trials:
+            import dataclasses
 
+            st_solver = dataclasses.replace(solver, lambda_trials=tuple(a.lambda_trials))
+            out["stage_solver"] = repr(st_solver)
+        out["stage_times"] = stage_times(a, cal, caps, scene, base, cfg, st_solver, objective, dtype)
     # compile of the fit program alone: a new problem object of the same structure is a
     # cache hit in eqx.filter_jit, so compile through a fresh jit of the same function
-    d0, s0 = _data(caps[0], dtype)
-    st, found = timing_start(pb, np.asarray(d0), caps[0].n_frames, scene, base)
+    d0, s0 = _data(caps[0][1], dtype)
+    st, found = timing_start(pb, np.asarray(d0), caps[0][1].n_frames, scene, base)
     start = envelope_candidates(pb, st, d0, s0, 1)[0]
     anchor = _anchor(st, found, cfg, dtype)
     import equinox as eqx
 
     calmod = sys.modules["tofjax.fit.calibrate"]
+    if a.no_compile:
+        return _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw)
     fresh = eqx.filter_jit(calmod._fit)
     args = (pb, objective, solver, start, d0, s0, base, anchor, cfg.max_steps, cfg.loss_tol, cfg.gn_first, True)
     t = time.perf_counter()
@@ -101,13 +121,24 @@ def worker(a) -> dict:
     t = time.perf_counter()
     jax.block_until_ready(fresh(*args))
     out["compile_s"] = first - (time.perf_counter() - t)
+    return _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw)
 
+
+def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.fit.calibrate import _data, fit_problem, fit_problem_batch
+    from tofjax.simulate import simulate
+
+    fits = out["fits"]
     if a.reference:
         from tofjax.fit.solve import MarquardtLM
 
         tight = MarquardtLM(rtol=1e-12, atol=1e-12)
         refs = []
-        for c, f in zip(caps, fits):
+        for (_, c), f in zip(caps, fits):
             d, g = _data(c, dtype)
             res = cal.fit(c)
             sol = jax.device_get(fit_problem(pb, objective, tight, res.params, d, g, base, anchor_of(cfg, pb, scene, base, c, dtype),
@@ -154,6 +185,77 @@ def worker(a) -> dict:
     return out
 
 
+def stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype) -> list:
+    """Per capture: the time of each stage of a warm fit (timing start, envelope, the compiled fit
+    without and with the covariance), the fit's steps and time per step, and (where this
+    checkout's solver has ``trace``) the damping, gain ratio and Gauss-Newton predicted decrease
+    of every step."""
+    import inspect
+
+    import jax
+    import jax.flatten_util
+    import numpy as np
+
+    from tofjax.fit import solve as solve_mod
+    from tofjax.fit._start import envelope_candidates, timing_start
+    from tofjax.fit.calibrate import _anchor, _data, fit_problem
+
+    pb = cal.problem
+    kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
+    traced = "trace" in inspect.signature(solve_mod.solve_marquardt).parameters
+    rows = []
+    for kind, c in caps:
+        d, g = _data(c, dtype)
+        row = {"data": kind}
+        t = time.perf_counter()
+        st, found = timing_start(pb, np.asarray(d), c.n_frames, scene, base)
+        row["timing_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        start = envelope_candidates(pb, st, d, g, 1)[0]
+        row["envelope_s"] = time.perf_counter() - t
+        anchor = _anchor(st, found, cfg, dtype)
+        for cov in (False, True):
+            best = None
+            for _ in range(max(a.repeats, 2)):
+                t = time.perf_counter()
+                sol = jax.block_until_ready(fit_problem(pb, objective, solver, start, d, g, base, anchor, **kw, with_cov=cov))
+                dt = time.perf_counter() - t
+                best = dt if best is None else min(best, dt)
+            row["fit_with_cov_s" if cov else "fit_s"] = best
+        row["steps"] = int(sol.steps)
+        row["fit_s_per_step"] = row["fit_s"] / max(int(sol.steps), 1)
+        h = np.asarray(sol.history)
+        row["loss_history"] = h[np.isfinite(h)].tolist()
+        if traced:
+            row["trace"] = _trace(pb, solver, start, d, g, base, anchor, cfg)
+        rows.append(row)
+    return rows
+
+
+def _trace(pb, solver, start, d, g, base, anchor, cfg) -> dict:
+    """The first fit from ``start`` again with ``solve_marquardt(trace=True)``."""
+    import equinox as eqx
+    import jax
+    import jax.flatten_util
+    import numpy as np
+
+    from tofjax.fit.solve import solve_marquardt
+
+    @eqx.filter_jit
+    def run(pb, solver, start, data, sigma, prior_params, anchor):
+        p0, _, _, _ = pb.profile(start, data, sigma)
+        u0 = pb.pack_jax(p0, pb.nonlinear)
+        prior = pb.pack_jax(prior_params, pb.nonlinear)
+        prior["n1_anchor"] = anchor
+        f0, unravel = jax.flatten_util.ravel_pytree(u0)
+        return solve_marquardt(lambda f, a: pb.residuals(unravel(f), a), solver, f0, (p0, data, sigma, prior),
+                               max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, trace=True)
+
+    out = jax.device_get(run(pb, solver, start, d, g, base, anchor))
+    n = int(out.steps) + 1  # a stop by the Gauss-Newton rule records its last look too
+    return {k: np.asarray(v)[:n].tolist() for k, v in out.trace.items() if k != "y"}
+
+
 def anchor_of(cfg, pb, scene, base, capture, dtype):
     import numpy as np
 
@@ -181,6 +283,38 @@ def _compare(fa: list, fb: list) -> dict:
     return {"max_stderr": worst, "where": worst_key, "per_parameter": named}
 
 
+def compare_study(before: Path, after: Path) -> dict:
+    """Two runs of experiments/study_calib_independent.py (e.g. main and this branch) on the same
+    slice: per truth and column, both end points and the change of mu_t in its Laplace standard
+    error (the study reports mu_t's) and of n1."""
+    b, a = json.loads(before.read_text()), json.loads(after.read_text())
+    rows = {}
+    for col in ("own", "independent"):
+        out = []
+        for rb, ra, t in zip(b[col]["fits"], a[col]["fits"], b["truths"]):
+            se = (rb["mu_t_stderr_rel"] or float("nan")) * t["mu_t_per_m"]
+            out.append({"truth": t, "result": [rb["result"], ra["result"]], "n1": [rb["n1"], ra["n1"]],
+                        "mu_t_per_m": [rb["mu_t_per_m"], ra["mu_t_per_m"]], "mu_t_stderr": se,
+                        "mu_t_change_in_stderr": (ra["mu_t_per_m"] - rb["mu_t_per_m"]) / se,
+                        "n1_change": ra["n1"] - rb["n1"], "reduced_chi2": [rb["reduced_chi2"], ra["reduced_chi2"]]})
+        rows[col] = {"fits": out, "max_abs_mu_t_change_in_stderr": max(abs(r["mu_t_change_in_stderr"]) for r in out),
+                     "max_abs_n1_change": max(abs(r["n1_change"]) for r in out),
+                     "summary_before": b[col]["summary"], "summary_after": a[col]["summary"]}
+    return {"what": "study_calib_independent slice, before (first file) and after (second file)", "simulated": True,
+            "before": str(before), "after": str(after), "scene": b["scene"], "machine": b["machine"],
+            "load_average": [b["load_average"], a["load_average"]]} | rows
+
+
+def _collect(name, proc, runs, a):
+    p_, dest, tree, t = proc
+    _, err = p_.communicate()
+    if p_.returncode:
+        raise SystemExit(f"{name} ({tree}) failed:\n{err[-3000:]}")
+    runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
+    print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name].get('compile_s', float('nan')):.1f} s"
+          + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
@@ -193,8 +327,23 @@ def main(argv=None) -> int:
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
     p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
     p.add_argument("--reference-steps", type=int, default=400)
+    p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
+    p.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    p.add_argument("--no-stages", action="store_true", help="skip the per-stage times and the trace")
+    p.add_argument("--lambda-trials", type=float, nargs="+", help="the per-stage times with MarquardtLM(lambda_trials=...)")
+    p.add_argument("--parallel", action="store_true", help="run the two checkouts at the same time (a loaded machine: same load for both)")
+    p.add_argument("--compare-study", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
+                   help="instead: compare two calib_independent.json of the same slice; writes fit_bench_study_slice.json")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.compare_study:
+        from tofjax.outputs import atomic_write_text
+
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        rep = compare_study(*a.compare_study)
+        atomic_write_text(Path(a.out) / "fit_bench_study_slice.json", json.dumps(rep, indent=2))
+        print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk.startswith("max")} for k, v in rep.items() if k in ("own", "independent")}))
+        return 0
     if a.worker:
         Path(a.out).write_text(json.dumps(worker(a)))
         return 0
@@ -203,27 +352,31 @@ def main(argv=None) -> int:
     trees = {"this": str(ROOT)} | ({"baseline": str(Path(a.baseline).resolve())} if a.baseline else {})
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
+        procs = {}
         for name, tree in trees.items():
             dest = Path(tmp) / f"{name}.json"
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
-                   "--reference-steps", str(a.reference_steps)] + (["--reference"] if a.reference and name == "this" else [])
+                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
+                + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
+                + (["--no-stages"] if a.no_stages else []) \
+                + (["--lambda-trials", *map(str, a.lambda_trials)] if a.lambda_trials else [])
             env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
-            t = time.perf_counter()
-            done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-            if done.returncode:
-                raise SystemExit(f"{name} ({tree}) failed:\n{done.stderr[-3000:]}")
-            runs[name] = json.loads(dest.read_text()) | {"tree": tree, "process_s": time.perf_counter() - t}
-            print(f"{name}: warm fit {runs[name]['warm_fit_s']*1e3:.0f} ms, compile {runs[name]['compile_s']:.1f} s"
-                  + (f", batch speed-up {runs[name]['batch']['speedup']:.2f}x" if a.batch else ""), flush=True)
+            procs[name] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), dest, tree,
+                           time.perf_counter())
+            if not a.parallel:
+                _collect(name, procs[name], runs, a)
+        if a.parallel:
+            for name, p_ in procs.items():
+                _collect(name, p_, runs, a)
     report = {
         "what": "calibration fit speed on simulated baselines (issue 13 targets)",
         "simulated": True,
         "scene": a.scene, "frames": a.frames, "captures": a.captures, "repeats": a.repeats,
         "runs": runs,
         "targets": {"warm_fit_s": 0.05, "compile_s": 10.0, "batch_speedup": 10.0},
-        "load_average_1min_end": os.getloadavg()[0],
+        "load_average_1min_end": os.getloadavg()[0], "parallel": a.parallel,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
     }
     this = runs["this"]
@@ -231,10 +384,22 @@ def main(argv=None) -> int:
         report["this_vs_reference"] = _compare(this["fits"], [{"values": r["values"]} for r in this["reference"]])
     if "baseline" in runs:
         b = runs["baseline"]
-        report["ratios_baseline_over_this"] = {
-            "warm_fit": b["warm_fit_s"] / this["warm_fit_s"], "compile": b["compile_s"] / this["compile_s"],
-        } | ({"batch_call": b["batch"]["batch_s"] / this["batch"]["batch_s"]} if a.batch else {})
+        report["ratios_baseline_over_this"] = {"warm_fit": b["warm_fit_s"] / this["warm_fit_s"]} | (
+            {"compile": b["compile_s"] / this["compile_s"]} if "compile_s" in this else {}
+        ) | ({"batch_call": b["batch"]["batch_s"] / this["batch"]["batch_s"]} if a.batch else {})
         report["this_vs_baseline"] = _compare(this["fits"], b["fits"])
+        for kind in ("own", "independent"):
+            pairs = [(x, y) for x, y in zip(this["fits"], b["fits"]) if x.get("data", "own") == kind]
+            if pairs:
+                report[f"this_vs_baseline_{kind}"] = _compare([x for x, _ in pairs], [y for _, y in pairs])
+        report["steps"] = {name: {"warm_fits": [f["steps"] for f in r["fits"]],
+                                  "fit_alone": [st["steps"] for st in r["stage_times"]],
+                                  "fit_s_per_step": [st["fit_s_per_step"] for st in r["stage_times"]]}
+                           for name, r in runs.items() if "stage_times" in r}
+        report["warm_steps"] = {name: [f["steps"] for f in r["fits"]] for name, r in runs.items()}
+        report["stage_medians_s"] = {
+            name: {k: statistics.median(st[k] for st in r["stage_times"]) for k in ("timing_s", "envelope_s", "fit_s", "fit_with_cov_s")}
+            for name, r in runs.items() if "stage_times" in r}
         if "reference" in this:
             report["baseline_vs_reference"] = _compare(
                 [{"values": r["values"], "stderr": f["stderr"]} for r, f in zip(this["reference"], this["fits"])], b["fits"])

@@ -560,3 +560,4 @@ def test_structured_jacobian_of_the_linear_parts_equals_autodiff(small, zone_end
     np.testing.assert_allclose(np.asarray(jax.jit(ours)(flat)), np.asarray(jax.jit(plain)(flat)), rtol=1e-12, atol=1e-12)
     a, b = np.asarray(jax.jit(jax.jacfwd(ours))(flat)), np.asarray(jax.jit(jax.jacfwd(plain))(flat))
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())
+
