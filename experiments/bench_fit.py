@@ -49,11 +49,10 @@ def worker(a) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
     import numpy as np
 
     from tofjax.fit._start import envelope_candidates, timing_start
-    from tofjax.fit.calibrate import Calibrator, _anchor, _data, fit_problem, fit_problem_batch
+    from tofjax.fit.calibrate import Calibrator, _anchor, _data
     from tofjax.scene import load_scene
     from tofjax.simulate import simulate
 
