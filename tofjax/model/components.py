@@ -143,9 +143,10 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     mean_r = jnp.where(some, first / safe, 0.5 * (lo + hi))
     rc, dr = nodes.r, nodes.dr
     # int (r - rc)^2 G dr = (hi - lo) - 2 rc int r G + (rc^2 - r0^2) int G: exact, but it cancels
-    # as (dr / r)^2 far from the sensor, so there (R > 30 dr) the moments of G's Taylor series
-    # about the node's centre take over (a density 1 + a x + b x^2 + c x^3 on a whole node, x in
-    # node spacings): the two agree there to ~1e-6 node, and float32 keeps its digits
+    # as (dr / r)^2 far from the sensor, so there (R > 30 dr; 6 dr in float32, whose digits run
+    # out sooner) the moments of G's Taylor series about the node's centre take over (a density
+    # 1 + a x + b x^2 + c x^3 on a whole node, x in node spacings): the two agree there to ~1e-6
+    # (float32: ~1e-5) node^2
     second = (hi - lo) - 2.0 * rc * first + (rc * rc - r0 * r0) * mass
     exact_off = (mean_r - rc) / dr
     exact_var = jnp.where(some, second / (safe * dr * dr), 0.0) - exact_off**2
@@ -157,7 +158,7 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     m0 = 1.0 + b / 12.0
     series_off = (a / 12.0 + c / 80.0) / m0
     series_var = (1.0 / 12.0 + b / 80.0) / m0 - series_off**2
-    far = R2 > (30.0 * dr) ** 2
+    far = R2 > ((30.0 if dr.dtype == jnp.float64 else 6.0) * dr) ** 2
     offset = jnp.clip(jnp.where(far, series_off, exact_off), -0.5, 0.5)
     variance = jnp.clip(jnp.where(far, series_var, exact_var), 0.0, 0.25 - offset**2)
     return mass, NodeSpread(offset, variance)
