@@ -151,6 +151,8 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     exact_off = (mean_r - rc) / dr
     exact_var = jnp.where(some, second / (safe * dr * dr), 0.0) - exact_off**2
     R2 = rc * rc + r0 * r0
+    far = R2 > ((30.0 if dr.dtype == jnp.float64 else 6.0) * dr) ** 2
+    R2 = jnp.where(far, R2, (30.0 * dr) ** 2)  # the double-where: the series only where it is used
     u = dr * dr / R2
     a = -2.0 * rc * dr / R2  # G' / G dr
     b = 0.5 * (6.0 * rc * rc - 2.0 * r0 * r0) / R2 * u  # G'' / (2 G) dr^2
@@ -158,7 +160,6 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     m0 = 1.0 + b / 12.0
     series_off = (a / 12.0 + c / 80.0) / m0
     series_var = (1.0 / 12.0 + b / 80.0) / m0 - series_off**2
-    far = R2 > ((30.0 if dr.dtype == jnp.float64 else 6.0) * dr) ** 2
     offset = jnp.clip(jnp.where(far, series_off, exact_off), -0.5, 0.5)
     variance = jnp.clip(jnp.where(far, series_var, exact_var), 0.0, 0.25 - offset**2)
     return mass, NodeSpread(offset, variance)
