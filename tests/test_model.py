@@ -140,19 +140,29 @@ def test_shadowing_dims_what_lies_behind(optoskin):
 
 
 def test_quadrature_converges(optoskin):
-    """Bin-integration error falls at least quadratically with nodes per bin."""
+    """Bin-integration error falls with nodes per bin, and beyond the near field quadrature 2 is
+    within a few 1e-4 of converged (a slow error there is read by a fit as attenuation)."""
     scene = load_touch_scene(optoskin)
     ref_m, ref_p = run(scene, ModelOptions(quadrature=16))
     ref = np.asarray(ref_m(ref_p))
-    errs = []
+    errs, ys = [], {}
     for q in (1, 2, 4):
         m, p = run(scene, ModelOptions(quadrature=q))
-        errs.append(np.linalg.norm(np.asarray(m(p)) - ref) / np.linalg.norm(ref))
+        ys[q] = np.asarray(m(p))
+        errs.append(np.linalg.norm(ys[q] - ref) / np.linalg.norm(ref))
     assert errs[0] > errs[1] > errs[2]
-    # measured: 2.0%, 0.55%, 0.20% (ratios 3.6, 2.8; before the near field's mass was put where it sits in its
-    # node: 6.2%, 1.9%, 0.62%, falling by 3.0-3.4x); a ratio below 2 would be first order
-    assert errs[1] < errs[0] / 2.5 and errs[2] < errs[1] / 2.5
-    assert errs[1] < 0.01
+    # measured: 2.3%, 0.33%, 0.17% (ratios 7.1, 1.9); before the distributed terms kept each node's
+    # spread within its node: 2.0%, 0.55%, 0.20%; before the near field's mass was put where it sits
+    # in its node: 6.2%, 1.9%, 0.62%. What is left at 4 is the near-field peak (bins at the emission)
+    assert errs[1] < errs[0] / 2.5 and errs[2] < errs[1] / 1.5
+    assert errs[1] < 0.005 and errs[2] < 0.0025
+    # the tail over 5-13 cm of range, zone mean: measured +0.044% at most (multiple scattering's
+    # build-up and T, sampled at node centres, are what is left); without the nodes' own spread -0.16%
+    t = (np.arange(ref.shape[-1]) + 0.5) * scene.sensor.bin_width_s
+    r = 0.5 * float(ref_p.c1) * (t - float(ref_p.emission_time_s))
+    tail = (r > 0.05) & (r < 0.13)
+    rel = (ys[2] - ref)[..., tail].mean((0, 1)) / ref[..., tail].mean((0, 1))
+    assert np.abs(rel).max() < 8e-4
 
 
 def load_touch_scene(optoskin):

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from .geometry import Geometry
 from .params import SPEED_OF_LIGHT_M_PER_S, Params
 
-__all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "make_nodes", "falloff", "transmittance", "edge_incidence_cos", "edge_law"]
+__all__ = ["SPEED_OF_LIGHT_M_PER_S", "Nodes", "NodeSpread", "make_nodes", "falloff", "transmittance", "edge_incidence_cos", "edge_law"]
 
 
 class Nodes(NamedTuple):
@@ -71,6 +71,14 @@ def node_falloff(nodes: Nodes, near_field):
     return (jnp.arctan(hi / near_field) - jnp.arctan(lo / near_field)) / near_field
 
 
+class NodeSpread(NamedTuple):
+    """Where in its node each node's distributed mass sits: ``offset``, its mean from the node's
+    centre, and ``variance``, its spread about that mean (both in node spacings, (K,))."""
+
+    offset: jax.Array
+    variance: jax.Array
+
+
 def smooth_like_deposit(masses, offset=None):
     """Blur node masses with the [1/8, 3/4, 1/8] filter: the h^2/4 variance :func:`deposit` gives
     point events, so distributed and point-like terms share the pulse correction.
@@ -78,22 +86,34 @@ def smooth_like_deposit(masses, offset=None):
     ``offset`` (broadcast against ``masses``, in node spacings, within [-1/2, 1/2]): where in
     its node each node's mass sits on average; it is then shared with :func:`deposit`'s
     quadratic B-spline weights about that time (mass and mean time kept, the same h^2/4
-    variance). None (or 0): at the node's centre, the filter above."""
+    variance). A :class:`NodeSpread` (what :func:`node_falloff_after_emission` returns) also
+    gives the mass's own spread within its node, added to the h^2/4: a node's mass is spread
+    over its node (about h^2/12 far from the sensor), not a point, and leaving that out
+    biases a decaying return by about ``-(h^2/24) f''/f`` (a slow range-dependent error that a
+    fit reads as attenuation). None (or 0): at the node's centre, the filter above."""
     pad = [(0, 0)] * (masses.ndim - 1) + [(1, 1)]
     if offset is None:
         p = jnp.pad(masses, pad)
         return 0.75 * masses + 0.125 * (p[..., :-2] + p[..., 2:])
-    d = jnp.broadcast_to(offset, masses.shape)
-    early = jnp.pad(masses * 0.5 * (0.5 - d) ** 2, pad)  # to the node before
-    late = jnp.pad(masses * 0.5 * (0.5 + d) ** 2, pad)  # to the node after
-    return masses * (0.75 - d**2) + early[..., 2:] + late[..., :-2]
+    if isinstance(offset, NodeSpread):
+        d = jnp.broadcast_to(offset.offset, masses.shape)
+        var = jnp.clip(jnp.broadcast_to(offset.variance, masses.shape), 0.0, 0.25 - d**2)
+    else:
+        d = jnp.broadcast_to(offset, masses.shape)
+        var = 0.0
+    # three weights with mean d and variance 1/4 + var (second moment 1/4 + var + d^2 <= 1/2),
+    # all non-negative for |d| <= 1/2 and var <= 1/4 - d^2
+    second = 0.25 + var + d**2
+    early = jnp.pad(masses * 0.5 * (second - d), pad)  # to the node before
+    late = jnp.pad(masses * 0.5 * (second + d), pad)  # to the node after
+    return masses * (1.0 - second) + early[..., 2:] + late[..., :-2]
 
 
 def node_falloff_after_emission(nodes: Nodes, near_field):
     """G integrated over the part of each node's range after emission, and where in the node
-    that mass sits: ``(mass (K,), offset (K,))``, the offset in node spacings from the node's
-    centre (the mean range of ``G`` over the part, in closed form:
-    ``int r G dr = ln(r^2 + r0^2) / 2``).
+    that mass sits: ``(mass (K,), NodeSpread(offset (K,), variance (K,)))``, in node spacings:
+    the mean range of ``G`` over the part from the node's centre, and its variance about that
+    mean (closed forms: ``int r G dr = ln(r^2 + r0^2) / 2``, ``int r^2 G dr = r - r0 atan(r / r0)``).
 
     Near the sensor ``G`` falls by a large factor within one node, so its mass sits well off
     the node's centre (with 100 ps bins and two nodes per bin a node spans 5 mm of range, the
@@ -117,11 +137,32 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
     mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0), 0.0) / r0
-    first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2))
+    first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2))  # int r G dr
     some = mass > 1e-9 * (0.5 * jnp.pi / r0)  # the double-where keeps the gradient finite
-    mean_r = jnp.where(some, first / jnp.where(some, mass, 1.0), 0.5 * (lo + hi))
-    offset = jnp.clip((mean_r - nodes.r) / nodes.dr, -0.5, 0.5)
-    return mass, offset
+    safe = jnp.where(some, mass, 1.0)
+    mean_r = jnp.where(some, first / safe, 0.5 * (lo + hi))
+    rc, dr = nodes.r, nodes.dr
+    # int (r - rc)^2 G dr = (hi - lo) - 2 rc int r G + (rc^2 - r0^2) int G: exact, but it cancels
+    # as (dr / r)^2 far from the sensor, so there (R > 30 dr; 6 dr in float32, whose digits run
+    # out sooner) the moments of G's Taylor series about the node's centre take over (a density
+    # 1 + a x + b x^2 + c x^3 on a whole node, x in node spacings): the two agree there to ~1e-6
+    # (float32: ~1e-5) node^2
+    second = (hi - lo) - 2.0 * rc * first + (rc * rc - r0 * r0) * mass
+    exact_off = (mean_r - rc) / dr
+    exact_var = jnp.where(some, second / (safe * dr * dr), 0.0) - exact_off**2
+    R2 = rc * rc + r0 * r0
+    far = R2 > ((30.0 if dr.dtype == jnp.float64 else 6.0) * dr) ** 2
+    R2 = jnp.where(far, R2, (30.0 * dr) ** 2)  # the double-where: the series only where it is used
+    u = dr * dr / R2
+    a = -2.0 * rc * dr / R2  # G' / G dr
+    b = 0.5 * (6.0 * rc * rc - 2.0 * r0 * r0) / R2 * u  # G'' / (2 G) dr^2
+    c = 4.0 * rc * (r0 * r0 - rc * rc) / (R2 * R2) * dr * u  # G^(3) / (6 G) dr^3
+    m0 = 1.0 + b / 12.0
+    series_off = (a / 12.0 + c / 80.0) / m0
+    series_var = (1.0 / 12.0 + b / 80.0) / m0 - series_off**2
+    offset = jnp.clip(jnp.where(far, series_off, exact_off), -0.5, 0.5)
+    variance = jnp.clip(jnp.where(far, series_var, exact_var), 0.0, 0.25 - offset**2)
+    return mass, NodeSpread(offset, variance)
 
 
 def transmittance(r, mu_t):
