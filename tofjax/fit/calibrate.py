@@ -229,7 +229,7 @@ class FitConfig:
     solver: str = "levenberg-marquardt"
     rtol: float = 1e-7
     atol: float = 1e-7
-    loss_tol: float = 1e-3
+    loss_tol: float = 1e-4
     max_steps: int = 200
     gauss_newton_first: int = 10
     free: tuple[str, ...] = DEFAULT_FREE
