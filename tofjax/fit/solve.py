@@ -212,6 +212,17 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
     def loss_of(r):
         return 0.5 * jnp.sum(r * r)
 
+    def scaled_normal(jac, r):
+        """``J^T r``, ``J^T J``, Marquardt's scale ``d`` (sqrt of the diagonal) and both scaled by it."""
+        g = jac.T @ r
+        a = jac.T @ jac
+        d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), tiny))
+        return g, a, d, a / (d[:, None] * d[None, :]), g / d
+
+    def gauss_newton_left(a_s, g_s):
+        """What is left to gain, to second order: the undamped (Gauss-Newton) model's decrease."""
+        return 0.5 * g_s @ jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s + 1e-12 * eye), True), g_s)
+
     r0, j0 = value_and_jac(y0)
     loss0 = loss_of(r0)
     ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
@@ -229,11 +240,7 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
 
     def body(c):
         y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
-        g = jac.T @ r
-        a = jac.T @ jac
-        d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), tiny))
-        a_s = a / (d[:, None] * d[None, :])
-        g_s = g / d
+        g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
         v = jax.scipy.linalg.cho_solve((chol, True), -g_s) / d
         if solver.geodesic:
@@ -270,9 +277,8 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         code = optx.RESULTS.where(stalled & ~(small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
         y, r, jac, loss = (jnp.where(accept, a_new, a_old) for a_new, a_old in ((y_t, y), (r_t, r), (j_t, jac), (loss_t, loss)))
         if trace:
-            gn = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s + 1e-12 * eye), True), g_s)
             vals = {"lam": lam, "rho": rho, "pred": pred, "actual": c[3] - loss_t, "accept": accept.astype(ft),
-                    "gn_pred": 0.5 * g_s @ gn}
+                    "gn_pred": gauss_newton_left(a_s, g_s)}
             tr = {k: tr[k].at[step].set(vals[k]) for k in names} | {"y": tr["y"].at[step].set(jnp.where(accept, y_t, y))}
         hist = hist.at[step + 1].set(loss)
         return y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr
@@ -281,14 +287,8 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
 
     def body_trials(c):
         y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
-        g = jac.T @ r
-        a = jac.T @ jac
-        d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), tiny))
-        a_s = a / (d[:, None] * d[None, :])
-        g_s = g / d
-        # what is left to gain, to second order: the undamped (Gauss-Newton) model's decrease
-        gn = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s + 1e-12 * eye), True), g_s)
-        gn_pred = 0.5 * g_s @ gn
+        g, a, d, a_s, g_s = scaled_normal(jac, r)
+        gn_pred = gauss_newton_left(a_s, g_s)
         # every trial damping at once: one small Cholesky each, one residual pass each
         lams = lam * factors
         chol = jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + lk * eye))(lams)
