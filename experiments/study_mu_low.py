@@ -94,6 +94,17 @@ def _grid_index(n1: float, mu_t: float) -> int:
     return grid.index((n1, mu_t)) if (n1, mu_t) in grid else 0
 
 
+def _full_scene():
+    """The nominal scene of the calibration study's grid (``FULL``'s sensors, zones and bins)."""
+    return _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+
+
+def _truth(nominal, n1: float, mu_t: float):
+    """``nominal`` at (n1, mu_t) with the study's albedo, and its grid index (:func:`_grid_index`)."""
+    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
+    return nominal.replace(waveguide=wg), _grid_index(n1, mu_t)
+
+
 def _group(rows: list[dict], resid: np.ndarray | None) -> dict:
     e = np.array([r["mu_t_rel_error"] for r in rows])
     se = np.array([np.nan if r["mu_t_stderr_rel"] is None else r["mu_t_stderr_rel"] for r in rows])
@@ -178,9 +189,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
     fits: dict = {c: {} for c in cfg.columns}
     groups: dict = {c: {} for c in cfg.columns}
     for n1 in cfg.n1:
-        k = _grid_index(n1, cfg.mu_t)
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * cfg.mu_t, mu_a_per_m=(1 - ALBEDO) * cfg.mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth, k = _truth(nominal, n1, cfg.mu_t)
         rig = IndepRig.from_scene(truth, seed=200 + k)  # the calibration study's rig at this grid point
         rigs = {"independent": rig}
         if "independent_dense" in cfg.columns:
@@ -327,10 +336,8 @@ def diagnose(out: Path, n1: float = 1.3, frames: int = 960, replicates: int = 8,
     1 mm, 48 far-edge rays), another rig, and tofjax tracing 8 (default) or 32 rays per zone."""
     path = check_output(out / "mu_low_diagnose.json", overwrite=overwrite)
     t0 = time.perf_counter()
-    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
-    k = _grid_index(n1, MU_T)
-    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
-    truth = nominal.replace(waveguide=wg)
+    nominal = _full_scene()
+    truth, k = _truth(nominal, n1, MU_T)
     rigs = {"indep": IndepRig.from_scene(truth, seed=200 + k), "indep dense": IndepRig.from_scene(truth, seed=200 + k, options=DENSE),
             "indep rig999": IndepRig.from_scene(truth, seed=999),
             "indep rig999 nogain": IndepRig.from_scene(truth, seed=999, options=IndepOptions(gain_spread=0.0)),
@@ -434,13 +441,11 @@ def convergence(out: Path, n1s=(1.3, 1.45, 1.6), frames: int = 960, geometry_see
     identical frames: the estimator's limit, the bias that no frame count removes)."""
     path = check_output(out / "mu_low_convergence.json", overwrite=overwrite)
     t0 = time.perf_counter()
-    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    nominal = _full_scene()
     cal = Calibrator(nominal, config)
     rows: dict = {}
     for n1 in n1s:
-        k = _grid_index(n1, MU_T)
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
-        truth = nominal.replace(waveguide=wg)
+        truth, k = _truth(nominal, n1, MU_T)
         lams = {}
         for name in levels:
             for g in geometry_seeds:
@@ -550,13 +555,11 @@ def diagnose_masks(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 96
 
     path = check_output(out / "mu_low_masks.json", overwrite=overwrite)
     t0 = time.perf_counter()
-    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    nominal = _full_scene()
     cal = Calibrator(nominal, config)
     rows: dict = {}
     for n1 in n1s:
-        k = _grid_index(n1, MU_T)
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
-        truth = nominal.replace(waveguide=wg)
+        truth, k = _truth(nominal, n1, MU_T)
         rig = IndepRig.from_scene(truth, seed=200 + k, options=LEVELS[level])
         soft = _SoftNearRig.from_scene(truth, seed=200 + k, options=LEVELS[level])
         mk = _masks(rig, truth)
@@ -615,7 +618,7 @@ def diagnose_offset(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 9
     scene stating no multiple scattering, the rig's per-zone spreads off, a model-error floor."""
     path = check_output(out / "mu_low_offset.json", overwrite=overwrite)
     t0 = time.perf_counter()
-    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    nominal = _full_scene()
     no_ms = nominal.replace(waveguide=dataclasses.replace(nominal.waveguide, multiple_scattering=0.0))
     cals = {}
 
@@ -632,9 +635,7 @@ def diagnose_offset(out: Path, level: str, n1s=(1.3, 1.45, 1.6), frames: int = 9
 
     rows: dict = {}
     for n1 in n1s:
-        k = _grid_index(n1, MU_T)
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * MU_T, mu_a_per_m=(1 - ALBEDO) * MU_T)
-        truth = nominal.replace(waveguide=wg)
+        truth, k = _truth(nominal, n1, MU_T)
         opts = LEVELS[level]
         nospread = dataclasses.replace(opts, gain_spread=0.0, crosstalk_spread=0.0, ambient_spread=0.0)
         from tofjax.model import ModelOptions
@@ -676,11 +677,10 @@ def quadrature_profile(out: Path, n1: float = 1.45, mu_ts=(0.05, 2.0), frames: i
     from tofjax.simulate import expected_counts
 
     path = check_output(out / "mu_low_quadrature_profile.json", overwrite=overwrite)
-    nominal = _scene(load_scene("optoskin"), FULL["sensors"], FULL["zones"], FULL["bins"])
+    nominal = _full_scene()
     rows = {}
     for mu_t in mu_ts:
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth, _ = _truth(nominal, n1, mu_t)
         lam = {q: np.asarray(expected_counts(truth, ModelOptions(quadrature=q))) for q in (2, 8, 16)}
         ref = lam[8]
         rel = (lam[2] - ref) / np.maximum(ref, 1.0)
