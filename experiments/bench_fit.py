@@ -63,7 +63,8 @@ def worker(a) -> dict:
     dtype = pb.model.geometry.ray_length.dtype
     base = cal.base_params()
     kw = dict(max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first)
-    out: dict = {"solver": type(solver).__name__}
+    out: dict = {"solver": type(solver).__name__, "jax": jax.__version__, "backend": jax.default_backend(),
+                 "device_kind": jax.devices()[0].device_kind}
 
     caps = [("own", simulate(scene, a.frames, seed=1000 + i)) for i in range(a.captures)]
     if a.indep:
