@@ -362,7 +362,7 @@ def main(argv=None) -> int:
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
                 + (["--no-stages"] if a.no_stages else []) \
                 + (["--lambda-trials", *map(str, a.lambda_trials)] if a.lambda_trials else [])
-            env = dict(os.environ, PYTHONPATH=tree, TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (tree, os.environ.get("PYTHONPATH")))), TOFJAX_COMPILATION_CACHE="0", TOFJAX_PROGRAM_STORE="0")
             procs[name] = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), dest, tree,
                            time.perf_counter())
             if not a.parallel:
