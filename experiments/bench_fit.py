@@ -80,6 +80,7 @@ def worker(a) -> dict:
     t = time.perf_counter()
     cal.fit(caps[0][1])
     out["first_fit_s"] = time.perf_counter() - t
+    _progress(f"first Calibrator.fit (compiles) {out['first_fit_s']:.1f} s")
     fits, times = [], []
     for r in range(a.repeats):
         for i, (kind, c) in enumerate(caps):
@@ -94,6 +95,7 @@ def worker(a) -> dict:
     out["warm_fit_s"] = statistics.median(times)
     out["warm_fit_all_s"] = times
     out["fits"] = fits
+    _progress(f"warm Calibrator.fit median {out['warm_fit_s']:.3f} s")
     if not a.no_stages:
         st_solver = solver
         if a.lambda_trials:
@@ -122,6 +124,11 @@ def worker(a) -> dict:
     jax.block_until_ready(fresh(*args))
     out["compile_s"] = first - (time.perf_counter() - t)
     return _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw)
+
+
+def _progress(msg: str) -> None:
+    """One line to stderr as the worker goes (a run stopped by a time limit still shows how far it got)."""
+    print(f"[bench_fit worker {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
 def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, scene, dtype, kw):
@@ -156,20 +163,24 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
         G = jnp.stack([p[1] for p in pairs])
         nocov = dict(kw, with_cov=False)
         jax.block_until_ready(fit_problem(pb, objective, solver, start, D[0], G[0], base, anchor, **nocov))
+        _progress("batch: data simulated, fit_problem compiled")
         sep, sep_steps = [], []
         for i in range(a.separate):
             t = time.perf_counter()
             sol = jax.block_until_ready(fit_problem(pb, objective, solver, start, D[i], G[i], base, anchor, **nocov))
             sep.append(time.perf_counter() - t)
             sep_steps.append(int(sol.steps))
+            _progress(f"separate fit {i}: {sep[-1]:.3f} s, {sep_steps[-1]} steps")
         starts = jax.tree_util.tree_map(lambda x: jnp.stack([x] * a.batch), start)
         A = jnp.stack([anchor] * a.batch)
         t = time.perf_counter()
         jax.block_until_ready(fit_problem_batch(pb, objective, solver, starts, D, G, base, A, **nocov))
         first = time.perf_counter() - t
+        _progress(f"batch of {a.batch}, first call (compiles) {first:.1f} s")
         t = time.perf_counter()
         sols = jax.block_until_ready(fit_problem_batch(pb, objective, solver, starts, D, G, base, A, **nocov))
         batch_s = time.perf_counter() - t
+        _progress(f"batch of {a.batch}: {batch_s:.3f} s; speed-up {a.batch * statistics.mean(sep) / batch_s:.2f}x")
         steps = np.asarray(sols.steps)
         # the batch against the same fits one by one (the first --separate)
         n1_sep = [float(fit_problem(pb, objective, solver, start, D[i], G[i], base, anchor, **nocov).params.n1)
