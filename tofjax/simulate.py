@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +25,14 @@ def expected_counts(scene: Scene, options: ModelOptions = ModelOptions(), params
     """Noise-free expected counts of one frame: (sensors, zones, bins)."""
     model = build_model(scene, options)
     params = Params.from_scene(scene, options.jnp_dtype) if params is None else params
-    return np.asarray(jax.jit(lambda p: model(p))(params))
+    return np.asarray(model(params))  # compiled by the model (one program per model structure, reused across calls)
+
+
+@functools.partial(jax.jit, static_argnames=("poisson", "saturation"))
+def _draw(keys, lam, *, poisson: bool, saturation):
+    """``len(keys)`` noisy frames of ``lam``: one program per shape and noise setting, reused across calls
+    (a ``jax.jit`` of a lambda made in each call compiled again every time: about 5 s per capture)."""
+    return jax.vmap(lambda k: sample_counts(k, lam, poisson=poisson, saturation=saturation))(keys)
 
 
 def simulate(
@@ -56,14 +64,8 @@ def simulate(
     params = Params.from_scene(scene, options.jnp_dtype) if params is None else params
     lam = jnp.asarray(expected_counts(scene, options, params))
     keys = jax.random.split(jax.random.key(seed), n_frames)
-    draw = jax.jit(
-        jax.vmap(
-            lambda k: sample_counts(
-                k, lam, poisson=scene.noise.poisson, saturation=scene.sensor.saturation_counts
-            )
-        )
-    )
-    hist = np.array(draw(keys), np.float64)  # a writable copy
+    hist = np.array(_draw(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
+                    np.float64)  # a writable copy
     el = scene.contact_elements()
     touches = None
     if len(el):
