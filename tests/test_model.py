@@ -317,6 +317,22 @@ def test_poisson_noise_is_reproducible_and_unbiased():
     assert float(sample_counts(jax.random.key(0), jnp.array([1e9]), saturation=2**24 - 1)[0]) == 2**24 - 1
 
 
+def test_frames_reuse_one_compiled_program():
+    """``sample_frames`` (what ``simulate`` and ``mc_capture`` draw with) compiles once per shape and
+    noise setting: a second capture with another seed and frame count of that shape compiles nothing,
+    and its frames are what ``sample_counts`` draws from the same keys."""
+    from tofjax.model import sample_frames
+
+    lam = jnp.linspace(0.0, 50.0, 24).reshape(2, 12)
+    keys = jax.random.split(jax.random.key(7), 5)
+    a = sample_frames(keys, lam, poisson=True, saturation=30.0)
+    n = sample_frames._cache_size()
+    b = sample_frames(jax.random.split(jax.random.key(8), 5), lam + 1.0, poisson=True, saturation=30.0)
+    assert sample_frames._cache_size() == n
+    assert a.shape == b.shape == (5, 2, 12) and float(a.max()) <= 30.0
+    np.testing.assert_array_equal(a[3], sample_counts(keys[3], lam, poisson=True, saturation=30.0))
+
+
 def test_pile_up_limits():
     low = jnp.full((64,), 1.0)
     np.testing.assert_allclose(pile_up(low, 250_000), low, rtol=1e-3)

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .capture import Capture
-from .model import ModelOptions, Params, build_model, sample_counts
+from .model import ModelOptions, Params, build_model, sample_frames
 from .scene import Scene
 
 __all__ = ["expected_counts", "simulate", "true_parameters"]
@@ -26,13 +25,6 @@ def expected_counts(scene: Scene, options: ModelOptions = ModelOptions(), params
     model = build_model(scene, options)
     params = Params.from_scene(scene, options.jnp_dtype) if params is None else params
     return np.asarray(model(params))  # compiled by the model (one program per model structure, reused across calls)
-
-
-@functools.partial(jax.jit, static_argnames=("poisson", "saturation"))
-def _draw(keys, lam, *, poisson: bool, saturation):
-    """``len(keys)`` noisy frames of ``lam``: one program per shape and noise setting, reused across calls
-    (a ``jax.jit`` of a lambda made in each call compiled again every time: about 5 s per capture)."""
-    return jax.vmap(lambda k: sample_counts(k, lam, poisson=poisson, saturation=saturation))(keys)
 
 
 def simulate(
@@ -64,7 +56,7 @@ def simulate(
     params = Params.from_scene(scene, options.jnp_dtype) if params is None else params
     lam = jnp.asarray(expected_counts(scene, options, params))
     keys = jax.random.split(jax.random.key(seed), n_frames)
-    hist = np.array(_draw(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
+    hist = np.array(sample_frames(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
                     np.float64)  # a writable copy
     el = scene.contact_elements()
     touches = None

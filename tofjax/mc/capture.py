@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from ..model import ModelOptions, Params, build_model, sample_counts
+from ..model import ModelOptions, Params, build_model, sample_frames
 from ..scene import Scene
 from .transport import MCOptions, MCResult, run_mc
 
@@ -40,9 +40,8 @@ def mc_capture(scene: Scene, n_frames: int = 1, seed: int = 0, options: MCOption
     expected, result = mc_expected_counts(scene, options, progress=progress)
     lam = jnp.asarray(expected)
     keys = jax.random.split(jax.random.key(seed), n_frames)
-    draw = jax.jit(jax.vmap(lambda k: sample_counts(k, lam, poisson=scene.noise.poisson,
-                                                     saturation=scene.sensor.saturation_counts)))
-    hist = np.array(draw(keys), np.float64)
+    hist = np.array(sample_frames(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
+                    np.float64)
     el = scene.contact_elements()
     touches = np.broadcast_to(el[:, [0, 1, 3]], (n_frames, len(el), 3)).copy() if len(el) else None
     params = Params.from_scene(scene, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)

@@ -8,6 +8,7 @@ from .forward import build_model as build_model
 from .forward import pile_up as pile_up
 from .geometry import Geometry as Geometry
 from .noise import sample_counts as sample_counts
+from .noise import sample_frames as sample_frames
 from .params import Params as Params
 from .params import speed_in_guide as speed_in_guide
 from .pulse import emg_cdf as emg_cdf

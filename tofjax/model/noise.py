@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
-__all__ = ["sample_counts"]
+__all__ = ["sample_counts", "sample_frames"]
 
 # Above this mean the Poisson sampler is replaced by its normal limit (relative error < 1e-3
 # in every moment that matters here) so counts up to 1e9 and beyond neither overflow int32 nor slow down.
@@ -34,3 +36,13 @@ def sample_counts(key, expected, *, poisson: bool = True, saturation: float | No
     if saturation is not None:
         counts = jnp.minimum(counts, saturation)
     return counts
+
+
+@functools.partial(jax.jit, static_argnames=("poisson", "saturation"))
+def sample_frames(keys, expected, *, poisson: bool = True, saturation: float | None = None):
+    """One frame per key (``(len(keys), *expected.shape)``), each as :func:`sample_counts` draws it.
+
+    One compiled program per shape and noise setting, reused by every caller (a ``jax.jit`` of a
+    lambda made per call compiles again each time: seconds per simulated capture).
+    """
+    return jax.vmap(lambda k: sample_counts(k, expected, poisson=poisson, saturation=saturation))(keys)
