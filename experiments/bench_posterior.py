@@ -43,22 +43,44 @@ import numpy as np
 
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
-from tofjax.fit.nuts import NutsOptions, diagnostics, sample_nuts
+from tofjax.fit.nuts import NutsOptions, _threads, diagnostics, sample_nuts
 from tofjax.fit.posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
 
 
-def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
+def threaded_batch(batch, threads: int):
+    """``batch`` (points (N, P) -> values (N,)) with the points split into ``threads`` parts
+    evaluated at the same time, one thread each (1: ``batch`` itself)."""
+    if threads <= 1:
+        return batch
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=threads)
+
+    def run(flats):
+        parts = np.array_split(np.asarray(flats), threads)
+        return np.concatenate(list(pool.map(batch, parts)))
+
+    return run
+
+
+def run_emcee(ld, walkers: int, steps: int, seed: int = 0, threads: int = 1) -> dict:
     import emcee
 
     P = ld.flat0.size
     rng = np.random.default_rng(seed)
     scale = np.sqrt(np.diag(ld.laplace_cov))
     start = ld.flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(walkers, P))
-    ld.batch(start)  # compile outside the timing
-    sampler = emcee.EnsembleSampler(walkers, P, ld.batch, vectorize=True)
+    fn = threaded_batch(ld.batch, threads)
+    fn(start)  # compile outside the timing
+    # emcee's stretch move evaluates half the walkers at a time: a second shape, compiled here
+    # too (before, it compiled inside emcee's timed run, against emcee)
+    t = time.perf_counter()
+    fn(start[: walkers // 2])
+    half_compile = time.perf_counter() - t
+    sampler = emcee.EnsembleSampler(walkers, P, fn, vectorize=True)
     # emcee draws its stretch moves from NumPy's global generator, unseeded: its min ESS varied
     # 79-256 between two runs of the same settings. Seeded, a rerun gives the same chain.
     sampler.random_state = np.random.RandomState(seed).get_state()
@@ -75,6 +97,8 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
         "steps": steps,
         "move": "stretch (emcee's default, a = 2)",
         "seed": seed,
+        "threads": threads,
+        "half_batch_first_call_s": half_compile,
         "burn_in": steps // 4,
         "wall_s": wall,
         "ess_min": d["ess_min"],
@@ -133,7 +157,7 @@ def small_scene_of(scene_name: str, small=None):
 
 
 def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
-        gain_prior: str = GAIN_PRIOR, note: str = "") -> dict:
+        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1) -> dict:
     scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
@@ -156,6 +180,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "draws": nuts.draws,
         "target_accept": nuts.target_accept,
         "max_tree_depth": nuts.max_tree_depth,
+        "threads": _threads(nuts),
         "wall_s": warm.wall_s,
         "wall_s_with_compile_and_diagnostics": warm_total,
         "compile_s": warm.compile_s,
@@ -177,7 +202,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
     }
     print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
-    em = run_emcee(ld, walkers, emcee_steps)
+    em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)
     ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
     targets = {
         "nuts_ess_min_ge_1000": nuts_row["ess_min"] >= 1000,
@@ -225,6 +250,10 @@ def main(argv=None):
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
     ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
+    ap.add_argument("--threads", type=int, default=dflt.threads,
+                    help="NUTS: chains run at the same time (NutsOptions.threads; default one per CPU core; 1: one after the other)")
+    ap.add_argument("--emcee-threads", type=int, default=1,
+                    help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
@@ -242,8 +271,8 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
                        target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
-                       shear=a.shear)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
+                       shear=a.shear, threads=a.threads)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})
