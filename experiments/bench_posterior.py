@@ -28,6 +28,14 @@ baseline (docs/results/posterior.json; before the shear: posterior_noshear.json,
 posterior_loaded.json).
 
     python experiments/bench_posterior.py --out out/bench_posterior
+    python experiments/bench_posterior.py --collect RUN1/posterior.json RUN2/posterior.json --out summary.json
+
+On a loaded machine the two samplers' wall times, minutes apart, vary with the load (three
+runs of the same code at load 7-11 gave NUTS over emcee 4.3x-7.1x): ``interleaved_cost``
+measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
+``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
+ratio. NUTS runs its chains in threads, one per core (``--threads``, NutsOptions.threads);
+``--emcee-threads`` splits emcee's batch over threads (default 1, as before: the reference).
 """
 
 from __future__ import annotations
@@ -141,6 +149,57 @@ def evaluation_cost(ld, walkers: int, repeats: int = 20) -> dict:
             "value_per_point_in_batch_s": float(np.median(tb)) / walkers, "walkers": walkers, "repeats": repeats}
 
 
+def interleaved_cost(ld, walkers: int, repeats: int = 9, n: int = 40, threads: int = 2) -> dict:
+    """Seconds per log-density gradient as NUTS spends them (``n`` value-and-gradients in one
+    compiled scan, no dispatch between them) and per value as emcee spends them (one call of
+    half the walkers, the stretch move's batch), each on one thread and on ``threads``
+    threads at once (gradients: ``threads`` scans concurrently; values: the batch split),
+    measured interleaved, repeat after repeat, so that a changing load hits all four alike.
+    Medians. On a loaded machine the samplers' own wall times, minutes apart, can differ by
+    the load alone; these costs times the per-evaluation ratio give a load-robust ratio."""
+    import jax
+    import jax.numpy as jnp
+    from concurrent.futures import ThreadPoolExecutor
+
+    vg = jax.value_and_grad(ld.fn)
+
+    @jax.jit
+    def grads(x0):
+        def body(c, _):
+            v, g = vg(c)
+            return c + 1e-12 * g, v
+        return jax.lax.scan(body, x0, None, length=n)[1]
+
+    rng = np.random.default_rng(1)
+    pts = ld.flat0[None, :] + 0.1 * np.sqrt(np.diag(ld.laplace_cov))[None, :] * rng.normal(size=(walkers // 2, ld.flat0.size))
+    x0 = [jnp.asarray(p) for p in pts[:threads]]
+    pool = ThreadPoolExecutor(max_workers=threads)
+    tb = threaded_batch(ld.batch, threads)
+    jax.block_until_ready(grads(x0[0]))
+    ld.batch(pts), tb(pts)
+    k = max(1, int(round(n / len(pts))))  # about as many values as gradients per timing
+    rows = {"gradient_1_thread_s": [], f"gradient_{threads}_threads_s": [], "value_1_thread_s": [], f"value_{threads}_threads_s": []}
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(grads(x0[0]))
+        rows["gradient_1_thread_s"].append((time.perf_counter() - t) / n)
+        t = time.perf_counter()
+        list(pool.map(lambda x: jax.block_until_ready(grads(x)), x0))
+        rows[f"gradient_{threads}_threads_s"].append((time.perf_counter() - t) / (n * threads))
+        t = time.perf_counter()
+        for _ in range(k):
+            ld.batch(pts)
+        rows["value_1_thread_s"].append((time.perf_counter() - t) / (k * len(pts)))
+        t = time.perf_counter()
+        for _ in range(k):
+            tb(pts)
+        rows[f"value_{threads}_threads_s"].append((time.perf_counter() - t) / (k * len(pts)))
+    pool.shutdown()
+    out = {key: float(np.median(v)) for key, v in rows.items()}
+    out.update(threads=threads, repeats=repeats, gradients_per_timing=n, batch=len(pts))
+    return out
+
+
 def small_scene_of(scene_name: str, small=None):
     """The scene, or with ``small = (sensors, zones, bins)`` a smaller one of the same physics;
     and its label."""
@@ -204,6 +263,18 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
     print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
     em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)
     ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
+    per_eval = nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"] if em["ess_min_per_evaluation"] > 0 else float("inf")
+    ic = interleaved_cost(ld, walkers, threads=max(2, _threads(nuts)))
+    T = ic["threads"]
+    print("interleaved costs (ms):", {k: round(1e3 * v, 3) for k, v in ic.items() if k.endswith("_s")}, flush=True)
+    g_nuts = ic[f"gradient_{T}_threads_s"] if _threads(nuts) > 1 else ic["gradient_1_thread_s"]
+    v_em = ic[f"value_{T}_threads_s"] if emcee_threads > 1 else ic["value_1_thread_s"]
+    ic["per_evaluation_ratio_times_cost_ratio"] = {
+        "as_run": per_eval * v_em / g_nuts,  # the samplers as configured in this run
+        "nuts_1_thread_emcee_1_thread": per_eval * ic["value_1_thread_s"] / ic["gradient_1_thread_s"],
+        f"nuts_{T}_threads_emcee_1_thread": per_eval * ic["value_1_thread_s"] / ic[f"gradient_{T}_threads_s"],
+        f"nuts_{T}_threads_emcee_{T}_threads": per_eval * ic[f"value_{T}_threads_s"] / ic[f"gradient_{T}_threads_s"],
+    }
     targets = {
         "nuts_ess_min_ge_1000": nuts_row["ess_min"] >= 1000,
         "nuts_wall_le_60s": nuts_row["wall_s"] <= 60,
@@ -226,12 +297,35 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "evaluation_cost": cost,
         "samplers": {"nuts": nuts_row, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
-        "nuts_over_emcee_ess_min_per_evaluation": nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"]
-        if em["ess_min_per_evaluation"] > 0 else float("inf"),
+        "nuts_over_emcee_ess_min_per_evaluation": per_eval,
+        "interleaved_cost": ic,
+        "nuts_over_emcee_ess_min_per_s_load_robust": ic["per_evaluation_ratio_times_cost_ratio"]["as_run"],
         "targets": targets,
     }
     atomic_write_text(out / "posterior.json", json.dumps(result, indent=1))
     return result
+
+
+def collect(paths, out: Path, note: str = "") -> dict:
+    """One summary of several runs' ``posterior.json`` (side by side: per run, per sampler
+    ``ess_min``, ``ess_min_per_s``, ``wall_s``, ``rhat_max``, and the ratios)."""
+    import json as _json
+
+    runs = []
+    for p in paths:
+        r = _json.loads(Path(p).read_text())
+        row = {"source": str(p), "note": r.get("note", ""), "machine": r["machine"],
+               "nuts_over_emcee_ess_min_per_s": r["nuts_over_emcee_ess_min_per_s"],
+               "nuts_over_emcee_ess_min_per_evaluation": r["nuts_over_emcee_ess_min_per_evaluation"],
+               "nuts_over_emcee_ess_min_per_s_load_robust": r.get("nuts_over_emcee_ess_min_per_s_load_robust"),
+               "interleaved_cost": r.get("interleaved_cost"), "targets": r["targets"]}
+        for k, v in r["samplers"].items():
+            row[k] = {q: v.get(q) for q in ("ess_min", "ess_min_per_s", "wall_s", "rhat_max", "threads", "divergences",
+                                            "gradient_evaluations", "log_density_evaluations")}
+        runs.append(row)
+    res = {**({"note": note} if note else {}), "runs": runs}
+    atomic_write_text(out, _json.dumps(res, indent=1))
+    return res
 
 
 def main(argv=None):
@@ -261,7 +355,13 @@ def main(argv=None):
     ap.add_argument("--note", default="", help="a line stored as the JSON's 'note' (how and where it was run)")
     ap.add_argument("--out", default="out/bench_posterior")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--collect", nargs="+", metavar="POSTERIOR_JSON",
+                    help="only summarise these runs' posterior.json side by side into --out (a .json file)")
     a = ap.parse_args(argv)
+    if a.collect:
+        check_output(Path(a.out), overwrite=a.overwrite)
+        collect(a.collect, Path(a.out), a.note)
+        return
     tofjax.enable_x64()
     from tofjax.compile_cache import enable_compilation_cache
 
