@@ -31,7 +31,7 @@ posterior_loaded.json).
     python experiments/bench_posterior.py --collect RUN1/posterior.json RUN2/posterior.json --out summary.json
 
 On a loaded machine the two samplers' wall times, minutes apart, vary with the load (three
-runs of the same code at load 7-11 gave NUTS over emcee 4.3x-7.1x): ``interleaved_cost``
+runs at load 7-18, the same draws (same seeds), gave NUTS over emcee 4.3x-7.1x per second): ``interleaved_cost``
 measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
 ``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
 ratio. NUTS runs its chains in threads, one per core (``--threads``, NutsOptions.threads);
