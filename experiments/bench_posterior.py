@@ -308,11 +308,20 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
 
 def collect(paths, out: Path, note: str = "") -> dict:
     """One summary of several runs' ``posterior.json`` (side by side: per run, per sampler
-    ``ess_min``, ``ess_min_per_s``, ``wall_s``, ``rhat_max``, and the ratios)."""
+    ``ess_min``, ``ess_min_per_s``, ``wall_s``, ``rhat_max``, and the ratios); ``.jsonl`` files
+    are experiments/posterior_variants.py's rows (NUTS only), kept as ``nuts_variants``."""
     import json as _json
 
-    runs = []
+    runs, variants = [], []
     for p in paths:
+        if str(p).endswith(".jsonl"):  # experiments/posterior_variants.py's NUTS-only rows
+            for line in Path(p).read_text().splitlines():
+                if line.strip():
+                    v = _json.loads(line)
+                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations", "ess_min",
+                                                           "rhat_max", "ess_min_per_gradient", "wall_s", "mean_tree_depth",
+                                                           "mean_accept", "load_average")} | {"source": str(p)})
+            continue
         r = _json.loads(Path(p).read_text())
         row = {"source": str(p), "note": r.get("note", ""), "machine": r["machine"],
                "nuts_over_emcee_ess_min_per_s": r["nuts_over_emcee_ess_min_per_s"],
@@ -323,7 +332,7 @@ def collect(paths, out: Path, note: str = "") -> dict:
             row[k] = {q: v.get(q) for q in ("ess_min", "ess_min_per_s", "wall_s", "rhat_max", "threads", "divergences",
                                             "gradient_evaluations", "log_density_evaluations")}
         runs.append(row)
-    res = {**({"note": note} if note else {}), "runs": runs}
+    res = {**({"note": note} if note else {}), "runs": runs, **({"nuts_variants": variants} if variants else {})}
     atomic_write_text(out, _json.dumps(res, indent=1))
     return res
 
