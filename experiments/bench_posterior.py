@@ -34,8 +34,9 @@ On a loaded machine the two samplers' wall times, minutes apart, vary with the l
 runs at load 7-18, the same draws (same seeds), gave NUTS over emcee 4.3x-7.1x per second): ``interleaved_cost``
 measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
 ``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
-ratio. NUTS runs its chains in threads, one per core (``--threads``, NutsOptions.threads);
-``--emcee-threads`` splits emcee's batch over threads (default 1, as before: the reference).
+ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default 1, one
+after the other: two threads were not a reliable gain on the loaded VM); ``--emcee-threads``
+splits emcee's batch over threads (default 1, as before: the reference).
 """
 
 from __future__ import annotations
@@ -354,7 +355,7 @@ def main(argv=None):
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
     ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
     ap.add_argument("--threads", type=int, default=dflt.threads,
-                    help="NUTS: chains run at the same time (NutsOptions.threads; default one per CPU core; 1: one after the other)")
+                    help="NUTS: chains run at the same time (NutsOptions.threads; default 1: one after the other)")
     ap.add_argument("--emcee-threads", type=int, default=1,
                     help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
     ap.add_argument("--walkers", type=int, default=32)

@@ -28,9 +28,9 @@ tail): no divergence in any of nine sheared runs against 1-11 per run unsheared 
 Warm-up and sampling of one chain are one compiled program with one NUTS kernel (the window
 adaptation is driven by hand, so the kernel is not compiled twice), compiled once per problem
 shape (not per capture): the chains, a study's replicates and the pilot reuse it. The chains
-run in threads, one per CPU core (``threads``; vmapped, each NUTS step would last as long as
-the longest chain's, and XLA's CPU runtime does not spread a vmapped gradient over the cores:
-4.1 ms for four against 1.0 ms for one). The draws do not depend on ``threads``.
+run one after the other, or ``threads`` at a time (vmapped, each NUTS step would last as long
+as the longest chain's, and XLA's CPU runtime does not spread a vmapped gradient over the
+cores: 4.1 ms for four against 1.0 ms for one). The draws do not depend on ``threads``.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ class NutsOptions:
     at most ``chains``; 1: one after the other. The draws are the same whatever it is: each
     chain's are fixed by its key; only the wall time changes)."""
 
-    chains: int = 4  # run ``threads`` at a time
+    chains: int = 4
     warmup: int = 250
     draws: int = 700
     start: str = "mode"
@@ -93,7 +93,7 @@ class NutsOptions:
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
-    threads: int | None = None
+    threads: int | None = 1
 
     def __post_init__(self):
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, (int, np.integer))
