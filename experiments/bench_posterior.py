@@ -28,6 +28,15 @@ baseline (docs/results/posterior.json; before the shear: posterior_noshear.json,
 posterior_loaded.json).
 
     python experiments/bench_posterior.py --out out/bench_posterior
+    python experiments/bench_posterior.py --collect RUN1/posterior.json RUN2/posterior.json --out summary.json
+
+On a loaded machine the two samplers' wall times, minutes apart, vary with the load (three
+runs at load 7-18, the same draws (same seeds), gave NUTS over emcee 4.3x-7.1x per second): ``interleaved_cost``
+measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
+``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
+ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default 1, one
+after the other: two threads were not a reliable gain on the loaded VM); ``--emcee-threads``
+splits emcee's batch over threads (default 1, as before: the reference).
 """
 
 from __future__ import annotations
@@ -43,22 +52,44 @@ import numpy as np
 
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
-from tofjax.fit.nuts import NutsOptions, diagnostics, sample_nuts
+from tofjax.fit.nuts import NutsOptions, _threads, diagnostics, sample_nuts
 from tofjax.fit.posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
 
 
-def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
+def threaded_batch(batch, threads: int):
+    """``batch`` (points (N, P) -> values (N,)) with the points split into ``threads`` parts
+    evaluated at the same time, one thread each (1: ``batch`` itself)."""
+    if threads <= 1:
+        return batch
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=threads)
+
+    def run(flats):
+        parts = np.array_split(np.asarray(flats), threads)
+        return np.concatenate(list(pool.map(batch, parts)))
+
+    return run
+
+
+def run_emcee(ld, walkers: int, steps: int, seed: int = 0, threads: int = 1) -> dict:
     import emcee
 
     P = ld.flat0.size
     rng = np.random.default_rng(seed)
     scale = np.sqrt(np.diag(ld.laplace_cov))
     start = ld.flat0[None, :] + 0.1 * scale[None, :] * rng.normal(size=(walkers, P))
-    ld.batch(start)  # compile outside the timing
-    sampler = emcee.EnsembleSampler(walkers, P, ld.batch, vectorize=True)
+    fn = threaded_batch(ld.batch, threads)
+    fn(start)  # compile outside the timing
+    # emcee's stretch move evaluates half the walkers at a time: a second shape, compiled here
+    # too (before, it compiled inside emcee's timed run, against emcee)
+    t = time.perf_counter()
+    fn(start[: walkers // 2])
+    half_compile = time.perf_counter() - t
+    sampler = emcee.EnsembleSampler(walkers, P, fn, vectorize=True)
     # emcee draws its stretch moves from NumPy's global generator, unseeded: its min ESS varied
     # 79-256 between two runs of the same settings. Seeded, a rerun gives the same chain.
     sampler.random_state = np.random.RandomState(seed).get_state()
@@ -75,6 +106,8 @@ def run_emcee(ld, walkers: int, steps: int, seed: int = 0) -> dict:
         "steps": steps,
         "move": "stretch (emcee's default, a = 2)",
         "seed": seed,
+        "threads": threads,
+        "half_batch_first_call_s": half_compile,
         "burn_in": steps // 4,
         "wall_s": wall,
         "ess_min": d["ess_min"],
@@ -117,6 +150,57 @@ def evaluation_cost(ld, walkers: int, repeats: int = 20) -> dict:
             "value_per_point_in_batch_s": float(np.median(tb)) / walkers, "walkers": walkers, "repeats": repeats}
 
 
+def interleaved_cost(ld, walkers: int, repeats: int = 9, n: int = 40, threads: int = 2) -> dict:
+    """Seconds per log-density gradient as NUTS spends them (``n`` value-and-gradients in one
+    compiled scan, no dispatch between them) and per value as emcee spends them (one call of
+    half the walkers, the stretch move's batch), each on one thread and on ``threads``
+    threads at once (gradients: ``threads`` scans concurrently; values: the batch split),
+    measured interleaved, repeat after repeat, so that a changing load hits all four alike.
+    Medians. On a loaded machine the samplers' own wall times, minutes apart, can differ by
+    the load alone; these costs times the per-evaluation ratio give a load-robust ratio."""
+    import jax
+    import jax.numpy as jnp
+    from concurrent.futures import ThreadPoolExecutor
+
+    vg = jax.value_and_grad(ld.fn)
+
+    @jax.jit
+    def grads(x0):
+        def body(c, _):
+            v, g = vg(c)
+            return c + 1e-12 * g, v
+        return jax.lax.scan(body, x0, None, length=n)[1]
+
+    rng = np.random.default_rng(1)
+    pts = ld.flat0[None, :] + 0.1 * np.sqrt(np.diag(ld.laplace_cov))[None, :] * rng.normal(size=(walkers // 2, ld.flat0.size))
+    x0 = [jnp.asarray(p) for p in pts[:threads]]
+    pool = ThreadPoolExecutor(max_workers=threads)
+    tb = threaded_batch(ld.batch, threads)
+    jax.block_until_ready(grads(x0[0]))
+    ld.batch(pts), tb(pts)
+    k = max(1, int(round(n / len(pts))))  # about as many values as gradients per timing
+    rows = {"gradient_1_thread_s": [], f"gradient_{threads}_threads_s": [], "value_1_thread_s": [], f"value_{threads}_threads_s": []}
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(grads(x0[0]))
+        rows["gradient_1_thread_s"].append((time.perf_counter() - t) / n)
+        t = time.perf_counter()
+        list(pool.map(lambda x: jax.block_until_ready(grads(x)), x0))
+        rows[f"gradient_{threads}_threads_s"].append((time.perf_counter() - t) / (n * threads))
+        t = time.perf_counter()
+        for _ in range(k):
+            ld.batch(pts)
+        rows["value_1_thread_s"].append((time.perf_counter() - t) / (k * len(pts)))
+        t = time.perf_counter()
+        for _ in range(k):
+            tb(pts)
+        rows[f"value_{threads}_threads_s"].append((time.perf_counter() - t) / (k * len(pts)))
+    pool.shutdown()
+    out = {key: float(np.median(v)) for key, v in rows.items()}
+    out.update(threads=threads, repeats=repeats, gradients_per_timing=n, batch=len(pts))
+    return out
+
+
 def small_scene_of(scene_name: str, small=None):
     """The scene, or with ``small = (sensors, zones, bins)`` a smaller one of the same physics;
     and its label."""
@@ -133,7 +217,7 @@ def small_scene_of(scene_name: str, small=None):
 
 
 def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
-        gain_prior: str = GAIN_PRIOR, note: str = "") -> dict:
+        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1) -> dict:
     scene, label = small_scene_of(scene_name, small)
     cap = simulate(scene, frames, seed=1)
     cal = Calibrator(scene, FitConfig())
@@ -156,6 +240,7 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "draws": nuts.draws,
         "target_accept": nuts.target_accept,
         "max_tree_depth": nuts.max_tree_depth,
+        "threads": _threads(nuts),
         "wall_s": warm.wall_s,
         "wall_s_with_compile_and_diagnostics": warm_total,
         "compile_s": warm.compile_s,
@@ -177,8 +262,20 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
     }
     print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
-    em = run_emcee(ld, walkers, emcee_steps)
+    em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)
     ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
+    per_eval = nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"] if em["ess_min_per_evaluation"] > 0 else float("inf")
+    ic = interleaved_cost(ld, walkers, threads=max(2, _threads(nuts)))
+    T = ic["threads"]
+    print("interleaved costs (ms):", {k: round(1e3 * v, 3) for k, v in ic.items() if k.endswith("_s")}, flush=True)
+    g_nuts = ic[f"gradient_{T}_threads_s"] if _threads(nuts) > 1 else ic["gradient_1_thread_s"]
+    v_em = ic[f"value_{T}_threads_s"] if emcee_threads > 1 else ic["value_1_thread_s"]
+    ic["per_evaluation_ratio_times_cost_ratio"] = {
+        "as_run": per_eval * v_em / g_nuts,  # the samplers as configured in this run
+        "nuts_1_thread_emcee_1_thread": per_eval * ic["value_1_thread_s"] / ic["gradient_1_thread_s"],
+        f"nuts_{T}_threads_emcee_1_thread": per_eval * ic["value_1_thread_s"] / ic[f"gradient_{T}_threads_s"],
+        f"nuts_{T}_threads_emcee_{T}_threads": per_eval * ic[f"value_{T}_threads_s"] / ic[f"gradient_{T}_threads_s"],
+    }
     targets = {
         "nuts_ess_min_ge_1000": nuts_row["ess_min"] >= 1000,
         "nuts_wall_le_60s": nuts_row["wall_s"] <= 60,
@@ -201,12 +298,44 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "evaluation_cost": cost,
         "samplers": {"nuts": nuts_row, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
-        "nuts_over_emcee_ess_min_per_evaluation": nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"]
-        if em["ess_min_per_evaluation"] > 0 else float("inf"),
+        "nuts_over_emcee_ess_min_per_evaluation": per_eval,
+        "interleaved_cost": ic,
+        "nuts_over_emcee_ess_min_per_s_load_robust": ic["per_evaluation_ratio_times_cost_ratio"]["as_run"],
         "targets": targets,
     }
     atomic_write_text(out / "posterior.json", json.dumps(result, indent=1))
     return result
+
+
+def collect(paths, out: Path, note: str = "") -> dict:
+    """One summary of several runs' ``posterior.json`` (side by side: per run, per sampler
+    ``ess_min``, ``ess_min_per_s``, ``wall_s``, ``rhat_max``, and the ratios); ``.jsonl`` files
+    are experiments/posterior_variants.py's rows (NUTS only), kept as ``nuts_variants``."""
+    import json as _json
+
+    runs, variants = [], []
+    for p in paths:
+        if str(p).endswith(".jsonl"):  # experiments/posterior_variants.py's NUTS-only rows
+            for line in Path(p).read_text().splitlines():
+                if line.strip():
+                    v = _json.loads(line)
+                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations", "ess_min",
+                                                           "rhat_max", "ess_min_per_gradient", "wall_s", "mean_tree_depth",
+                                                           "mean_accept", "load_average")} | {"source": str(p)})
+            continue
+        r = _json.loads(Path(p).read_text())
+        row = {"source": str(p), "note": r.get("note", ""), "machine": r["machine"],
+               "nuts_over_emcee_ess_min_per_s": r["nuts_over_emcee_ess_min_per_s"],
+               "nuts_over_emcee_ess_min_per_evaluation": r["nuts_over_emcee_ess_min_per_evaluation"],
+               "nuts_over_emcee_ess_min_per_s_load_robust": r.get("nuts_over_emcee_ess_min_per_s_load_robust"),
+               "interleaved_cost": r.get("interleaved_cost"), "targets": r["targets"]}
+        for k, v in r["samplers"].items():
+            row[k] = {q: v.get(q) for q in ("ess_min", "ess_min_per_s", "wall_s", "rhat_max", "threads", "divergences",
+                                            "gradient_evaluations", "log_density_evaluations")}
+        runs.append(row)
+    res = {**({"note": note} if note else {}), "runs": runs, **({"nuts_variants": variants} if variants else {})}
+    atomic_write_text(out, _json.dumps(res, indent=1))
+    return res
 
 
 def main(argv=None):
@@ -225,6 +354,10 @@ def main(argv=None):
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
     ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
+    ap.add_argument("--threads", type=int, default=dflt.threads,
+                    help="NUTS: chains run at the same time (NutsOptions.threads; default 1: one after the other)")
+    ap.add_argument("--emcee-threads", type=int, default=1,
+                    help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
@@ -232,7 +365,13 @@ def main(argv=None):
     ap.add_argument("--note", default="", help="a line stored as the JSON's 'note' (how and where it was run)")
     ap.add_argument("--out", default="out/bench_posterior")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--collect", nargs="+", metavar="POSTERIOR_JSON",
+                    help="only summarise these runs' posterior.json side by side into --out (a .json file)")
     a = ap.parse_args(argv)
+    if a.collect:
+        check_output(Path(a.out), overwrite=a.overwrite)
+        collect(a.collect, Path(a.out), a.note)
+        return
     tofjax.enable_x64()
     from tofjax.compile_cache import enable_compilation_cache
 
@@ -242,8 +381,8 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
                        target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
-                       shear=a.shear)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note)
+                       shear=a.shear, threads=a.threads)
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})

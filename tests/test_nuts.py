@@ -82,6 +82,34 @@ def test_nuts_short_run(fitted, tmp_path):
     assert np.median(mu_t) == pytest.approx(truth, rel=0.1)
     paths = plot_nuts(r, tmp_path)
     assert all(p.stat().st_size > 5000 for p in paths)
+    # the chains in threads draw exactly what they drew one after the other (threads=1, the default)
+    two = sample_nuts(cal, cap, res, NutsOptions(chains=2, warmup=60, draws=60, threads=2))
+    np.testing.assert_array_equal(two.samples, r.samples)
+
+
+def test_chains_in_threads_keep_their_order():
+    """_run_chains: the chains' outputs in the chains' order, the same in threads as one
+    after the other, and however many threads (more than chains, one)."""
+    import jax
+    import jax.numpy as jnp
+
+    from tofjax.fit.nuts import _run_chains, _threads
+
+    @jax.jit
+    def chain(x, n):
+        return jax.lax.fori_loop(0, 2000, lambda i, y: jnp.sin(y) + x, x), x * n
+
+    args = [(jnp.asarray(float(c)),) for c in range(5)]
+    seq = _run_chains(chain, args, (3.0,), 1)
+    for threads in (2, 8):
+        par = _run_chains(chain, args, (3.0,), threads)
+        assert len(par) == 5
+        for a, b in zip(seq, par):
+            np.testing.assert_array_equal(a[0], b[0])
+            np.testing.assert_array_equal(a[1], b[1])
+    assert [float(o[1]) for o in par] == [3.0 * c for c in range(5)]
+    assert _threads(NutsOptions(chains=4, threads=8)) == 4 and _threads(NutsOptions(chains=4, threads=1)) == 1
+    assert _threads(NutsOptions(chains=3)) == 1 and 1 <= _threads(NutsOptions(chains=3, threads=None)) <= 3
 
 
 def test_diagnostics_properties():
@@ -96,7 +124,8 @@ def test_diagnostics_properties():
 
 
 @pytest.mark.parametrize("kw", [{"chains": 0}, {"warmup": 5}, {"draws": -1}, {"draws": 1.5}, {"target_accept": 1.0},
-                                {"max_tree_depth": 0}, {"chains": True}, {"gain_prior": "jeffreys"}])
+                                {"max_tree_depth": 0}, {"chains": True}, {"gain_prior": "jeffreys"},
+                                {"threads": 0}, {"threads": True}, {"threads": 1.5}])
 def test_bad_options_are_one_line_errors(kw):
     with pytest.raises(UserError, match=next(iter(kw))):
         NutsOptions(**kw)
