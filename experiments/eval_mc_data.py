@@ -251,6 +251,7 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
             score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
             score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
             score["recall_by_contact_snr"] = _recall_by_snr(found, snr)
+            score["false_detections"] = _false_kinds(res.detections, truth, cfg.match_radius_m)
             score["seconds"] = time.perf_counter() - t
             if getattr(inv, "reconstructor", None) is not None:
                 score["contact_response"] = inv.reconstructor.response
@@ -270,6 +271,37 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
 
 
 SNR_BINS = (0.0, 3.0, 5.0, 8.0, 12.0, np.inf)
+
+
+def _false_kinds(detections, truth: np.ndarray, radius: float) -> dict:
+    """What the false detections (unmatched, one-to-one within ``radius``) are, by the true contact nearest each:
+    ``duplicate`` (that contact is matched by another detection, and it is within 2 radii: a contact fitted twice),
+    ``mislocated`` (that contact is unmatched, within 2 radii: found but placed more than ``radius`` off),
+    ``ghost`` (no true contact within 2 radii: light explained where there is no contact, e.g. between two).
+    With every frame's detections (x, y, strength, matched) and truth, for inspection."""
+    from scipy.optimize import linear_sum_assignment
+
+    kinds = {"duplicate": 0, "mislocated": 0, "ghost": 0}
+    nearest, frames = [], []
+    for det, c in zip(detections, truth):
+        pos = det.positions().reshape(-1, 2)
+        ok = np.zeros(len(pos), bool)
+        hit = np.zeros(len(c), bool)
+        if len(pos):
+            dd = np.hypot(*(pos[:, None, :] - c[None, :, :2]).transpose(2, 0, 1))
+            r, cc = linear_sum_assignment(np.where(dd <= radius, dd, 1e6))
+            good = dd[r, cc] <= radius
+            ok[r[good]], hit[cc[good]] = True, True
+            for i in np.flatnonzero(~ok):
+                j = int(np.argmin(dd[i]))
+                nearest.append(float(dd[i, j]))
+                kinds["ghost" if dd[i, j] > 2 * radius else "duplicate" if hit[j] else "mislocated"] += 1
+        frames.append({"detections": [[round(t["x_m"], 4), round(t["y_m"], 4), round(t["strength"], 3), bool(o)]
+                                      for t, o in zip(det.touches, ok)],
+                       "missed": [[round(float(x), 4), round(float(y), 4)] for x, y, _ in c[~hit]]})
+    return {"what": "false detections by the nearest true contact: duplicate (it is matched by another detection, "
+                    "within 2 match radii), mislocated (unmatched, within 2 match radii), ghost (none within 2 radii)",
+            **kinds, "nearest_true_contact_cm": [round(100 * d, 2) for d in nearest], "frames": frames}
 
 
 def _recall_by_snr(found: np.ndarray, snr: np.ndarray) -> dict:
