@@ -435,7 +435,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
         progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
         methods=("full", "model", "fit"), skip_l2: bool = False, fit_variants: dict | None = None,
-        fit_n_sigmas=()) -> dict:
+        fit_n_sigmas=(), columns=("own", "monte_carlo")) -> dict:
     import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
@@ -475,7 +475,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
                      "fit_variants": fit_variants or {}, "fit_n_sigmas": list(fit_n_sigmas),
-                     "skip_l2": skip_l2,
+                     "skip_l2": skip_l2, "detection_columns": list(columns),
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
                      "transported light, light entry and ambient) times this: the sensor's iterations per frame "
@@ -505,6 +505,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     mc_touch = [exposure * np.mean([mc_expected(touch_scene(scene, c), photons, s)[0] for s in range(seeds_touch)], 0)
                 for c in contacts]
     for col, b, tl in (("own", own_base, own_touch), ("monte_carlo", det_base, mc_touch)):
+        if col not in columns:
+            continue
         if progress:
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
@@ -521,7 +523,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     targets = {}
     for col in ("own", "monte_carlo"):
         c = result["calibration"][col]["guided"]
-        d = result["detection"][col]["methods"]
+        d = result["detection"].get(col, {}).get("methods", {})
         targets[col] = {
             "calibration_n1_within_1%": abs(c["n1_rel_error"]) <= 0.01,
             "calibration_reduced_chi2<=2 (photon noise)": c["reduced_chi2_photon_noise"] <= 2.0,
@@ -562,6 +564,8 @@ def main(argv=None):
     ap.add_argument("--skip-l2", action="store_true",
                     help="leave out the guided-vs-Monte-Carlo L2 and the first-order touch (they do not depend on the "
                          "detectors; minutes of Monte Carlo on a loaded machine)")
+    ap.add_argument("--columns", default="own,monte_carlo",
+                    help="detection columns, comma-separated: own, monte_carlo (both calibrated either way)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
@@ -582,6 +586,9 @@ def main(argv=None):
         ap.error(f"--fit-n-sigmas: {e}")
     if not all(n >= 0 and np.isfinite(n) for n in levels):
         ap.error(f"--fit-n-sigmas: each must be a finite number >= 0, got {a.fit_n_sigmas!r}")
+    cols = tuple(c.strip() for c in a.columns.split(",") if c.strip())
+    if not cols or set(cols) - {"own", "monte_carlo"}:
+        ap.error(f"--columns: own and/or monte_carlo, got {a.columns!r}")
     tofjax.enable_x64()
     if a.generate:
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
@@ -589,7 +596,7 @@ def main(argv=None):
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
             overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
             methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2, fit_variants=variants,
-            fit_n_sigmas=levels)
+            fit_n_sigmas=levels, columns=cols)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 
