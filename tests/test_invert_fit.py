@@ -96,7 +96,8 @@ def test_fast_threshold_is_in_noise_units(stand_in):
     stand-in's contact has a fixed amplitude: the baseline's counts, and so the noise, change)."""
     sc, base, optical = stand_in
     one = _stand_in_change(sc, 1)
-    opts = FitDetectOptions(cell_m=0.02, max_contacts=1, iterations=3, overdispersion=False, relocate=False)
+    opts = FitDetectOptions(cell_m=0.02, max_contacts=1, iterations=3, overdispersion=False, relocate=False,
+                            rebirth=False)
     for scale in (1.0, 0.25):
         b = base * scale
         resp = np.asarray(one(jnp.asarray([0.07, 0.08, 1.0]))).reshape(sc.shape)
