@@ -18,7 +18,11 @@ included, not a sum of single-contact responses):
    contacts already found is added.
 3. **Joint refit**: Levenberg-Marquardt on every contact's position and strength (the Jacobian
    by forward differentiation of the model), positions kept inside the guide, strengths in [0, 1].
-4. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
+4. **Moves of several contacts** after the forward selection: relocation, splits, and a death-and-birth
+   sweep (``rebirth``: a contact removed, the others refitted jointly without it, the forward selection
+   resumed; kept when chi-square plus ``n_sigma_forward^2`` per contact falls), which frees a weak contact
+   that a strong neighbour, pulled towards it, had absorbed.
+5. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
    in noise units: the drop is ``z^2`` of the new contact's evidence); then **backward pruning**:
    a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes.
 
