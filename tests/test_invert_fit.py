@@ -96,7 +96,8 @@ def test_fast_threshold_is_in_noise_units(stand_in):
     stand-in's contact has a fixed amplitude: the baseline's counts, and so the noise, change)."""
     sc, base, optical = stand_in
     one = _stand_in_change(sc, 1)
-    opts = FitDetectOptions(cell_m=0.02, max_contacts=1, iterations=3, overdispersion=False, relocate=False)
+    opts = FitDetectOptions(cell_m=0.02, max_contacts=1, iterations=3, overdispersion=False, relocate=False,
+                            rebirth=False)
     for scale in (1.0, 0.25):
         b = base * scale
         resp = np.asarray(one(jnp.asarray([0.07, 0.08, 1.0]))).reshape(sc.shape)
@@ -196,7 +197,10 @@ def test_fast_split_and_multi_start_leave_local_optima(stand_in):
     # (b) multi-start
     truth = np.array([[0.109, 0.076, 0.658], [0.061, 0.12, 0.591]])
     frame = _frame(sc, base, truth, K)[None]
-    one, two = (det.with_options(dataclasses.replace(opts, starts=s)).process(frame) for s in (1, 2))
+    # (without the death-and-birth move, which finds them from one start too: tests/test_greedy_rebirth.py)
+    one, two, reborn = (det.with_options(dataclasses.replace(opts, starts=s, rebirth=rb)).process(frame)
+                        for s, rb in ((1, False), (2, False), (1, True)))
     assert match(one.detections[0].positions(), truth[:, :2], 0.01)[0] < 2 and one.chi2[0] > 16.0, one.chi2
-    assert len(two.detections[0].touches) == 2 and match(two.detections[0].positions(), truth[:, :2], 0.01)[0] == 2
-    assert two.chi2[0] < 1.0
+    for res in (two, reborn):
+        assert len(res.detections[0].touches) == 2 and match(res.detections[0].positions(), truth[:, :2], 0.01)[0] == 2
+        assert res.chi2[0] < 1.0

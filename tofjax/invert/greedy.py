@@ -18,7 +18,11 @@ included, not a sum of single-contact responses):
    contacts already found is added.
 3. **Joint refit**: Levenberg-Marquardt on every contact's position and strength (the Jacobian
    by forward differentiation of the model), positions kept inside the guide, strengths in [0, 1].
-4. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
+4. **Moves of several contacts** after the forward selection: relocation, splits, and a death-and-birth
+   sweep (``rebirth``: a contact removed, the others refitted jointly without it, the forward selection
+   resumed; kept when chi-square plus ``n_sigma_forward^2`` per contact falls), which frees a weak contact
+   that a strong neighbour, pulled towards it, had absorbed.
+5. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
    in noise units: the drop is ``z^2`` of the new contact's evidence); then **backward pruning**:
    a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes.
 
@@ -80,6 +84,17 @@ class FitDetectOptions:
     - ``starts``: multi-start: the whole search is also run from each of the ``starts - 1`` next best local
       maxima of the first evidence map as the first contact; the fit with the lowest chi-square plus
       ``n_sigma_forward^2`` per contact is kept (default 1: off; each start costs a whole search).
+    - ``rebirth``: after the other moves, a death-and-birth sweep (weakest contact first): the contact is removed,
+      *the others are refitted jointly without it*, and the forward selection resumes from there (it may add
+      the contact back elsewhere, or two where there was one); kept when the chi-square plus
+      ``n_sigma_forward^2`` per contact falls. Unlike ``relocate`` and ``split`` (which propose from the
+      residual with the others fixed where they sat beside the removed contact), the proposal sees the
+      evidence the others had absorbed: a strong contact pulled towards a weak neighbour, or one contact
+      placed between two, moves back and frees the weak one (default on).
+    - ``rebirth_candidates``: the birth after a death also tries the next best local maxima of the proposal
+      (up to this many in all), alone and in pairs, each refitted briefly; the best of those is continued
+      like the first (1: the forward selection's single best cell only).
+    - ``rebirth_sweeps``: at most this many death-and-birth sweeps (a sweep that changes nothing ends them).
     - ``min_strength``: an extra floor on a contact's fitted strength (the model's coupling, 0-1;
       default 0: none)."""
 
@@ -100,6 +115,9 @@ class FitDetectOptions:
     rounds: int = 1
     starts: int = 1
     min_strength: float = 0.0
+    rebirth: bool = True
+    rebirth_sweeps: int = 2
+    rebirth_candidates: int = 3
 
     def __post_init__(self):
         for k in ("n_sigma", "n_sigma_forward", "min_strength", "min_separation_m", "edge_margin_m"):
@@ -112,6 +130,8 @@ class FitDetectOptions:
                 raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
         if self.max_contacts < 1 or self.iterations < 1:
             raise ConfigError("max_contacts and iterations must be >= 1")
+        if self.rebirth_sweeps < 0 or self.rebirth_candidates < 1:
+            raise ConfigError("rebirth_sweeps must be >= 0 and rebirth_candidates >= 1")
         if self.rounds < 0 or min(self.split_candidates, self.relocate_candidates, self.starts) < 1:
             raise ConfigError("rounds must be >= 0; split_candidates, relocate_candidates and starts >= 1")
 
@@ -308,7 +328,58 @@ class FitDetector:
             theta, active, chi, r = self._split(theta, active, chi, r, y, thr_add)
             if len(active) == n_before:
                 break  # no split kept: another round would repeat this one
+        if o.rebirth and len(active):
+            for _ in range(o.rebirth_sweeps):
+                theta, active, chi, r, changed = self._rebirth(theta, active, chi, r, y, thr_add)
+                if not changed:
+                    break
         return theta, active, chi, r
+
+    def _rebirth(self, theta, active, chi, r, y, thr_add):
+        """One death-and-birth sweep (see ``FitDetectOptions.rebirth``): for each contact (weakest first) remove it,
+        refit the others jointly, resume the forward selection; keep the result when the chi-square plus
+        ``thr_add`` per contact falls (by more than a tenth: not a re-convergence of the same fit)."""
+        K = self.K
+        score = chi + thr_add * len(active)
+        changed = False
+        for k in active[np.argsort(theta[2 * K + active])]:
+            if k not in active:
+                continue  # a previous birth reused its slot
+            t0 = theta.copy()
+            t0[2 * K + k] = 0.0
+            rest = active[active != k]
+            if len(rest):
+                t0, c0, r0 = self._refit(t0, rest, y, iterations=3)
+            else:
+                c0, r0 = self._chi2(t0, y)
+            trials = [(t0, rest, c0, r0)]
+            if self.options.rebirth_candidates > 1:
+                # births at the next best local maxima too, alone and in pairs (one contact placed between two)
+                _, _, _, gain = self._propose(r0, t0, rest)
+                peaks = self._local_maxima(gain, self.options.rebirth_candidates)
+                slots = np.setdiff1d(np.arange(K), rest)
+                sets = [(j,) for j in peaks[1:]] + [(a, b) for i, a in enumerate(peaks) for b in peaks[i + 1 :]
+                                                     if np.hypot(*(self.centres[a] - self.centres[b])) >= self.options.min_separation_m]
+                for js in sets:
+                    if len(rest) + len(js) > K:
+                        continue
+                    t = t0.copy()
+                    for slot, j in zip(slots, js):
+                        t[slot], t[K + slot] = self.centres[j]
+                        t[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                    act = np.concatenate([rest, slots[: len(js)]])
+                    t, c, rr = self._refit(t, act, y, iterations=2)  # a quick look; the best is continued
+                    trials.append((t, act, c, rr))
+                best = min(trials[1:], key=lambda q: q[2] + thr_add * len(q[1]), default=None)
+                trials = [trials[0]] + ([best] if best is not None else [])
+            for t, act, c, rr in trials:
+                t1, a1, c1, r1 = self._forward(t, act, c, rr, y, thr_add, [None])
+                if len(a1) > len(act) or len(trials) > 1:
+                    t1, c1, r1 = self._refit(t1, a1, y)
+                if c1 + thr_add * len(a1) < score - 0.1:
+                    theta, active, chi, r, changed = t1, a1, c1, r1, True
+                    score = chi + thr_add * len(active)
+        return theta, active, chi, r, changed
 
     def _forward(self, theta, active, chi, r, y, thr_add, first):
         """Forward selection from the current fit: add the proposal's best cell and refit all, while the
