@@ -450,6 +450,9 @@ def sample_posterior(
             start = backend.get_last_sample()  # continue from where it stopped
     sampler = emcee.EnsembleSampler(W, P, vectorised, vectorize=True, backend=backend)
     done = 0 if backend is None else backend.iteration
+    # emcee's moves draw from its own generator, seeded from the OS unless set: the same seed now gives the same chain
+    # (a resumed chain continues from a stream of its own, keyed by where it stopped)
+    sampler.random_state = np.random.RandomState(np.random.SeedSequence([options.seed, done]).generate_state(1)[0]).get_state()
     old_tau = np.inf
     converged = False
     for _ in sampler.sample(start, iterations=max(options.max_steps - done, 0), progress=options.progress):
