@@ -146,7 +146,7 @@ class ForwardModel(eqx.Module):
             geom=self.geometry,
             nodes=nodes,
             range=r,
-            falloff=C.node_falloff(nodes, params.near_field_m),
+            falloff=C.node_falloff(nodes, params.near_field_m, params.near_field_shape),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
             end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
@@ -170,7 +170,7 @@ class ForwardModel(eqx.Module):
             nodes = ctx.nodes
             # G over the part of each node after emission, exactly, and where in the node that
             # mass sits (the near field is about one node deep: its timing is the emission time's)
-            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m)
+            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m, params.near_field_shape)
             dctx = ctx._replace(falloff=fall)
             ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
             coverage = params.gain[:, None, None] * jnp.clip(1.0 - ended, 0.0, 1.0)
