@@ -127,6 +127,8 @@ def node_falloff(nodes: Nodes, near_field, shape=2.0):
     lo = nodes.r - 0.5 * nodes.dr
     hi = nodes.r + 0.5 * nodes.dr
     exact = (jnp.arctan(hi / near_field) - jnp.arctan(lo / near_field)) / near_field
+    if isinstance(shape, (int, float)) and shape == 2.0:  # a Python 2: nothing to add (nothing traced)
+        return exact
     # the correction on |r| (G is even): the node split at 0 where it straddles emission
     a, b = jnp.abs(lo), jnp.abs(hi)
     straddle = (lo < 0) & (hi > 0)

@@ -146,7 +146,10 @@ class ForwardModel(eqx.Module):
             geom=self.geometry,
             nodes=nodes,
             range=r,
-            falloff=C.node_falloff(nodes, params.near_field_m, params.near_field_shape),
+            # the default optics' distributed terms replace this by node_falloff_after_emission
+            # (with the near field's shape); the guided optics' interface term uses it, and the
+            # guided optics have no near-field shape (p = 2, FitConfig refuses it free there)
+            falloff=C.node_falloff(nodes, params.near_field_m),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
             end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
