@@ -9,6 +9,7 @@ import pytest
 from tofjax.model import components as C
 
 D = 0.003  # near field, m
+_correction = jax.jit(C.shape_correction)
 
 
 def _fine(f, lo, hi, n=20001):
@@ -37,12 +38,10 @@ def test_p2_adds_nothing_to_the_closed_forms():
     lo = jnp.asarray([0.0, 0.001, 0.004, 0.05])
     hi = lo + 0.005
     mass = (np.arctan(np.asarray(hi) / D) - np.arctan(np.asarray(lo) / D)) / D
-    dm, df1, df2 = (np.asarray(x) for x in C.shape_correction(lo, hi, D, 2.0))
+    dm, df1, df2 = (np.asarray(x) for x in _correction(lo, hi, D, 2.0))
     assert np.abs(dm / mass).max() < 1e-15 and np.abs(df1 / (mass * hi)).max() < 1e-15
     assert np.abs(df2 / (mass * hi**2)).max() < 1e-15
 
-
-_correction = jax.jit(C.shape_correction)
 
 
 @pytest.mark.parametrize("p", [1.0, 4.0, 65.0])
@@ -79,3 +78,23 @@ def test_gradients_finite_at_the_extremes():
 
     g = jax.jit(jax.vmap(jax.grad(total)))(jnp.asarray([[1.0, D], [2.0, D], [65.0, D], [1000.0, D]]))
     assert np.isfinite(np.asarray(g)).all()
+
+
+def test_config_and_params_know_the_shape(optoskin):
+    from tofjax.config import ConfigError
+    from tofjax.fit import FitConfig
+    from tofjax.fit.transforms import default_transforms
+    from tofjax.model import Params
+    from tofjax.model.params import ParamsError
+
+    assert "near_field_shape" in FitConfig().free
+    assert "near_field_shape" not in FitConfig(optics="guided").free  # the guided optics have no shape
+    with pytest.raises(ConfigError, match="near_field_shape"):
+        FitConfig(optics="guided", free=("n1", "near_field_shape"))
+    p = Params.from_scene(optoskin)
+    assert float(p.near_field_shape) == 2.0
+    with pytest.raises(ParamsError, match="near_field_shape"):
+        p.replace(near_field_shape=0.5)
+    t = default_transforms(optoskin)["near_field_shape"]
+    for v in (1.5, 2.0, 45.0):
+        assert float(t.to_physical(t.to_unconstrained(v))) == pytest.approx(v, rel=1e-9)
