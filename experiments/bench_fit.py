@@ -286,6 +286,8 @@ def _compare(fa: list, fb: list) -> dict:
     worst, worst_key, named = 0.0, None, {}
     for x, y in zip(fa, fb):
         for k, v in x["values"].items():
+            if k not in y["values"]:  # a parameter only one checkout fits (e.g. a new one)
+                continue
             se = np.maximum(np.asarray(x["stderr"][k]), 1e-300)
             d = float(np.max(np.abs(np.asarray(v) - np.asarray(y["values"][k])) / se))
             named[k] = max(named.get(k, 0.0), d)

@@ -92,6 +92,7 @@ def _row(res, n1, mu_t, seconds):
         "pulse": {k: float(getattr(res.params, k)) for k in ("pulse_sigma_s", "pulse_tail_s", "pulse_slow_weight", "pulse_slow_tail_s")},
         "emission_time_s": float(res.params.emission_time_s),
         "near_field_m": float(res.params.near_field_m),
+        "near_field_shape": float(getattr(res.params, "near_field_shape", 2.0)),
         "n1_rel_error": f_n1 / n1 - 1,
         "mu_t_rel_error": f_mu / mu_t - 1,
         # Laplace standard error of mu_t (relative to the truth) and the error in its units

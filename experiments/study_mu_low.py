@@ -426,6 +426,8 @@ def _fit_row(cal, cap, n1: float, mu_t: float) -> dict:
             "mu_t_rel_error": float(res.params.mu_s_per_m + res.params.mu_a_per_m) / mu_t - 1,
             "mu_t_stderr_rel": None if se is None else se / mu_t, "reduced_chi2": float(res.reduced_chi2),
             "end_incidence_power": float(getattr(res.params, "end_incidence_power", np.nan)),
+            "near_field_m": float(res.params.near_field_m),
+            "near_field_shape": float(getattr(res.params, "near_field_shape", 2.0)),
             "seconds": time.perf_counter() - t}
 
 

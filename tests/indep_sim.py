@@ -17,7 +17,11 @@ may break):
   go to a fine time grid (``fine`` sub-bins per bin, nearest cell), are convolved with the
   instrument response sampled on that grid, and summed into bins.
 * **Near field.** ``G(r) = 1 / max(r, r0)^2`` with ``r0 = near_field_fraction x thickness``
-  (tofjax: ``1 / (r^2 + thickness^2)``).
+  (tofjax: ``(r^p + d^p)^(-2/p)``, the scene's ``1 / (r^2 + thickness^2)`` at ``p = 2``).
+  ``near_field_law`` picks another law with the same ``r0`` (a third one, neither tofjax's
+  family nor this default, to test that a fit does not depend on one law):
+  ``"gaussian"``: ``(1 - exp(-r^2 / r0^2)) / r^2``; ``"exponential"``:
+  ``(1 - exp(-r / r0))^2 / r^2`` (both finite at 0, ``1/r^2`` far away).
 * **Instrument response.** A Gaussian (``pulse_sigma_s``) convolved with *two* exponential
   tails (``tail_fast_s``, ``tail_slow_s``, weight ``slow_weight`` on the slow one); tofjax uses
   one tail (an EMG).
@@ -80,6 +84,8 @@ class IndepOptions:
     crosstalk_width_s: float = 30e-12
     ambient_spread: float = 0.3
     near_field_fraction: float = 0.6
+    #: the near field's law (module docstring): "max" (the default), "gaussian" or "exponential"
+    near_field_law: str = "max"
     touch_coupling: float = 0.6
     range_step_m: float = 1e-3
     angles_per_zone: int = 12
@@ -200,7 +206,19 @@ class IndepRig:
 
     def _falloff(self, r):
         r0 = self.options.near_field_fraction * self.scene.waveguide.thickness_m
-        return 1.0 / np.maximum(r, r0) ** 2
+        law = self.options.near_field_law
+        if law == "max":
+            return 1.0 / np.maximum(r, r0) ** 2
+        r = np.asarray(r, float)
+        x = r / r0
+        safe = np.where(x > 0, x, 1.0)
+        if law == "gaussian":  # (1 - exp(-x^2)) / x^2 -> 1 at 0
+            f = np.where(x > 1e-4, -np.expm1(-safe**2) / safe**2, 1.0 - 0.5 * x**2)
+        elif law == "exponential":  # ((1 - exp(-x)) / x)^2 -> 1 at 0
+            f = np.where(x > 1e-6, (-np.expm1(-safe) / safe) ** 2, 1.0 - x)
+        else:
+            raise ValueError(f"near_field_law: 'max', 'gaussian' or 'exponential', got {law!r}")
+        return f / r0**2
 
     # ---- contacts ---------------------------------------------------------------------------
     def _disk_points(self, contacts: np.ndarray):

@@ -100,6 +100,7 @@ FITTABLE = {
     "multiple_scattering": "",
     "volume_backscatter_fraction": "",
     "near_field_m": "m",
+    "near_field_shape": "",
 }
 
 
@@ -133,4 +134,8 @@ def default_transforms(scene: Scene) -> dict[str, Transform]:
         "multiple_scattering": Transform("log", scale=1.0),
         "volume_backscatter_fraction": Transform("log", scale=0.01),
         "near_field_m": Transform("log", scale=max(scene.waveguide.near_field, 1e-6)),
+        # the near field's shape p in G = (r^p + d^p)^(-2/p): from 1/(r + d)^2 (1) through the
+        # scene's 1/(r^2 + d^2) (2) to 1/max(r, d)^2 (the cap, 65, is within 2% of it); near 1
+        # the sigmoid is a log of p - 1 (scale 64)
+        "near_field_shape": Transform("sigmoid", lo=1.0, hi=65.0),
     }

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .geometry import Geometry
 from .params import SPEED_OF_LIGHT_M_PER_S, Params
@@ -53,13 +54,70 @@ def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes
     return Nodes(t=t, h=h, r=0.5 * c1 * (t - params.emission_time_s), dr=0.5 * c1 * h, c1=c1)
 
 
-def falloff(r, near_field):
-    """Geometric factor G (Eq. 4) with the near field regularised: finite at r = 0."""
-    return 1.0 / (r**2 + near_field**2)
+#: Gauss-Legendre points per piece of a node (each node's range is split where r = d) for the
+#: near field's shape correction (:func:`shape_correction`)
+SHAPE_POINTS = 6
 
 
-def node_falloff(nodes: Nodes, near_field):
-    """G integrated over each node's range, exactly: (atan(r_hi/r0) - atan(r_lo/r0)) / r0.
+def _pow_small(s, p):
+    """``s^p`` for ``0 <= s <= 1``, with finite gradients at ``s = 0`` (where it is 0)."""
+    pos = s > 0
+    return jnp.where(pos, jnp.exp(p * jnp.log(jnp.where(pos, s, 1.0))), 0.0)
+
+
+def falloff(r, near_field, shape=2.0):
+    """Geometric factor G (Eq. 4) with the near field regularised: finite at r = 0.
+
+    ``G = (r^p + d^p)^(-2/p)``, ``d = near_field``, ``p = shape`` (``Params.near_field_shape``):
+    ``1 / (r^2 + d^2)`` at ``p = 2`` (seed 000's law), ``1 / max(r, d)^2`` as ``p`` grows,
+    ``1 / (r + d)^2`` at ``p = 1``; ``1/r^2`` far from the sensor for every ``p``. Written as
+    ``m^-2 (1 + s^p)^(-2/p)`` with ``m = max(r, d)``, ``s = min(r, d) / m``: no overflow for any
+    ``p``, gradients finite everywhere (``r = 0`` included)."""
+    r = jnp.abs(r)
+    far = r >= near_field
+    m = jnp.where(far, r, near_field)
+    s = jnp.where(far, near_field / jnp.where(far, r, 1.0), r / near_field)
+    return jnp.exp(-(2.0 / shape) * jnp.log1p(_pow_small(s, shape))) / m**2
+
+
+def _shape_excess(u, shape):
+    """``w_p(u) - 1``, ``w_p(u) = (d^2 / cos^2 u) G_p(d tan u)``: G's shape relative to ``p = 2``
+    in the variable ``u = atan(r / d)`` (in which ``G_2`` integrates to ``u / d``). ``w_p``
+    depends on ``s = tan(min(u, pi/2 - u))`` only, lies between 1/2 and 2, and is exactly 1 at
+    ``p = 2``."""
+    s = jnp.tan(jnp.clip(jnp.minimum(u, 0.5 * jnp.pi - u), 0.0, 0.25 * jnp.pi))
+    return jnp.expm1(jnp.log1p(s * s) - (2.0 / shape) * jnp.log1p(_pow_small(s, shape)))
+
+
+def shape_correction(lo, hi, near_field, shape):
+    """What the shape ``p`` adds to ``int G``, ``int r G`` and ``int r^2 G`` over ``[lo, hi]``
+    (``0 <= lo <= hi``) relative to the closed forms at ``p = 2``: ``(dM, dF1, dF2)``, each 0 at
+    ``p = 2``. Gauss-Legendre in ``u = atan(r / d)`` (``dr = d du / cos^2 u``: the integrand is
+    bounded), each node split at ``r = d`` (``u = pi/4``), where ``G``'s shape bends most
+    (a kink as ``p`` grows): :data:`SHAPE_POINTS` points on each piece."""
+    d = near_field
+    ulo, uhi = jnp.arctan(lo / d), jnp.arctan(hi / d)
+    q = 0.25 * jnp.pi
+    x, wts = np.polynomial.legendre.leggauss(SHAPE_POINTS)
+    x, wts = jnp.asarray(x, lo.dtype), jnp.asarray(wts, lo.dtype)
+    v = 0.5 * (x + 1.0)  # on [0, 1]
+    dm = df1 = df2 = 0.0
+    # graded towards the bend: u = bend -+ width v^2 on each side (the points crowd where the
+    # shape bends sharply, within ~1/p of pi/4 in u)
+    for bend, far_end in ((jnp.maximum(jnp.minimum(uhi, q), ulo), ulo), (jnp.minimum(jnp.maximum(ulo, q), uhi), uhi)):
+        width = (far_end - bend)[..., None]
+        u = bend[..., None] + width * v * v  # (..., points)
+        g = _shape_excess(u, shape) * (wts * v) * jnp.abs(width)  # du = 2 |width| v dv, dv = dx / 2
+        t = jnp.tan(u)
+        dm = dm + jnp.sum(g, -1) / d
+        df1 = df1 + jnp.sum(g * t, -1)
+        df2 = df2 + d * jnp.sum(g * t * t, -1)
+    return dm, df1, df2
+
+
+def node_falloff(nodes: Nodes, near_field, shape=2.0):
+    """G integrated over each node's range: (atan(r_hi/r0) - atan(r_lo/r0)) / r0 at ``p = 2``
+    (exactly), plus :func:`shape_correction` for another shape.
 
     G changes by a large factor within one node near the sensor; integrating it
     in closed form instead of sampling it keeps the near field accurate at any
@@ -68,7 +126,15 @@ def node_falloff(nodes: Nodes, near_field):
     """
     lo = nodes.r - 0.5 * nodes.dr
     hi = nodes.r + 0.5 * nodes.dr
-    return (jnp.arctan(hi / near_field) - jnp.arctan(lo / near_field)) / near_field
+    exact = (jnp.arctan(hi / near_field) - jnp.arctan(lo / near_field)) / near_field
+    if isinstance(shape, (int, float)) and shape == 2.0:  # a Python 2: nothing to add (nothing traced)
+        return exact
+    # the correction on |r| (G is even): the node split at 0 where it straddles emission
+    a, b = jnp.abs(lo), jnp.abs(hi)
+    straddle = (lo < 0) & (hi > 0)
+    d1 = shape_correction(jnp.where(straddle, 0.0, jnp.minimum(a, b)), jnp.where(straddle, a, jnp.maximum(a, b)), near_field, shape)[0]
+    d2 = shape_correction(jnp.zeros_like(b), jnp.where(straddle, b, 0.0), near_field, shape)[0]
+    return exact + d1 + d2
 
 
 class NodeSpread(NamedTuple):
@@ -109,7 +175,7 @@ def smooth_like_deposit(masses, offset=None):
     return masses * (1.0 - second) + early[..., 2:] + late[..., :-2]
 
 
-def node_falloff_after_emission(nodes: Nodes, near_field):
+def node_falloff_after_emission(nodes: Nodes, near_field, shape=2.0):
     """G integrated over the part of each node's range after emission, and where in the node
     that mass sits: ``(mass (K,), NodeSpread(offset (K,), variance (K,)))``, in node spacings:
     the mean range of ``G`` over the part from the node's centre, and its variance about that
@@ -136,8 +202,10 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
 
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
-    mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0), 0.0) / r0
-    first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2))  # int r G dr
+    # the closed forms of G at p = 2, plus what another shape p adds (0 at p = 2)
+    dm, df1, df2 = shape_correction(lo, hi, r0, shape)
+    mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0) + r0 * dm, 0.0) / r0
+    first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2)) + df1  # int r G dr
     some = mass > 1e-9 * (0.5 * jnp.pi / r0)  # the double-where keeps the gradient finite
     safe = jnp.where(some, mass, 1.0)
     mean_r = jnp.where(some, first / safe, 0.5 * (lo + hi))
@@ -147,7 +215,10 @@ def node_falloff_after_emission(nodes: Nodes, near_field):
     # out sooner) the moments of G's Taylor series about the node's centre take over (a density
     # 1 + a x + b x^2 + c x^3 on a whole node, x in node spacings): the two agree there to ~1e-6
     # (float32: ~1e-5) node^2
-    second = (hi - lo) - 2.0 * rc * first + (rc * rc - r0 * r0) * mass
+    # (with another shape: the p = 2 identity applied to the p = 2 parts, plus the corrections'
+    # own second moment about the centre)
+    mass2, first2 = mass - dm, first - df1
+    second = (hi - lo) - 2.0 * rc * first2 + (rc * rc - r0 * r0) * mass2 + (df2 - 2.0 * rc * df1 + rc * rc * dm)
     exact_off = (mean_r - rc) / dr
     exact_var = jnp.where(some, second / (safe * dr * dr), 0.0) - exact_off**2
     R2 = rc * rc + r0 * r0
@@ -339,7 +410,7 @@ def end(ctx) -> jax.Array:
     refl = p.end_reflectance
     if ctx.edge_cos is not None:
         refl = refl * edge_law(ctx.edge_cos, p.end_incidence_power)
-    amp = refl * falloff(length, p.near_field_m) * transmittance(length, mu_t)
+    amp = refl * falloff(length, p.near_field_m, p.near_field_shape) * transmittance(length, mu_t)
     amp = jnp.where(length > 0, amp, 0.0) / length.shape[-1]  # rays pointing out see no edge
     if ctx.contacts is not None:
         amp = amp * shadow(length, ctx.contacts, p)
@@ -358,7 +429,7 @@ def touch(ctx) -> jax.Array:
     r, w = contact_ranges(ctx)  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     beta = p.touch_strength * cg.fraction  # (S, Z, N)
-    amp = beta[..., None] * (w * falloff(r, p.near_field_m) * transmittance(r, mu_t))[:, None]  # (S,Z,N,M)
+    amp = beta[..., None] * (w * falloff(r, p.near_field_m, p.near_field_shape) * transmittance(r, mu_t))[:, None]  # (S,Z,N,M)
     if ctx.shadowing:
         amp = amp * shadow(jnp.broadcast_to(r[:, None], amp.shape), cg, p, exclude_self=True)
     t = p.emission_time_s + 2.0 * r / nodes.c1  # (S, N, M)

@@ -146,6 +146,9 @@ class ForwardModel(eqx.Module):
             geom=self.geometry,
             nodes=nodes,
             range=r,
+            # the default optics' distributed terms replace this by node_falloff_after_emission
+            # (with the near field's shape); the guided optics' interface term uses it, and the
+            # guided optics have no near-field shape (p = 2, FitConfig refuses it free there)
             falloff=C.node_falloff(nodes, params.near_field_m),
             transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
             end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
@@ -170,7 +173,7 @@ class ForwardModel(eqx.Module):
             nodes = ctx.nodes
             # G over the part of each node after emission, exactly, and where in the node that
             # mass sits (the near field is about one node deep: its timing is the emission time's)
-            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m)
+            fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m, params.near_field_shape)
             dctx = ctx._replace(falloff=fall)
             ended = C.step_on(ctx.end_times, nodes)  # rays past their far edge
             coverage = params.gain[:, None, None] * jnp.clip(1.0 - ended, 0.0, 1.0)

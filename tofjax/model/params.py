@@ -54,6 +54,7 @@ _RANGES = (
     ("multiple_scattering", 0.0, np.inf, True),
     ("shadow_opacity", 0.0, 1.0, True),
     ("near_field_m", 0.0, np.inf, False),
+    ("near_field_shape", 1.0, 1000.0, True),
     ("touch_xy_m", -np.inf, np.inf, True),
     ("touch_radius_m", 0.0, np.inf, False),
     ("touch_strength", 0.0, np.inf, True),
@@ -101,6 +102,10 @@ class Params(eqx.Module):
     multiple_scattering: Float[Array, ""]
     shadow_opacity: Float[Array, ""]
     near_field_m: Float[Array, ""]
+    # the near field's shape p: G(r) = (r^p + d^p)^(-2/p), d = near_field_m. 2: 1/(r^2 + d^2)
+    # (seed 000's law, what a scene states); 1: 1/(r + d)^2; large p: 1/max(r, d)^2. A rig's
+    # near field is not known a priori: calibration fits p (docs/physics.md, "Near field")
+    near_field_shape: Float[Array, ""]
     touch_xy_m: Float[Array, "N 2"]
     touch_radius_m: Float[Array, " N"]
     touch_strength: Float[Array, " N"]
@@ -171,6 +176,8 @@ class Params(eqx.Module):
             multiple_scattering=f(wg.multiple_scattering),
             shadow_opacity=f(wg.shadow_opacity),
             near_field_m=f(wg.near_field),
+            # a scene states seed 000's law 1/(r^2 + d^2)
+            near_field_shape=f(2.0),
             touch_xy_m=f(el[:, :2].reshape(-1, 2)),
             touch_radius_m=f(el[:, 2]),
             touch_strength=f(el[:, 3]),

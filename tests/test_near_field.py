@@ -1,0 +1,100 @@
+"""The near field's shape family G = (r^p + d^p)^(-2/p) (Params.near_field_shape): today's law at
+p = 2, the node integrals against fine quadrature, finite gradients at the extremes."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tofjax.model import components as C
+
+D = 0.003  # near field, m
+_correction = jax.jit(C.shape_correction)
+
+
+def _fine(f, lo, hi, n=20001):
+    """int f over [lo, hi] by the trapezoid rule on a fine grid, split at D (the bend)."""
+    out = 0.0
+    cuts = [lo] + ([D] if lo < D < hi else []) + [hi]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        r = np.linspace(a, b, n)
+        out += np.trapezoid(f(r), r)
+    return out
+
+
+def test_family_contains_todays_law_and_its_limits():
+    r = jnp.linspace(0.0, 0.2, 2001)
+    g2 = C.falloff(r, D, 2.0)
+    np.testing.assert_allclose(np.asarray(g2), 1.0 / (np.asarray(r) ** 2 + D**2), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(C.falloff(r, D, 1.0)), 1.0 / (np.asarray(r) + D) ** 2, rtol=1e-13)
+    big = np.asarray(C.falloff(r, D, 400.0))
+    np.testing.assert_allclose(big, 1.0 / np.maximum(np.asarray(r), D) ** 2, rtol=4e-3)  # 2^(-2/400) at r = D
+    # far from the sensor every shape is 1/r^2
+    for p in (1.0, 2.0, 65.0):
+        assert float(C.falloff(0.2, D, p)) * 0.2**2 == pytest.approx(1.0, abs=0.04)
+
+
+def test_p2_adds_nothing_to_the_closed_forms():
+    lo = jnp.asarray([0.0, 0.001, 0.004, 0.05])
+    hi = lo + 0.005
+    mass = (np.arctan(np.asarray(hi) / D) - np.arctan(np.asarray(lo) / D)) / D
+    dm, df1, df2 = (np.asarray(x) for x in _correction(lo, hi, D, 2.0))
+    assert np.abs(dm / mass).max() < 1e-15 and np.abs(df1 / (mass * hi)).max() < 1e-15
+    assert np.abs(df2 / (mass * hi**2)).max() < 1e-15
+
+
+
+@pytest.mark.parametrize("p", [1.0, 4.0, 65.0])
+def test_node_integrals_match_fine_quadrature(p):
+    """Mass, first and second moment of G over node ranges (closed form at p = 2 plus the
+    Gauss-Legendre correction) against the trapezoid rule on 2e4 points per piece: within
+    1e-4 (the sharpest bend, p = 65 on a node ending at r = d: 2e-5)."""
+    edges = np.array([0.0, 0.0012, D, 0.0055, 0.008, 0.02, 0.1])
+    lo, hi = jnp.asarray(edges[:-1]), jnp.asarray(edges[1:])
+    dm, df1, df2 = (np.asarray(x) for x in _correction(lo, hi, D, p))
+
+    def g(r):  # G in NumPy, written as the physics states it
+        return (r**p + D**p) ** (-2.0 / p)
+
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        mass = np.arctan(b / D) / D - np.arctan(a / D) / D + dm[i]
+        first = 0.5 * (np.log1p((b / D) ** 2) - np.log1p((a / D) ** 2)) + df1[i]
+        second = (b - a) - D * D * (np.arctan(b / D) - np.arctan(a / D)) / D + df2[i]
+        ref = [_fine(lambda r: g(r) * r**k, a, b) for k in (0, 1, 2)]
+        for got, want in zip((mass, first, second), ref):
+            assert got == pytest.approx(want, rel=1e-4), (i, got, want)
+
+
+def test_gradients_finite_at_the_extremes():
+    """In p and d, at r = 0, r = d and far away, p from 1 to 1000; and the node masses' too."""
+    ps, rs = (jnp.asarray(x).ravel() for x in np.meshgrid([1.0, 2.0, 65.0, 1000.0], [0.0, D, 0.3]))
+    grad = jax.jit(jax.vmap(jax.grad(lambda p, d, r: C.falloff(r, d, p), argnums=(0, 1, 2)), (0, None, 0)))
+    assert all(np.isfinite(np.asarray(x)).all() for x in grad(ps, D, rs))
+    nodes = C.Nodes(t=None, h=None, r=jnp.arange(-3, 40) * 0.005 + 0.0013, dr=jnp.asarray(0.005), c1=None)
+
+    def total(q):
+        mass, spread = C.node_falloff_after_emission(nodes, q[1], q[0])
+        return jnp.sum(mass) + jnp.sum(spread.offset) + jnp.sum(spread.variance)
+
+    g = jax.jit(jax.vmap(jax.grad(total)))(jnp.asarray([[1.0, D], [2.0, D], [65.0, D], [1000.0, D]]))
+    assert np.isfinite(np.asarray(g)).all()
+
+
+def test_config_and_params_know_the_shape(optoskin):
+    from tofjax.config import ConfigError
+    from tofjax.fit import FitConfig
+    from tofjax.fit.transforms import default_transforms
+    from tofjax.model import Params
+    from tofjax.model.params import ParamsError
+
+    assert "near_field_shape" in FitConfig().free
+    assert "near_field_shape" not in FitConfig(optics="guided").free  # the guided optics have no shape
+    with pytest.raises(ConfigError, match="near_field_shape"):
+        FitConfig(optics="guided", free=("n1", "near_field_shape"))
+    p = Params.from_scene(optoskin)
+    assert float(p.near_field_shape) == 2.0
+    with pytest.raises(ParamsError, match="near_field_shape"):
+        p.replace(near_field_shape=0.5)
+    t = default_transforms(optoskin)["near_field_shape"]
+    for v in (1.5, 2.0, 45.0):
+        assert float(t.to_physical(t.to_unconstrained(v))) == pytest.approx(v, rel=1e-9)
