@@ -79,8 +79,11 @@ NUISANCE_WIDTH = 0.3
 #: Its draws correlated with n1, extinction and albedo by less than 0.02 and with the pulse
 #: width by -0.15 (experiments/posterior_geometry.py, docs/calibration.md). For a
 #: capture whose light-entry peak is resolved, sample it: ``hold=HELD_SLOW_TAIL``.
+#: And the near field's shape (``near_field_shape``, free in the point fit since the session of
+#: 2026-11-26): its sigmoid coordinate on (1, 65) has walls of its own, and every sampler figure
+#: (ESS, divergences, coverage) was measured without it; held until a run shows it samples cleanly.
 HELD_SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")
-HELD = (*HELD_SLOW_TAIL, "crosstalk_width_s")
+HELD = (*HELD_SLOW_TAIL, "crosstalk_width_s", "near_field_shape")
 #: Prior of the profiled gains: "log-uniform" (default, ``p(g) ~ 1/g``) or "flat" (before
 #: issue 16's rework; its volume term ``-log ||R||`` per zone moved the posterior's bulk
 #: away from the fit along the ridge).
