@@ -168,7 +168,8 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     dt = start.n1.dtype
     chi = np.asarray(_stored("calibration envelope grid", envelope_grid,
                              (problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt))))
-    albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
+    # the sum in NumPy (same dtype, same rounding): a JAX add would compile a small program in a new process
+    albedo = float(start.mu_s_per_m) / float(np.asarray(start.mu_s_per_m) + np.asarray(start.mu_a_per_m))
     order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
     out = []
     for j, i in order[:count]:
