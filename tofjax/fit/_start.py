@@ -116,17 +116,19 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
         n1 = n1 + float(base.n1) - ref_n1
     found = n1 is not None
     n1 = float(base.n1) if n1 is None else float(np.clip(n1, 1.05, 3.5))
+    dt = base.n1.dtype
+    # NumPy values of the pytree's dtype: replacing with Python floats compiles a small program in every new process
     start = base.replace(
-        emission_time_s=t_e,
+        emission_time_s=np.asarray(t_e, dt),
         ambient_counts=np.maximum(ambient, 0.1),
-        n1=n1,
-        mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
-        mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
+        n1=np.asarray(n1, dt),
+        mu_s_per_m=np.asarray(max(float(base.mu_s_per_m), 1e-3), dt),
+        mu_a_per_m=np.asarray(max(float(base.mu_a_per_m), 1e-3), dt),
     )
     if "crosstalk_width_s" in problem.nonlinear and float(base.crosstalk_width_s) < LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s:
         # a width far below the pulse's barely changes the peak (it adds in quadrature): no
         # gradient to leave from; the fit starts at a fifth of a bin and may go back to ~0
-        start = start.replace(crosstalk_width_s=LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s)
+        start = start.replace(crosstalk_width_s=np.asarray(LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s, dt))
     return start, found
 
 

@@ -388,7 +388,7 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
     :data:`SLOW_WEIGHT_START` when the scene states none (a zero share has no gradient)."""
     base = Params.from_scene(scene, dtype)
     if config.pulse_tails == 2 and float(base.pulse_slow_weight) == 0.0:
-        base = base.replace(pulse_slow_weight=SLOW_WEIGHT_START)
+        base = base.replace(pulse_slow_weight=np.asarray(SLOW_WEIGHT_START, dtype))  # NumPy: no small program to compile
     return base
 
 
@@ -650,7 +650,12 @@ def _anchor(start: Params, found: bool, config: FitConfig, dtype):
     """(n1 from timing, its width): the timing measurement the fit keeps (width inf: none)."""
     n1 = float(start.n1)
     width = config.timing_anchor * n1 if (found and config.timing_anchor > 0) else np.inf
-    return jnp.asarray(np.asarray([n1, width], dtype))  # from NumPy: no small program to compile
+    return jax.device_put(np.asarray([n1, width], dtype))  # a transfer: jnp.asarray would compile a small program
+
+
+def _mu_t(p: Params) -> float:
+    """mu_s + mu_a on the host (same dtype, same rounding as the JAX sum, without compiling it)."""
+    return float(np.asarray(p.mu_s_per_m) + np.asarray(p.mu_a_per_m))
 
 
 def _rank(res: CalibrationResult) -> tuple:
@@ -700,7 +705,7 @@ def calibrate(
     if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
         candidates, n_basins = envelope_candidates(problem, start, data, sigma, 1 + config.restarts, with_basins=True)
         stages.append(
-            {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": float(c.mu_s_per_m + c.mu_a_per_m)} for c in candidates]}
+            {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": _mu_t(c)} for c in candidates]}
         )
     else:
         candidates, n_basins = [start], 1
@@ -710,7 +715,7 @@ def calibrate(
     for k, s in enumerate(candidates):
         if best is not None and best.result == "successful":
             # the basin check: only the other basins' starts, away from every fit's end so far
-            mt = float(s.mu_s_per_m + s.mu_a_per_m)
+            mt = _mu_t(s)
             if k >= n_basins or any(abs(np.log(mt / max(e, 1e-12))) < np.log(2.0) for e in ends):
                 continue
         sol = run_fit(
