@@ -186,6 +186,20 @@ def test_prefetch_reads_the_executable_ahead(tmp_path, monkeypatch):
     assert not compile_cache.prefetch("pf", args)
 
 
+def test_cli_fast_exit_keeps_code_and_messages(tmp_path):
+    """``tofjax calibrate`` from the command line ends without the interpreter's teardown: its
+    exit code and its messages (flushed first) are those of a normal exit."""
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "tofjax.cli", "calibrate", str(tmp_path / "missing.h5"),
+                           "--out", str(tmp_path / "c.json")], capture_output=True, text=True,
+                          env=dict(os.environ, TOFJAX_COMPILATION_CACHE="0"))
+    assert done.returncode == 2
+    assert done.stderr.startswith("tofjax calibrate: error:") and "missing.h5" in done.stderr
+
+
 def test_program_store_follows_the_environment(tmp_path, monkeypatch):
     from tofjax import compile_cache
 

@@ -31,7 +31,10 @@ second; the store therefore also keeps the *compiled executable* of each program
 (``<key>-<machine>.xla``, :mod:`jax.experimental.serialize_executable`, keyed further by the
 backend, the host CPU's features and ``$XLA_FLAGS``), which a later process loads and runs
 directly. What remains of a warm start is then mostly loading that executable, whose cost
-grows with its number of kernels (see ``experiments/first_fit_kernels.py``).
+grows with its number of kernels (see ``experiments/first_fit_kernels.py``); the load releases
+the GIL, so :func:`prefetch` starts it on a background thread as soon as the arguments' shapes
+are known (the calibration does so before its start stages), and the calibration's fit and its
+Laplace pieces are two programs, the second read while the first runs.
 """
 
 from __future__ import annotations
