@@ -36,6 +36,9 @@ with ``cold`` every repeat starts from a fresh folder as before. Besides the wal
 CPU time (user + system of the child process) is recorded: on a machine shared with other work it
 is the steadier of the two.
 
+The JSON also holds each tree's estimates from its last run (n1, mu_t, reduced chi-square, steps,
+n1's standard error) and, with several trees, their relative differences from the first tree's.
+
 Writes ``first_fit.json`` (or ``--json NAME``) to ``--out``. Its fast check in the test suite is
 ``tests/test_compile_cache.py::test_second_process_reads_the_cache`` (two processes, one
 program): the benchmark itself compiles a calibration several times and belongs outside the
@@ -99,6 +102,18 @@ def _stages(probe: dict) -> dict[str, float]:
     return out
 
 
+def _estimates(path: Path) -> dict:
+    """n1, mu_t and the reduced chi-square of a calibration JSON (the trees' results compared)."""
+    d = json.loads(path.read_text())
+    p = d["parameters"]
+
+    def v(k):
+        return p[k]["value"] if isinstance(p[k], dict) else p[k]
+
+    return {"n1": v("n1"), "mu_t_per_m": v("mu_s_per_m") + v("mu_a_per_m"), "reduced_chi2": d["reduced_chi2"],
+            "steps": d["steps"], "stderr_n1": p["n1"].get("stderr") if isinstance(p["n1"], dict) else None}
+
+
 def _git(tree: Path) -> str:
     done = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain", "--", "tofjax"], capture_output=True, text=True)
@@ -139,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         _run(tofjax + ["simulate", a.scene, "--frames", str(a.frames), "--out", str(cap)], "0")
         fit_args = ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
         fit = tofjax + fit_args
+        results: dict[str, dict] = {}
         if keep and ("warm" in modes or a.profile):
             for label, tree in trees.items():
                 fill = _run(fit, str(Path(tmp) / f"cache-{label}"), tree=tree)
@@ -168,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                     t["warm_xla_only"].append(_run(fit, str(xla_only), store="0", tree=tree))
                     cpu[label]["warm_xla_only"].append(CPU[-1])
                     shutil.rmtree(xla_only, ignore_errors=True)
+                results[label] = _estimates(Path(tmp) / "cal.json")
                 entries = sum(1 for _ in folder.rglob("*") if _.is_file())
                 if not keep:
                     shutil.rmtree(folder, ignore_errors=True)
@@ -216,6 +233,14 @@ def main(argv: list[str] | None = None) -> int:
             lab: {m: statistics.median(x / y for x, y in zip(times[lab][m], times[ref][m]))
                   for m in times[lab] if times[lab][m] and times[ref].get(m)} for lab in labels[1:]
         }
+    if results:
+        report["estimates"] = results
+        if len(labels) > 1:
+            ref = results[labels[0]]
+            report["estimates_relative_difference_to_" + labels[0]] = {
+                lab: {k: abs(r[k] - ref[k]) / abs(ref[k]) for k in ("n1", "mu_t_per_m", "reduced_chi2", "stderr_n1")
+                      if r.get(k) is not None and ref.get(k)} for lab, r in results.items() if lab != labels[0]
+            }
     if len(labels) == 1:  # the layout of earlier runs: one tree, flat
         report["seconds"], report["median_s"] = times[labels[0]], med[labels[0]]
         report["cpu_seconds"], report["median_cpu_s"] = cpu[labels[0]], med_cpu[labels[0]]
