@@ -36,7 +36,9 @@ with ``cold`` every repeat starts from a fresh folder as before. Besides the wal
 CPU time (user + system of the child process) is recorded: on a machine shared with other work it
 is the steadier of the two.
 
-The JSON also holds each tree's estimates from its last run (n1, mu_t, reduced chi-square, steps,
+With ``--compare`` (or ``--trees`` without cold runs) the JSON also lists every stored executable
+of each tree's filled folder with its size and the time (wall and CPU) one fresh process takes
+to read it (``stored_executables``). The JSON also holds each tree's estimates from its last run (n1, mu_t, reduced chi-square, steps,
 n1's standard error) and, with several trees, their relative differences from the first tree's.
 
 Writes ``first_fit.json`` (or ``--json NAME``) to ``--out``. Its fast check in the test suite is
@@ -102,6 +104,30 @@ def _stages(probe: dict) -> dict[str, float]:
     return out
 
 
+_READ = """
+import glob, json, os, pickle, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+from jax.experimental import serialize_executable
+from jax._src.lax import linalg
+linalg.initialize_lapack()
+out = []
+for f in sorted(glob.glob(os.path.join(sys.argv[1], "*.xla")), key=os.path.getsize):
+    payload, in_tree, out_tree, _ = pickle.loads(open(f, "rb").read())
+    c, t = time.process_time(), time.perf_counter()
+    serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    out.append({"bytes": os.path.getsize(f), "read_s": time.perf_counter() - t, "read_cpu_s": time.process_time() - c})
+print(json.dumps(out))
+"""
+
+
+def _read_executables(folder: Path) -> list[dict]:
+    """Size and load time (wall and CPU) of every stored executable in ``folder``, each read in
+    one fresh process (what a warm process pays to read them, without running them)."""
+    done = subprocess.run([sys.executable, "-c", _READ, str(folder / "programs")], capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else []
+
+
 def _estimates(path: Path) -> dict:
     """n1, mu_t and the reduced chi-square of a calibration JSON (the trees' results compared)."""
     d = json.loads(path.read_text())
@@ -155,10 +181,12 @@ def main(argv: list[str] | None = None) -> int:
         fit_args = ["calibrate", str(cap), "--out", str(Path(tmp) / "cal.json"), "--overwrite"]
         fit = tofjax + fit_args
         results: dict[str, dict] = {}
+        executables: dict[str, list] = {}
         if keep and ("warm" in modes or a.profile):
             for label, tree in trees.items():
                 fill = _run(fit, str(Path(tmp) / f"cache-{label}"), tree=tree)
                 print(f"{label}: cache filled by a cold run ({fill:.1f} s, not counted)", flush=True)
+                executables[label] = _read_executables(Path(tmp) / f"cache-{label}")
         for r in range(a.repeats):
             for label, tree in trees.items():
                 folder = Path(tmp) / (f"cache-{label}" if keep else f"cache-{label}-{r}")
@@ -233,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
             lab: {m: statistics.median(x / y for x, y in zip(times[lab][m], times[ref][m]))
                   for m in times[lab] if times[lab][m] and times[ref].get(m)} for lab in labels[1:]
         }
+    if executables:
+        report["stored_executables"] = executables  # per tree: bytes, read_s, read_cpu_s of each (one process)
     if results:
         report["estimates"] = results
         if len(labels) > 1:
