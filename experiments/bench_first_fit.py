@@ -82,7 +82,9 @@ def _run(cmd: list[str], cache: str, store: str = "1", tree: Path = ROOT) -> flo
     env = dict(os.environ, TOFJAX_COMPILATION_CACHE=cache, TOFJAX_PROGRAM_STORE=store, PYTHONPATH=str(tree))
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    # from a neutral folder: ``python -m`` puts the working directory first on sys.path, so run
+    # from inside a checkout it would import that checkout's tofjax whatever PYTHONPATH says
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tempfile.gettempdir())
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     CPU.append((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime))
