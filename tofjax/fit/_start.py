@@ -176,7 +176,8 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     out = []
     for j, i in order[:count]:
         k = j * len(ENVELOPE_MU_T) + i
-        out.append(start.replace(n1=n[k], mu_s_per_m=m[k] * albedo, mu_a_per_m=m[k] * (1 - albedo)))
+        out.append(start.replace(n1=np.asarray(n[k], dt), mu_s_per_m=np.asarray(m[k] * albedo, dt),
+                                 mu_a_per_m=np.asarray(m[k] * (1 - albedo), dt)))  # arrays: no small program to compile
     if with_basins:
         return (out or [start]), max(min(n_basins, len(out)), 1)
     return out or [start]
