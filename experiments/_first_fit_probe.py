@@ -97,6 +97,7 @@ def main() -> int:
         ("tofjax.fit.calibrate", "calibrate", "calibrate (all stages)"),
         ("tofjax.fit._start", "timing_start", "timing start"),
         ("tofjax.fit._start", "envelope_candidates", "envelope start"),
+        ("tofjax.fit.calibrate", "_prefetch_fit", "start reading the stored fit (background thread)"),
         ("tofjax.fit.calibrate", "run_fit", "joint fit (dispatch)"),
         ("jax", "device_get", "wait for the result (jax.device_get)"),
         ("tofjax.fit.calibrate", "_assemble", "assemble the result"),
@@ -105,6 +106,7 @@ def main() -> int:
         ("tofjax.fit._result", "fit_report", "fit report (text)"),
         ("tofjax.outputs", "atomic_write_text", "write the JSON"),
         ("tofjax.compile_cache", "_read_program", "read a stored program (export)"),
+        # also on the prefetch thread: its time then overlaps the start stages
         ("tofjax.compile_cache", "_read_executable", "read a stored executable"),
         ("tofjax.compile_cache", "_export_program", "trace and export a program"),
         ("tofjax.compile_cache", "call_stored", "stored program: load and run"),

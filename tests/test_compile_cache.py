@@ -154,6 +154,52 @@ def test_call_stored_in_process(tmp_path, monkeypatch):
     assert bool(jnp.all(got[0] == want[0])) and not entry.exists()
 
 
+def test_prefetch_reads_the_executable_ahead(tmp_path, monkeypatch):
+    """``prefetch`` starts reading a stored executable on a background thread (keyed by the
+    arguments' shapes only: placeholders of the right shapes will do); ``call_stored`` then takes
+    that read instead of reading again. Nothing stored, or the store off: nothing to start."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax import compile_cache
+
+    def fn(x, y):
+        return (x * y + 1.0,)
+
+    args = (jnp.arange(5.0), jnp.full(5, 2.0))
+    plain = dict(to_plain=lambda o: o, from_plain=lambda p, a: tuple(p))
+    monkeypatch.setattr(compile_cache, "_program_dir", tmp_path)
+    monkeypatch.setattr(compile_cache, "_loaded", {})
+    monkeypatch.setattr(compile_cache, "_pending", {})
+    assert not compile_cache.prefetch("pf", args)  # nothing stored yet
+    want = compile_cache.call_stored("pf", jax.jit(fn), args, **plain)
+    monkeypatch.setattr(compile_cache, "_loaded", {})  # a new process, as far as the store knows
+    assert compile_cache.prefetch("pf", (np.zeros(5), np.zeros(5)))  # placeholders: same key
+    assert len(compile_cache._pending) == 1
+    assert not compile_cache.prefetch("pf", args)  # already on its way
+    calls = []
+    monkeypatch.setattr(compile_cache, "_read_executable", lambda *a: calls.append(a))  # must not be needed
+    got = compile_cache.call_stored("pf", jax.jit(fn), args, **plain)
+    assert calls == [] and compile_cache._pending == {} and len(compile_cache._loaded) == 1
+    assert bool(jnp.all(got[0] == want[0]))
+    monkeypatch.setattr(compile_cache, "_program_dir", None)
+    assert not compile_cache.prefetch("pf", args)
+
+
+def test_cli_fast_exit_keeps_code_and_messages(tmp_path):
+    """``tofjax calibrate`` from the command line ends without the interpreter's teardown: its
+    exit code and its messages (flushed first) are those of a normal exit."""
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "tofjax.cli", "calibrate", str(tmp_path / "missing.h5"),
+                           "--out", str(tmp_path / "c.json")], capture_output=True, text=True,
+                          env=dict(os.environ, TOFJAX_COMPILATION_CACHE="0"))
+    assert done.returncode == 2
+    assert done.stderr.startswith("tofjax calibrate: error:") and "missing.h5" in done.stderr
+
+
 def test_program_store_follows_the_environment(tmp_path, monkeypatch):
     from tofjax import compile_cache
 

@@ -31,7 +31,10 @@ second; the store therefore also keeps the *compiled executable* of each program
 (``<key>-<machine>.xla``, :mod:`jax.experimental.serialize_executable`, keyed further by the
 backend, the host CPU's features and ``$XLA_FLAGS``), which a later process loads and runs
 directly. What remains of a warm start is then mostly loading that executable, whose cost
-grows with its number of kernels (see ``experiments/first_fit_kernels.py``).
+grows with its number of kernels (see ``experiments/first_fit_kernels.py``); the load releases
+the GIL, so :func:`prefetch` starts it on a background thread as soon as the arguments' shapes
+are known (the calibration does so before its start stages), and the calibration's fit and its
+Laplace pieces are two programs, the second read while the first runs.
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ _OFF = {"0", "off", "false", "no", "none", ""}
 # where exported programs go; set by enable_compilation_cache (None: the store is off)
 _program_dir: Path | None = None
 
-__all__ = ["ENV_VAR", "PROGRAM_ENV_VAR", "call_stored", "default_cache_dir", "enable_compilation_cache", "program_store"]
+__all__ = ["ENV_VAR", "PROGRAM_ENV_VAR", "call_stored", "default_cache_dir", "enable_compilation_cache", "prefetch",
+           "program_store"]
 
 
 def default_cache_dir(environ: dict[str, str] | None = None) -> Path | None:
@@ -154,6 +158,54 @@ def _program_key(name: str, treedef, static, leaves) -> str:
 
 
 _loaded: dict[str, tuple[Callable, Any]] = {}
+# stored executables being read on the background thread (prefetch), by key
+_pending: dict[str, Any] = {}
+_pool: list = []
+
+
+def _stored_key(name: str, args: tuple):
+    """The program key of ``args`` (as :func:`call_stored` computes it), or ``None`` where the
+    arguments have no stable key."""
+    import equinox as eqx
+    import jax
+
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+    try:
+        return _program_key(name, treedef, static, leaves)
+    except _Unkeyable:
+        return None
+
+
+def prefetch(name: str, args: tuple) -> bool:
+    """Start reading the stored executable that ``call_stored(name, fn, args, ...)`` will run,
+    on one background thread, so that reading it (most of a warm process: its kernels are
+    linked on load) overlaps with the work before the call. Only the arguments' structure and
+    shapes matter (as for the key), so ``args`` may hold placeholders of the right shapes (a
+    start guessed before the start stages ran). Does nothing where the store is off, the key
+    is unstable, the executable is already loaded or none is stored.
+
+    **Returns:** whether a read was started. A read that turns out not to be needed (other
+    shapes after all) is only wasted work: the process still waits for it before it exits.
+    """
+    folder = _program_dir
+    if folder is None:
+        return False
+    key = _stored_key(name, args)
+    if key is None or key in _loaded or key in _pending:
+        return False
+    try:
+        if not _executable_path(folder, key).is_file():
+            return False
+    except Exception:  # no backend: nothing to read for
+        return False
+    if not _pool:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # one worker: reads run in the order they were asked for (the order they are needed)
+        _pool.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="tofjax-prefetch"))
+    _pending[key] = _pool[0].submit(_read_executable, folder, key)
+    return True
 
 
 def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, from_plain: Callable) -> Any:
@@ -194,7 +246,8 @@ def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, fro
     except _Unkeyable:
         return direct()
     if key not in _loaded:
-        program = _read_executable(folder, key)
+        pending = _pending.pop(key, None)
+        program = _read_executable(folder, key) if pending is None else _result_or_none(pending)
         if program is None:
             exported = _read_program(folder, key) or _export_program(folder, key, fn, to_plain, treedef, static, leaves)
             if exported is None:
@@ -208,6 +261,13 @@ def call_stored(name: str, fn: Callable, args: tuple, *, to_plain: Callable, fro
         del _loaded[key]
         return direct()
     return from_plain(jax.tree_util.tree_unflatten(out_def, out), args)
+
+
+def _result_or_none(future):
+    try:
+        return future.result()
+    except Exception:
+        return None
 
 
 @functools.lru_cache(maxsize=1)

@@ -116,17 +116,19 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
         n1 = n1 + float(base.n1) - ref_n1
     found = n1 is not None
     n1 = float(base.n1) if n1 is None else float(np.clip(n1, 1.05, 3.5))
+    dt = base.n1.dtype
+    # NumPy values of the pytree's dtype: replacing with Python floats compiles a small program in every new process
     start = base.replace(
-        emission_time_s=t_e,
+        emission_time_s=np.asarray(t_e, dt),
         ambient_counts=np.maximum(ambient, 0.1),
-        n1=n1,
-        mu_s_per_m=max(float(base.mu_s_per_m), 1e-3),
-        mu_a_per_m=max(float(base.mu_a_per_m), 1e-3),
+        n1=np.asarray(n1, dt),
+        mu_s_per_m=np.asarray(max(float(base.mu_s_per_m), 1e-3), dt),
+        mu_a_per_m=np.asarray(max(float(base.mu_a_per_m), 1e-3), dt),
     )
     if "crosstalk_width_s" in problem.nonlinear and float(base.crosstalk_width_s) < LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s:
         # a width far below the pulse's barely changes the peak (it adds in quadrature): no
         # gradient to leave from; the fit starts at a fifth of a bin and may go back to ~0
-        start = start.replace(crosstalk_width_s=LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s)
+        start = start.replace(crosstalk_width_s=np.asarray(LIGHT_ENTRY_WIDTH_START * scene.sensor.bin_width_s, dt))
     return start, found
 
 
@@ -168,12 +170,14 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     dt = start.n1.dtype
     chi = np.asarray(_stored("calibration envelope grid", envelope_grid,
                              (problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt))))
-    albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
+    # the sum in NumPy (same dtype, same rounding): a JAX add would compile a small program in a new process
+    albedo = float(start.mu_s_per_m) / float(np.asarray(start.mu_s_per_m) + np.asarray(start.mu_a_per_m))
     order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
     out = []
     for j, i in order[:count]:
         k = j * len(ENVELOPE_MU_T) + i
-        out.append(start.replace(n1=n[k], mu_s_per_m=m[k] * albedo, mu_a_per_m=m[k] * (1 - albedo)))
+        out.append(start.replace(n1=np.asarray(n[k], dt), mu_s_per_m=np.asarray(m[k] * albedo, dt),
+                                 mu_a_per_m=np.asarray(m[k] * (1 - albedo), dt)))  # arrays: no small program to compile
     if with_basins:
         return (out or [start]), max(min(n_basins, len(out)), 1)
     return out or [start]

@@ -32,7 +32,7 @@ import numpy as np
 import optimistix as optx
 
 from ..capture import Capture
-from ..compile_cache import call_stored
+from ..compile_cache import call_stored, prefetch
 from ..config import ConfigError, from_dict, load_toml
 from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
@@ -399,7 +399,7 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
     :data:`SLOW_WEIGHT_START` when the scene states none (a zero share has no gradient)."""
     base = Params.from_scene(scene, dtype)
     if config.pulse_tails == 2 and float(base.pulse_slow_weight) == 0.0:
-        base = base.replace(pulse_slow_weight=SLOW_WEIGHT_START)
+        base = base.replace(pulse_slow_weight=np.asarray(SLOW_WEIGHT_START, dtype))  # NumPy: no small program to compile
     return base
 
 
@@ -525,21 +525,62 @@ def _solution_from_plain(plain, args) -> FitSolution:
     return FitSolution(params, linear, result, *rest)
 
 
+@eqx.filter_jit
+def _covariance(problem, params, linear, prior_params, data, sigma, anchor):
+    """The Laplace pieces of :func:`_finish` (``J^T J`` and d(physical)/d(coordinates)) as a program of their own."""
+    hessian, dphys, _ = problem.laplace(params, linear, prior_params, data, sigma, anchor)
+    return hessian, dphys
+
+
+def _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first):
+    # the stored fit never holds the Laplace pieces: they are a second program (see run_fit)
+    return (problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, False)
+
+
 def run_fit(problem, objective, solver, start, data, sigma, prior_params, anchor, *, max_steps=200, loss_tol=1e-3,
             gn_first=10, with_cov=True) -> FitSolution:
     """:func:`fit_problem` through the program store (:func:`tofjax.compile_cache.call_stored`):
     where the CLI (or :func:`tofjax.enable_compilation_cache`) turned the store on, a new process
-    reads the traced fit from disk instead of tracing it again; otherwise it is ``fit_problem``."""
-    args = (problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov)
-    return call_stored("calibration fit", _fit_positional, args, to_plain=_solution_to_plain, from_plain=_solution_from_plain)
+    reads the compiled fit from disk instead of tracing and compiling it again; otherwise it is
+    ``fit_problem``.
+
+    The fit and its Laplace pieces (``with_cov``) are two programs: reading a stored executable
+    costs a new process in proportion to its kernels, and the fit is dispatched before the
+    covariance's program is read, so that reading overlaps the fit's run (and a fit without
+    covariance never reads it)."""
+    args = _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first)
+    sol = call_stored("calibration fit", _fit_positional, args, to_plain=_solution_to_plain, from_plain=_solution_from_plain)
+    if not with_cov:
+        return sol
+    hessian, dphys = call_stored(
+        "calibration covariance", _covariance, (problem, sol.params, sol.linear, prior_params, data, sigma, anchor),
+        to_plain=lambda x: x, from_plain=lambda plain, _: tuple(plain),
+    )
+    return sol._replace(hessian=hessian, dphys=dphys)
+
+
+def _prefetch_fit(problem, objective, solver, base: Params, data, sigma, config: FitConfig) -> bool:
+    """Start reading the stored fit's executable (:func:`tofjax.compile_cache.prefetch`) while the
+    start stages run: its key depends on the arguments' shapes only, so ``base`` stands in for the
+    start and a placeholder for the timing anchor."""
+    anchor = np.zeros(2, np.dtype(data.dtype))
+    return prefetch("calibration fit", _fit_args(problem, objective, solver, base, data, sigma, base, anchor,
+                                                 config.max_steps, config.loss_tol, config.gn_first))
 
 
 # ---- from a capture to a result -----------------------------------------------------------------
 
 
+def _code(result) -> int:
+    """An optimistix result code as an int, read on the host (comparing the enumeration items
+    themselves dispatches, and in a new process compiles, a small JAX program)."""
+    return int(np.asarray(jax.tree_util.tree_leaves(result)[0]))
+
+
 def _result_name(code) -> str:
+    c = _code(code)
     for name in ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence", "nonfinite", "singular"):
-        if hasattr(optx.RESULTS, name) and bool(code == getattr(optx.RESULTS, name)):
+        if hasattr(optx.RESULTS, name) and c == _code(getattr(optx.RESULTS, name)):
             return name
     return "failed"
 
@@ -566,7 +607,7 @@ def _on_bound(problem: CalibrationProblem, scene: Scene, params: Params, linear:
 def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fingerprint) -> CalibrationResult:
     """A :class:`CalibrationResult` from one (host-side) :class:`FitSolution`."""
     params, lin = sol.params, dict(sol.linear)
-    ok = bool(sol.result == optx.RESULTS.successful)
+    ok = _code(sol.result) == _code(optx.RESULTS.successful)
     bound = _on_bound(problem, scene, params, lin)
     n_free = int(sum(np.size(lin[k]) if k in lin else np.size(getattr(params, k)) for k in problem.free))
     residuals = np.asarray(sol.residuals, np.float64)
@@ -620,7 +661,12 @@ def _anchor(start: Params, found: bool, config: FitConfig, dtype):
     """(n1 from timing, its width): the timing measurement the fit keeps (width inf: none)."""
     n1 = float(start.n1)
     width = config.timing_anchor * n1 if (found and config.timing_anchor > 0) else np.inf
-    return jnp.asarray([n1, width], dtype)
+    return jax.device_put(np.asarray([n1, width], dtype))  # a transfer: jnp.asarray would compile a small program
+
+
+def _mu_t(p: Params) -> float:
+    """mu_s + mu_a on the host (same dtype, same rounding as the JAX sum, without compiling it)."""
+    return float(np.asarray(p.mu_s_per_m) + np.asarray(p.mu_a_per_m))
 
 
 def _rank(res: CalibrationResult) -> tuple:
@@ -663,13 +709,14 @@ def calibrate(
     dtype = problem.model.geometry.ray_length.dtype
     data, sigma = _data(capture, dtype, config.model_error)
     base = base_params(scene, config, dtype)
+    _prefetch_fit(problem, objective, solver, base, data, sigma, config)
     start, found = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
     anchor = _anchor(start, found, config, dtype)
     stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
     if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
         candidates, n_basins = envelope_candidates(problem, start, data, sigma, 1 + config.restarts, with_basins=True)
         stages.append(
-            {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": float(c.mu_s_per_m + c.mu_a_per_m)} for c in candidates]}
+            {"stage": "envelope", "starts": [{"n1": float(c.n1), "mu_t_per_m": _mu_t(c)} for c in candidates]}
         )
     else:
         candidates, n_basins = [start], 1
@@ -679,7 +726,7 @@ def calibrate(
     for k, s in enumerate(candidates):
         if best is not None and best.result == "successful":
             # the basin check: only the other basins' starts, away from every fit's end so far
-            mt = float(s.mu_s_per_m + s.mu_a_per_m)
+            mt = _mu_t(s)
             if k >= n_basins or any(abs(np.log(mt / max(e, 1e-12))) < np.log(2.0) for e in ends):
                 continue
         sol = run_fit(

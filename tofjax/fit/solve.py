@@ -223,23 +223,36 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         """What is left to gain, to second order: the undamped (Gauss-Newton) model's decrease."""
         return 0.5 * g_s @ jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s + 1e-12 * eye), True), g_s)
 
-    r0, j0 = value_and_jac(y0)
-    loss0 = loss_of(r0)
-    ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
-    hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
-    res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-    # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+    trials = bool(solver.lambda_trials) and not solver.geodesic
     names = ("lam", "rho", "pred", "actual", "accept", "gn_pred")
     tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
     if trace:
         tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
-    carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
+    # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+    if trials:
+        r0, j0 = value_and_jac(y0)
+        loss0 = loss_of(r0)
+        ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
+        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
+        res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
+        carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
+    else:
+        # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
+        # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
+        # executable's load time grows with its kernels)
+        r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+        r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
+        j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
+        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
+        carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
+                  jnp.array(False), optx.RESULTS.successful, hist0, tr0)
 
     def cond(c):
         return (~c[7]) & (c[6] < max_steps)
 
     def body(c):
         y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
+        first = step < 0  # the first pass evaluates y0 itself (no step; see carry0)
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
         v = jax.scipy.linalg.cho_solve((chol, True), -g_s) / d
@@ -262,7 +275,7 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
             ok_acc = jnp.array(True)
             delta = v
         pred = -(g @ delta + 0.5 * delta @ (a @ delta))
-        y_t = y + delta
+        y_t = jnp.where(first, y, y + delta)
         r_t, j_t = value_and_jac(y_t)
         loss_t = loss_of(r_t)
         finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t)) & jnp.all(jnp.isfinite(delta))
@@ -281,7 +294,15 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
                     "gn_pred": gauss_newton_left(a_s, g_s)}
             tr = {k: tr[k].at[step].set(vals[k]) for k in names} | {"y": tr["y"].at[step].set(jnp.where(accept, y_t, y))}
         hist = hist.at[step + 1].set(loss)
-        return y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr
+        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr)
+        # the first pass: the start's residuals, Jacobian and loss, nothing else changes
+        ok0 = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t))
+        code0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
+        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10])
+        code = optx.RESULTS.where(first, code0, code)
+        pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
+        pick[8] = code
+        return tuple(pick)
 
     factors = jnp.asarray(solver.lambda_trials, ft)
 
@@ -331,7 +352,7 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
         return y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr
 
-    if solver.lambda_trials and not solver.geodesic:
+    if trials:
         body = body_trials
 
     y, _, _, _, _, _, steps, done, code, hist, tr = jax.lax.while_loop(cond, body, carry0)

@@ -151,7 +151,8 @@ class Params(eqx.Module):
         el = scene.contact_elements()
 
         def f(v):
-            return jnp.asarray(v, dtype)
+            # a transfer, not jnp.asarray(python float, dtype): that compiles a small program in every new process
+            return jax.device_put(np.asarray(v, dtype))
 
         return cls(
             n1=f(wg.n1),
@@ -164,10 +165,10 @@ class Params(eqx.Module):
             pulse_slow_weight=f(0.0),
             pulse_slow_tail_s=f(4.0 * sm.pulse_tail_s),
             emission_time_s=f(sm.emission_time),
-            crosstalk_counts=jnp.full((S, Z), sm.crosstalk_counts, dtype),
+            crosstalk_counts=jax.device_put(np.full((S, Z), sm.crosstalk_counts, dtype)),
             # a scene states a point-like light-entry peak
             crosstalk_width_s=f(0.0),
-            ambient_counts=jnp.full((S, Z), sm.ambient_counts, dtype),
+            ambient_counts=jax.device_put(np.full((S, Z), sm.ambient_counts, dtype)),
             interface_backscatter_per_m=f(wg.interface_backscatter_per_m),
             end_reflectance=f(wg.end_reflectance),
             # a scene states one reflectance for every angle of incidence
