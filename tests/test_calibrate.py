@@ -180,10 +180,10 @@ def test_posterior_short_run_resume_and_guard(fitted, tmp_path, small):
     more = sample_posterior(cal, cap, res, PosteriorOptions(max_steps=200, check_every=50, progress=False, chain=str(chain)))
     assert more.steps == 200
     # reproducible: emcee's own generator is seeded from the options (it drew from the OS before)
-    a, b, c = (sample_posterior(cal, cap, res, PosteriorOptions(max_steps=50, check_every=50, progress=False, seed=sd))
-               for sd in (3, 3, 4))
-    np.testing.assert_array_equal(a.samples, b.samples)
-    assert not np.array_equal(a.samples, c.samples)
+    a, b = (sample_posterior(cal, cap, res, PosteriorOptions(max_steps=10, check_every=10, progress=False, seed=3))
+            for _ in range(2))
+    assert a.chain.shape[0] == 10 and np.ptp(a.chain[-1], axis=0).max() > 0
+    np.testing.assert_array_equal(a.chain, b.chain)
     other = simulate(small, 60, seed=11)
     cal.fit(other)
     with pytest.raises(CalibrationError, match="other data or settings"):
