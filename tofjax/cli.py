@@ -410,7 +410,6 @@ def main(argv: list[str] | None = None) -> int:
     enable_x64()
     # Compile once per machine, not once per process ($TOFJAX_COMPILATION_CACHE=0 turns it off).
     enable_compilation_cache()
-    import warnings
 
     def show(message, category, filename, lineno, file=None, line=None):
         # A warning is one line too, named by its category (BadFramesWarning, ...).
