@@ -36,7 +36,9 @@ def test_log_density_is_shared_and_whitenable(fitted):
     f0 = jnp.asarray(ld.flat0)
     v, g = jax.value_and_grad(ld.fn)(f0)
     assert np.isfinite(float(v)) and np.isfinite(np.asarray(g)).all()
-    assert float(v) == pytest.approx(float(ld.batch(ld.flat0[None])[0]), rel=1e-12)
+    # the same function, vmapped or not: they differ only by the summation order of per-bin terms far larger than the
+    # total (a fresh clone saw 1.1e-12 relative after the near field's shape; a different density differs by far more)
+    assert float(v) == pytest.approx(float(ld.batch(ld.flat0[None])[0]), rel=1e-10)
     np.testing.assert_allclose(ld.laplace_cov, ld.laplace_cov.T, rtol=1e-12, atol=0)
     assert np.linalg.eigvalsh(ld.laplace_cov).min() > 0
     held = [k for k in HELD if k in cal.problem.nonlinear]
