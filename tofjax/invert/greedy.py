@@ -289,8 +289,7 @@ class FitDetector:
                     break
                 t = np.zeros(3 * K)
                 t[:K], t[K : 2 * K] = self.centres[0]
-                t[0], t[K] = self.centres[j]
-                t[2 * K] = float(np.clip(np.sqrt(c0[j] / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                self._place(t, 0, j, c0)
                 t, c, rr = self._refit(t, np.array([0]), y)
                 if float(y @ y) - c <= thr_add:
                     continue
@@ -358,15 +357,13 @@ class FitDetector:
                 _, _, _, gain = self._propose(r0, t0, rest)
                 peaks = self._local_maxima(gain, self.options.rebirth_candidates)
                 slots = np.setdiff1d(np.arange(K), rest)
-                sets = [(j,) for j in peaks[1:]] + [(a, b) for i, a in enumerate(peaks) for b in peaks[i + 1 :]
-                                                     if np.hypot(*(self.centres[a] - self.centres[b])) >= self.options.min_separation_m]
+                sets = [(j,) for j in peaks[1:]] + self._pairs(peaks)
                 for js in sets:
                     if len(rest) + len(js) > K:
                         continue
                     t = t0.copy()
                     for slot, j in zip(slots, js):
-                        t[slot], t[K + slot] = self.centres[j]
-                        t[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                        self._place(t, slot, j, gain)
                     act = np.concatenate([rest, slots[: len(js)]])
                     t, c, rr = self._refit(t, act, y, iterations=2)  # a quick look; the best is continued
                     trials.append((t, act, c, rr))
@@ -421,16 +418,14 @@ class FitDetector:
             others = active[active != k]
             _, _, _, gain = self._propose(r0, t0, others)
             peaks = self._local_maxima(gain, o.split_candidates + 1)
-            pairs = [(a, b) for i, a in enumerate(peaks) for b in peaks[i + 1 :]
-                     if np.hypot(*(self.centres[a] - self.centres[b])) >= o.min_separation_m][: o.split_candidates]
+            pairs = self._pairs(peaks)[: o.split_candidates]
             best = None
             k2 = self._free_slot(active)
             act = np.append(active, k2)
             for a, b in pairs:
                 t = t0.copy()
                 for slot, j in ((k, a), (k2, b)):
-                    t[slot], t[K + slot] = self.centres[j]
-                    t[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+                    self._place(t, slot, j, gain)
                 t, cc, rr = self._refit(t, act, y, iterations=2)  # a quick look; the winner is refitted
                 if cc < chi - thr_add and (best is None or cc < best[1]):
                     best = (t, cc, rr)
@@ -454,10 +449,8 @@ class FitDetector:
             for j in self._local_maxima(gain, self.options.relocate_candidates):
                 if np.hypot(self.centres[j, 0] - theta[k], self.centres[j, 1] - theta[K + k]) < self.options.min_separation_m:
                     continue  # it would come back where it is
-                g = self._gdiag[j]
                 t = t0.copy()
-                t[k], t[K + k] = self.centres[j]
-                t[2 * K + k] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(g, 1e-30)), 0.0, 1.0))
+                self._place(t, k, j, gain)
                 t, cc, rr = self._refit(t, active, y, iterations=2)  # a quick look; the winner is refitted
                 if cc < chi:
                     theta, chi, r = t, cc, rr
@@ -465,6 +458,18 @@ class FitDetector:
         if moved:
             theta, chi, r = self._refit(theta, active, y)
         return theta, chi, r
+
+    def _place(self, theta, slot, j, gain) -> None:
+        """Put contact ``slot`` of ``theta`` (in place) at cell ``j`` with the strength the proposal's
+        evidence ``gain[j]`` implies there (``sqrt(gain / G_jj)``, within [0, 1])."""
+        K = self.K
+        theta[slot], theta[K + slot] = self.centres[j]
+        theta[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+
+    def _pairs(self, peaks) -> list:
+        """Pairs of the cells ``peaks`` (best first) at least ``min_separation_m`` apart, in the order of the peaks."""
+        return [(a, b) for i, a in enumerate(peaks) for b in peaks[i + 1 :]
+                if np.hypot(*(self.centres[a] - self.centres[b])) >= self.options.min_separation_m]
 
     def _local_maxima(self, gain, n):
         """Cells of the ``n`` largest local maxima (3 x 3) of the proposal map, best first."""
