@@ -18,9 +18,17 @@ def load(name):
     return mod
 
 
-def test_recovery_study_fast(tmp_path):
+def test_recovery_study_fast(tmp_path, optoskin):
+    from tofjax.scene import SensorModel
+
     study = load("study_recovery")
-    cfg = study.RecoveryConfig(frames=40, replicates=2, n1=(1.45,), mu_s_per_m=(0.6,), mu_a_per_m=(0.3,))
+    # three of the OptoSkin sensors, 3 zones, 96 bins (test_calibrate's small scene): the full
+    # scene's batched fit cost 44-155 s here, most of it running the vmapped fit
+    small = optoskin.replace(sensor=SensorModel(bin_width_s=1e-10, n_bins=96, zones=3, fov_deg=29.0),
+                             sensors=optoskin.sensors[:3])
+    (tmp_path / "small.toml").write_text(small.to_toml())
+    cfg = study.RecoveryConfig(scene=str(tmp_path / "small.toml"), frames=40, replicates=2, n1=(1.45,),
+                               mu_s_per_m=(0.6,), mu_a_per_m=(0.3,))
     result = study.run(cfg, tmp_path, progress=False)
     (point,) = result["points"]
     assert point["truth"] == {"n1": 1.45, "mu_s_per_m": 0.6, "mu_a_per_m": 0.3}
