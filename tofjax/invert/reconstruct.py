@@ -123,6 +123,7 @@ def _params_with_optics(scene: Scene, optical: OpticalParams, dtype) -> Params:
         pulse_sigma_s=optical.pulse_sigma_s,
         pulse_tail_s=optical.pulse_tail_s,
         near_field_m=optical.near_field_m,
+        near_field_shape=optical.near_field_shape,
         **({"pulse_slow_weight": optical.pulse_slow_weight, "pulse_slow_tail_s": optical.pulse_slow_tail_s}
            if optical.pulse_tails == 2 else {}),
     )
