@@ -5,7 +5,9 @@ method, so every call compiled again: ``prune_model`` (the model, its breakdown 
 without a component), ``bench tradeoff``'s forward models (``_models``), the model-based
 reconstruction (its unit-contact responses and its FISTA solve, ``jax.jit(self._fista)``) and the
 demo's forward-model timing. After, each is a module-level ``eqx.filter_jit`` function taking the
-model (or the lasso problem) as an argument: one program per structure, reused.
+model (or the lasso problem) as an argument: one program per structure, reused. The reconstruction
+also finds FISTA's step by Lanczos instead of a whole eigendecomposition (its largest cost on this
+machine once nothing compiles), so its figure is both changes.
 
 Each variant runs in its own process (``before``: the package at 4533487 from ``git archive``;
 ``after``: this tree), alternating ``--rounds`` times; in each process every case is called
@@ -146,7 +148,8 @@ def main(argv=None) -> int:
         "what": "second-call time (each call from scratch in one process) of the code paths that built a jitted "
                 "lambda or bound method per call, before (4533487) and after (module-level eqx.filter_jit)",
         "data": "simulated scenes and histograms (OptoSkin, touch-three-line), no data",
-        "cases": {"reconstruct": "build_reconstructor(optoskin) + strengths of 4 frames",
+        "cases": {"reconstruct": "build_reconstructor(optoskin) + strengths of 4 frames (after: also FISTA's step by "
+                                 "Lanczos, not a whole eigendecomposition)",
                   "prune": "prune_model(touch-three-line)",
                   "bench_models": "bench tradeoff's _models (default and guided) + one evaluation each",
                   "demo_timing": "the demo's step 8 (one evaluation of a freshly built baseline model)"},
