@@ -167,6 +167,9 @@ def test_calibration_json(scene, tmp_path):
     o = OpticalParams.from_calibration(p, scene)
     assert o.n1 == 1.45 and o.mu_s_per_m == 0.5 and o.gain == (120.0,) * 6
     assert o.mu_a_per_m == 0.1
+    assert o.near_field_shape == 2.0  # a calibration without a near-field shape: seed 000's law
+    shaped = dict(cal, parameters={**cal["parameters"], "near_field_shape": {"value": 5.5, "stderr": 0.1}})
+    assert OpticalParams.from_calibration(shaped, scene).near_field_shape == 5.5
     bad = dict(cal, parameters={"n1": {"value": 1.45}, "gain": {"value": [1.0, 2.0]}})
     with pytest.raises(InversionError, match="2 values for 6 sensors"):
         OpticalParams.from_calibration(bad, scene)
@@ -300,3 +303,51 @@ def test_simulate_contacts_on_a_guide_smaller_than_15_cm():
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())  # float32 model
     with pytest.raises(ValueError, match="configurations, contacts, 3"):
         simulate_contacts(sc, c[0])
+
+
+def test_decay_gain_is_the_models_falloff_and_transmittance(scene, baseline):
+    """The correction's gain is 1/(K G T) with the forward model's own G (its near-field shape p) and
+    T, to 1e-12, for a calibrated p far from 2 (bins below the cap, inside the mask)."""
+    import dataclasses
+
+    from tofjax.invert.correction import bin_ranges
+    from tofjax.model.components import falloff, transmittance
+
+    for p in (1.0, 9.0):
+        opt = dataclasses.replace(OpticalParams.from_scene(scene), near_field_shape=p, mu_a_per_m=3.0)
+        c = build_corrector(scene, baseline, opt, CorrectionOptions(gain_cap=1e300), dtype=jnp.float64)
+        r = np.maximum(bin_ranges(scene, opt), 0.0)
+        K = np.asarray(opt.gain)[:, None, None]
+        want = 1.0 / (K * np.asarray(falloff(r, opt.near_field_m, p) * transmittance(r, opt.mu_s_per_m + opt.mu_a_per_m)))
+        m = np.asarray(c.mask)
+        np.testing.assert_allclose(np.asarray(c.gain)[m], np.broadcast_to(want, m.shape)[m], rtol=1e-12)
+    # the cap is still relative to zero range, 1/G(0) = d^2 for every shape
+    capped = build_corrector(scene, baseline, dataclasses.replace(opt, mu_a_per_m=40.0), CorrectionOptions(gain_cap=10.0))
+    top = np.exp(np.asarray(capped.log_gain, float).max() + np.log(np.asarray(opt.gain)).min())
+    assert top == pytest.approx(10.0 * opt.near_field_m**2, rel=1e-5)
+
+
+def test_decay_correction_uses_the_calibrated_near_field_shape(scene):
+    """A rig whose near field has the shape p = 8 (G flatter out to d): the corrected signal of a
+    contact near a sensor comes out as it does on a p = 2 rig only when the correction uses p = 8."""
+    import dataclasses
+
+    from tofjax.model import Params
+    from tofjax.scene import Touch
+
+    sc = scene.replace(waveguide=dataclasses.replace(scene.waveguide, near_field_m=0.02))
+    base = sc.without_touches()
+    a = math.radians(sc.sensors[0].direction_deg)
+    x0, y0 = sc.sensors[0].position_m
+    touch = base.replace(touches=(Touch((x0 + 0.05 * math.cos(a), y0 + 0.05 * math.sin(a)), 0.006, 1.0),))
+
+    def corrected(p_rig, p_corr):
+        b = expected_counts(base, params=Params.from_scene(base).replace(near_field_shape=p_rig))
+        h = expected_counts(touch, params=Params.from_scene(touch).replace(near_field_shape=p_rig))
+        opt = dataclasses.replace(OpticalParams.from_scene(sc), near_field_shape=p_corr)
+        return float(np.asarray(build_corrector(sc, b, opt, dtype=jnp.float64)(h)[0])[0].clip(0).sum())
+
+    ref = corrected(2.0, 2.0)
+    with_shape, without = corrected(8.0, 8.0), corrected(8.0, 2.0)
+    assert without > 1.1 * ref  # p = 2's G is too small near the sensor: too much gain
+    assert abs(with_shape - ref) < 0.4 * abs(without - ref)

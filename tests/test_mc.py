@@ -374,3 +374,37 @@ def test_vectorised_float32_cos_sin_expm1_and_lane_cumsum():
     assert np.max(np.abs(got - exact) / np.maximum(np.abs(exact), 1e-300)) < 3e-7
     flags = jnp.asarray(r.random(1024) < 0.3)
     assert np.array_equal(np.asarray(jax.jit(_cumsum_lanes)(flags)), np.cumsum(np.asarray(flags)))
+
+
+def test_prune_compiles_once_per_model_structure(monkeypatch):
+    """``prune_model`` evaluates its models through module-level compiled functions that take the
+    model as an argument: a second call (new models of the same structure) traces nothing. A stand-in
+    model counts its traces (its Python body runs only when traced)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from tofjax.mc import prune
+
+    traces = []
+
+    class Model(eqx.Module):
+        comps: tuple = eqx.field(static=True)
+        w: jax.Array
+
+        def __call__(self, p):
+            traces.append("call")
+            return self.w * p.n1 * len(self.comps)
+
+        def breakdown(self, p):
+            traces.append("breakdown")
+            return {c: self.w * (i + 1.0) * p.n1 for i, c in enumerate(self.comps) if c != "shadowing"}
+
+    monkeypatch.setattr(prune, "build_model", lambda scene, opts, comps: Model(tuple(comps), jnp.ones(scene.shape)))
+    scene = strip_scene(touches=[{"position_m": [0.1, 0.05], "radius_m": 0.006, "strength": 1.0}], n_bins=16)
+    first = prune.prune_model(scene)
+    assert "shadowing" in first.components and traces  # a model without shadowing was built and evaluated
+    traces.clear()
+    second = prune.prune_model(scene)
+    assert traces == [], traces
+    assert second.effects == first.effects and second.kept == first.kept

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from .capture import write_capture
@@ -132,9 +131,11 @@ def run_demo(
     lines += hw_demo(out, base_scene, seed=seed, overwrite=overwrite)
 
     print("[8/8] timing the forward model ...", flush=True)
-    f = jax.jit(lambda p: build_model(base_scene, opts)(p))
+    from .mc.prune import evaluate
+
+    model = build_model(base_scene, opts)
     p0 = Params.from_scene(base_scene, opts.jnp_dtype)
-    dt = median_seconds(f, p0)
+    dt = median_seconds(lambda p: evaluate(model, p), p0)
     lines += [
         f"forward model, baseline scene, {opts.dtype}, quadrature {opts.quadrature}: "
         f"{dt * 1e6:.0f} us per evaluation (median of 50, this machine)",

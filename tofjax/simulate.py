@@ -12,12 +12,40 @@ from .capture import Capture
 from .model import ModelOptions, Params, build_model, sample_frames
 from .scene import Scene
 
-__all__ = ["expected_counts", "simulate", "true_parameters"]
+__all__ = ["capture_from_expected", "expected_counts", "simulate", "true_parameters"]
 
 
 def true_parameters(params: Params) -> dict:
     """The parameters a simulation used, as JSON-able lists (stored in ``truth``)."""
     return {f.name: np.asarray(getattr(params, f.name)).tolist() for f in dataclasses.fields(params)}
+
+
+def capture_from_expected(
+    scene: Scene,
+    expected,
+    n_frames: int,
+    seed: int,
+    params: Params,
+    *,
+    source: str,
+    frame_period_s: float,
+    **extra,
+) -> Capture:
+    """``n_frames`` frames drawn from the expected counts ``expected`` (S, Z, B) (photon noise and
+    saturation from the scene's ``[noise]`` and sensor tables, keys from ``seed``), with ground truth:
+    ``truth_touches`` the scene's contact elements in every frame, ``truth`` the parameters
+    (:func:`true_parameters` of ``params``), ``seed`` and ``extra``. What :func:`simulate` and the
+    Monte Carlo's :func:`tofjax.mc.capture.mc_capture` both write."""
+    keys = jax.random.split(jax.random.key(seed), n_frames)
+    hist = np.array(sample_frames(keys, jnp.asarray(expected), poisson=bool(scene.noise.poisson),
+                                  saturation=scene.sensor.saturation_counts), np.float64)  # a writable copy
+    el = scene.contact_elements()
+    touches = np.broadcast_to(el[:, [0, 1, 3]], (n_frames, len(el), 3)).copy() if len(el) else None
+    truth = true_parameters(params)
+    truth["seed"] = seed
+    truth.update(extra)
+    return Capture(histograms=hist, timestamps=np.arange(n_frames) * frame_period_s, scene=scene, source=source,
+                   truth_touches=touches, truth=truth)
 
 
 def expected_counts(scene: Scene, options: ModelOptions = ModelOptions(), params: Params | None = None) -> np.ndarray:
@@ -54,22 +82,6 @@ def simulate(
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     params = Params.from_scene(scene, options.jnp_dtype) if params is None else params
-    lam = jnp.asarray(expected_counts(scene, options, params))
-    keys = jax.random.split(jax.random.key(seed), n_frames)
-    hist = np.array(sample_frames(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
-                    np.float64)  # a writable copy
-    el = scene.contact_elements()
-    touches = None
-    if len(el):
-        touches = np.broadcast_to(el[:, [0, 1, 3]], (n_frames, len(el), 3)).copy()
-    truth = true_parameters(params)
-    truth["seed"] = seed
-    truth["model_options"] = dataclasses.asdict(options)
-    return Capture(
-        histograms=hist,
-        timestamps=np.arange(n_frames) * frame_period_s,
-        scene=scene,
-        source="simulated",
-        truth_touches=touches,
-        truth=truth,
-    )
+    return capture_from_expected(scene, expected_counts(scene, options, params), n_frames, seed, params,
+                                 source="simulated", frame_period_s=frame_period_s,
+                                 model_options=dataclasses.asdict(options))

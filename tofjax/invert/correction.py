@@ -12,6 +12,10 @@ range of bin ``b``. The variants seed 000 compares:
 
 Beyond Algorithm 1:
 
+* ``G`` and ``T`` are the forward model's own (:func:`tofjax.model.components.falloff` with the
+  calibrated near-field shape ``p``, ``G = (r^p + d^p)^(-2/p)``, and
+  :func:`~tofjax.model.components.transmittance`): the correction divides out exactly what the
+  model puts in (:meth:`OpticalParams.log_decay`).
 * The gain ``1 / (K G T)`` is computed in log space and capped
   (:attr:`CorrectionOptions.gain_cap`), so huge attenuation or far bins never overflow and
   noise is not amplified without bound.
@@ -43,6 +47,7 @@ import numpy as np
 
 from ..config import ConfigError
 from ..errors import UserError
+from ..model.components import falloff, transmittance
 from ..model.forward import OPTICS
 from ..model.geometry import Geometry
 from ..model.params import speed_in_guide
@@ -89,10 +94,15 @@ class OpticalParams:
     pulse_slow_tail_s: float = 0.0
     # the forward model's optics the calibration was fitted with (FitConfig.optics): "default" or "guided"
     optics: str = "default"
+    # the near field's shape p of the falloff G = (r^p + d^p)^(-2/p) (Params.near_field_shape):
+    # 2 (seed 000's law, what a scene states) unless a calibration fitted another
+    near_field_shape: float = 2.0
 
     def __post_init__(self):
         if self.optics not in OPTICS:
             raise InversionError(f"optics: must be {' or '.join(map(repr, OPTICS))}, got {self.optics!r}")
+        if not 1.0 <= self.near_field_shape <= 1000.0:
+            raise InversionError(f"near_field_shape: must be in [1, 1000], got {self.near_field_shape!r}")
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "OpticalParams":
@@ -124,6 +134,7 @@ class OpticalParams:
             source=source,
             pulse_slow_weight=float(params.pulse_slow_weight),
             pulse_slow_tail_s=float(params.pulse_slow_tail_s),
+            near_field_shape=float(params.near_field_shape),
         )
 
     @classmethod
@@ -175,6 +186,17 @@ class OpticalParams:
         c_out = math.sqrt(1.0 - launch**2 / 3.0)
         return 2.0 * self.c1 / (1.0 / c_out + 2.0 * self.n1 / (self.n1 + 1.0))
 
+    def log_decay(self, r) -> np.ndarray:
+        """``log(1 / (G(r) T(r)))`` at one-way ranges ``r`` (m; negative ranges count as 0): the
+        forward model's own falloff (:func:`tofjax.model.components.falloff`, with this
+        near-field shape) and round-trip transmittance
+        (:func:`~tofjax.model.components.transmittance`), so the decay correction divides out
+        exactly what the model puts in. ``+inf`` where ``T`` underflows (the caller caps it)."""
+        rp = np.maximum(np.asarray(r, float), 0.0)
+        g = falloff(rp, self.near_field_m, self.near_field_shape)
+        t = transmittance(rp, self.mu_s_per_m + self.mu_a_per_m)
+        return -np.asarray(jnp.log(g) + jnp.log(t), float)
+
     @property
     def pulse_tails(self) -> int:
         """2 where a calibration found a second, slow pulse tail."""
@@ -199,7 +221,7 @@ class CorrectionOptions:
 
     - ``method``: ``raw``, ``decay``, ``baseline`` or ``full`` (Algorithm 1).
     - ``gain_cap``: the largest decay-correction gain ``1/(G T)``, relative to its value at
-      zero range (``r0^2``). Default 1e5: never reached on the default scene (the far corner
+      zero range (``d^2``, ``d`` the near field, for every near-field shape). Default 1e5: never reached on the default scene (the far corner
       needs ~1.4e4), it bites only with extreme attenuation (seed 000's printed per-cm values).
     - ``mask``: zero the bins no contact can produce (before light entry, beyond the far edge).
     - ``edge_margin_bins``: bins kept beyond each zone's far edge (the response tail of a
@@ -310,13 +332,9 @@ def build_corrector(
             raise InversionError("baseline has NaN or inf bins")
     r = bin_ranges(scene, optical, options.response_delay)  # (B,)
     dr = 0.5 * optical.range_speed(scene) * scene.sensor.bin_width_s
-    r0 = optical.near_field_m
-    mu_t = optical.mu_s_per_m + optical.mu_a_per_m
-    rp = np.maximum(r, 0.0)
     log_k = np.log(np.asarray(optical.gain, float))
-    # log(1/(K G T)) = -log K + log(r^2 + r0^2) + 2 mu_t r; cap relative to zero range.
-    log_decay = np.log(rp**2 + r0**2) + 2.0 * mu_t * rp
-    log_decay = np.minimum(log_decay, math.log(options.gain_cap) + 2.0 * math.log(r0))
+    # log(1/(K G T)) = -log K + log(1/(G T)) (the model's G and T); capped relative to zero range
+    log_decay = np.minimum(optical.log_decay(r), math.log(options.gain_cap) + float(optical.log_decay(0.0)))
     log_gain = -log_k[:, None, None] + np.broadcast_to(log_decay, (S, Z, B))
     if options.mask:
         edge = far_edges(scene)  # (S, Z)

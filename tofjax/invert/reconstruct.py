@@ -35,12 +35,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..config import ConfigError
 from ..model import ModelOptions, Params, build_model
+from ..model.forward import _trace_switches
 from ..scene import Scene, Touch
 from .correction import OpticalParams
 from .maps import Grid
@@ -123,9 +125,73 @@ def _params_with_optics(scene: Scene, optical: OpticalParams, dtype) -> Params:
         pulse_sigma_s=optical.pulse_sigma_s,
         pulse_tail_s=optical.pulse_tail_s,
         near_field_m=optical.near_field_m,
+        near_field_shape=optical.near_field_shape,
         **({"pulse_slow_weight": optical.pulse_slow_weight, "pulse_slow_tail_s": optical.pulse_slow_tail_s}
            if optical.pulse_tails == 2 else {}),
     )
+
+
+@eqx.filter_jit
+def _unit_responses(model, p0: Params, centres, switches):
+    """``model`` at ``p0`` with its one contact moved to each of ``centres`` (K, 2): (K, S, Z, B).
+    Module level, the model an argument: one program per model structure and chunk size, reused by
+    every reconstructor (a jitted lambda made per call compiled again each time). ``switches``: the
+    guided optics' module switches (read when tracing, so a static key)."""
+    del switches
+    return jax.vmap(lambda xy: model(p0.replace(touch_xy_m=xy[None, :])))(centres)
+
+
+def _largest_eigenvalue(G: np.ndarray) -> float:
+    """The largest eigenvalue of the (symmetric, positive semi-definite) Gram matrix: FISTA's step
+    is its inverse. Lanczos (ARPACK) to machine precision from a fixed start (reproducible), not a
+    whole eigendecomposition: on OptoSkin's 2592 columns 0.6 s instead of 36 s (loaded 2-core VM),
+    the same value to 1e-15."""
+    if G.shape[0] < 16:
+        return float(np.linalg.eigvalsh(G)[-1])
+    from scipy.sparse.linalg import eigsh
+
+    v0 = np.random.default_rng(0).uniform(0.5, 1.5, G.shape[0])
+    return float(eigsh(G, k=1, which="LA", return_eigenvectors=False, tol=0, v0=v0)[0])
+
+
+class _Fista(eqx.Module):
+    """The weighted non-negative lasso of one reconstructor (see the module docstring), as data:
+    rows of the histograms kept, weighted response ``Aw`` (n, K), Gram matrix ``G``, penalties
+    ``lam``, Poisson ``sigma`` and baseline of the kept rows, step ``1/L``, saturation."""
+
+    rows: jax.Array
+    Aw: jax.Array
+    G: jax.Array
+    lam: jax.Array
+    sigma: jax.Array
+    base: jax.Array
+    step: jax.Array
+    saturation: jax.Array
+    iterations: int = eqx.field(static=True)
+
+
+@eqx.filter_jit
+def _fista(problem: _Fista, H):
+    """H (F, S*Z*B) -> strengths (F, K), ok (F,): FISTA (accelerated projected gradient) on the Gram
+    matrix. Module level, the problem an argument: one program per problem shape and iteration count,
+    shared by every reconstructor (a jitted bound method compiled again for each)."""
+    bad = ~jnp.isfinite(H) | (H >= problem.saturation)
+    ok = ~jnp.any(bad, axis=-1)
+    y = jnp.where(bad, 0.0, H)[:, problem.rows]
+    yw = (y - problem.base) / problem.sigma
+    b = yw @ problem.Aw  # (F, K)
+    step = problem.step
+
+    def body(_, state):
+        s, z, t = state
+        s_new = jnp.maximum(z - step * (z @ problem.G - b + problem.lam), 0.0)
+        t_new = 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * t * t))
+        z_new = s_new + ((t - 1.0) / t_new) * (s_new - s)
+        return s_new, z_new, t_new
+
+    s0 = jnp.zeros_like(b)
+    s, _, _ = jax.lax.fori_loop(0, problem.iterations, body, (s0, s0, jnp.asarray(1.0, b.dtype)))
+    return jnp.where(ok[:, None], s, 0.0), ok
 
 
 def response_matrix(
@@ -181,8 +247,8 @@ def response_matrix(
                 _params_with_optics(base, optical, opts.jnp_dtype)
             )
         )
-    f = jax.jit(jax.vmap(lambda xy: model(p0.replace(touch_xy_m=xy[None, :]))))
-    out = np.concatenate([np.asarray(f(jnp.asarray(centres[i : i + chunk]))) for i in range(0, len(centres), chunk)])
+    out = np.concatenate([np.asarray(_unit_responses(model, p0, jnp.asarray(centres[i : i + chunk]), _trace_switches()))
+                          for i in range(0, len(centres), chunk)])
     if signed:
         return out - ref[None]
     return np.minimum(out - ref[None], 0.0) if shadow else out
@@ -219,42 +285,20 @@ class Reconstructor:
         G = Aw.T @ Aw
         self._g_diag = np.diag(G).copy()
         self.lam = options.tau * np.sqrt(np.maximum(self._g_diag, 1e-30))
-        L = float(np.linalg.eigvalsh(G)[-1])
+        L = _largest_eigenvalue(G)
         dt = jnp.float64 if options.dtype == "float64" and jax.config.jax_enable_x64 else jnp.float32
-        self._Aw = jnp.asarray(Aw, dt)
-        self._G = jnp.asarray(G, dt)
-        self._lam = jnp.asarray(self.lam, dt)
-        self._sigma = jnp.asarray(sigma, dt)
-        self._base = jnp.asarray(np.asarray(baseline, float).ravel()[rows], dt)
-        self._step = 1.0 / L
-        self._sat = float(scene.sensor.saturation_counts)
-        self._solve = jax.jit(self._fista)
-
-    def _fista(self, H):
-        """H (F, S*Z*B) -> strengths (F, K), ok (F,)."""
-        bad = ~jnp.isfinite(H) | (H >= self._sat)
-        ok = ~jnp.any(bad, axis=-1)
-        y = jnp.where(bad, 0.0, H)[:, self.rows]
-        yw = (y - self._base) / self._sigma
-        b = yw @ self._Aw  # (F, K)
-        step = self._step
-
-        def body(_, state):
-            s, z, t = state
-            s_new = jnp.maximum(z - step * (z @ self._G - b + self._lam), 0.0)
-            t_new = 0.5 * (1.0 + jnp.sqrt(1.0 + 4.0 * t * t))
-            z_new = s_new + ((t - 1.0) / t_new) * (s_new - s)
-            return s_new, z_new, t_new
-
-        s0 = jnp.zeros_like(b)
-        s, _, _ = jax.lax.fori_loop(0, self.options.iterations, body, (s0, s0, jnp.asarray(1.0, b.dtype)))
-        return jnp.where(ok[:, None], s, 0.0), ok
+        self._problem = _Fista(
+            rows=jnp.asarray(rows), Aw=jnp.asarray(Aw, dt), G=jnp.asarray(G, dt), lam=jnp.asarray(self.lam, dt),
+            sigma=jnp.asarray(sigma, dt), base=jnp.asarray(np.asarray(baseline, float).ravel()[rows], dt),
+            step=jnp.asarray(1.0 / L, dt), saturation=jnp.asarray(float(scene.sensor.saturation_counts), dt),
+            iterations=options.iterations,
+        )
 
     def strengths(self, histograms) -> tuple[np.ndarray, np.ndarray]:
         """(F, ny, nx) strengths on the coarse grid and ok flags (F,)."""
         h = np.asarray(histograms, float)
         F = h.shape[0]
-        s, ok = self._solve(jnp.asarray(h.reshape(F, -1), self._G.dtype))
+        s, ok = _fista(self._problem, jnp.asarray(h.reshape(F, -1), self._problem.G.dtype))
         out = np.zeros((F, self.grid.ny * self.grid.nx))
         out[:, self.cells] = np.asarray(s)[:, : self.n_cells]
         return out.reshape(F, self.grid.ny, self.grid.nx), np.asarray(ok)

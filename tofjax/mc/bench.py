@@ -145,12 +145,14 @@ def _machine() -> dict:
 
 
 def _models(scene, opts: BenchOptions, comps):
-    """(default, guided) jitted forward models and their parameters."""
-    import jax
+    """(default, guided) compiled forward models (:func:`tofjax.mc.prune.evaluate`: one program per
+    model structure, not one per call) and their parameters."""
+    import functools
 
     from ..model import ModelOptions, Params, build_model
     from ..model.contact import SkinContact
     from ..model.guided import hg_backward_fraction
+    from .prune import evaluate
 
     out = []
     d_opts = ModelOptions()
@@ -159,7 +161,7 @@ def _models(scene, opts: BenchOptions, comps):
     g_scene = scene.replace(waveguide=wg)
     for sc, mo in ((scene, d_opts), (g_scene, g_opts)):
         model = build_model(sc, mo, comps)
-        out.append((jax.jit(lambda p, m=model: m(p)), Params.from_scene(sc, mo.jnp_dtype)))
+        out.append((functools.partial(evaluate, model), Params.from_scene(sc, mo.jnp_dtype)))
     return out
 
 

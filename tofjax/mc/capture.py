@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from ..model import ModelOptions, Params, build_model, sample_frames
+from ..model import ModelOptions, Params, build_model
 from ..scene import Scene
+from ..simulate import capture_from_expected
 from .transport import MCOptions, MCResult, run_mc
 
 __all__ = ["mc_capture", "mc_expected_counts"]
@@ -38,15 +39,7 @@ def mc_capture(scene: Scene, n_frames: int = 1, seed: int = 0, options: MCOption
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     expected, result = mc_expected_counts(scene, options, progress=progress)
-    lam = jnp.asarray(expected)
-    keys = jax.random.split(jax.random.key(seed), n_frames)
-    hist = np.array(sample_frames(keys, lam, poisson=bool(scene.noise.poisson), saturation=scene.sensor.saturation_counts),
-                    np.float64)
-    el = scene.contact_elements()
-    touches = np.broadcast_to(el[:, [0, 1, 3]], (n_frames, len(el), 3)).copy() if len(el) else None
     params = Params.from_scene(scene, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-    truth = {f.name: np.asarray(getattr(params, f.name)).tolist() for f in dataclasses.fields(params)}
-    truth.update(seed=seed, monte_carlo=dataclasses.asdict(options), mc_ledger=result.ledger,
-                 mc_events=result.events, mc_seconds=result.seconds)
-    return Capture(histograms=hist, timestamps=np.arange(n_frames) * frame_period_s, scene=scene,
-                   source="simulated (monte carlo)", truth_touches=touches, truth=truth)
+    return capture_from_expected(scene, expected, n_frames, seed, params, source="simulated (monte carlo)",
+                                 frame_period_s=frame_period_s, monte_carlo=dataclasses.asdict(options),
+                                 mc_ledger=result.ledger, mc_events=result.events, mc_seconds=result.seconds)

@@ -17,15 +17,42 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import jax
+import equinox as eqx
 import numpy as np
 
 from ..config import ConfigError
 from ..model import ModelOptions, Params, build_model
+from ..model.forward import _trace_switches
 from ..scene import COMPONENTS, Scene
 from ..timing import median_seconds
 
-__all__ = ["PruneOptions", "PruneReport", "prune_model"]
+__all__ = ["PruneOptions", "PruneReport", "evaluate", "model_breakdown", "prune_model"]
+
+
+# Module-level compiled calls that take the model as an argument: one program per model structure
+# (scene shape, components, options), reused by every model of that structure. A ``jax.jit`` of a
+# lambda made per call (what these replace) compiles again on every call. The guided optics'
+# module switches are read when tracing: they are a static argument, so changing one retraces.
+@eqx.filter_jit
+def _evaluate(model, params, switches):
+    del switches
+    return model(params)
+
+
+@eqx.filter_jit
+def _breakdown(model, params, switches):
+    del switches
+    return model.breakdown(params)
+
+
+def evaluate(model, params):
+    """``model(params)``, compiled once per model structure (see above)."""
+    return _evaluate(model, params, _trace_switches())
+
+
+def model_breakdown(model, params) -> dict:
+    """``model.breakdown(params)`` (each component's counts), compiled once per model structure."""
+    return _breakdown(model, params, _trace_switches())
 
 
 @dataclass(frozen=True)
@@ -103,13 +130,13 @@ def _effects(scene: Scene, opts: ModelOptions, comps, params):
     Additive components come from one :meth:`~tofjax.model.ForwardModel.breakdown`;
     shadowing (it multiplies what lies behind a contact) from one model without it."""
     model = build_model(scene, opts, tuple(comps))
-    full = np.asarray(jax.jit(lambda p: model(p))(params), np.float64)
-    parts = {k: np.asarray(v, np.float64) for k, v in jax.jit(lambda p: model.breakdown(p))(params).items()}
+    full = np.asarray(evaluate(model, params), np.float64)
+    parts = {k: np.asarray(v, np.float64) for k, v in model_breakdown(model, params).items()}
     diffs = {c: np.broadcast_to(parts[c], full.shape) for c in comps if c in parts}
     for c in comps:
         if c not in diffs:
             rest = build_model(scene, opts, tuple(k for k in comps if k != c))
-            diffs[c] = full - np.asarray(jax.jit(lambda p, m=rest: m(p))(params), np.float64)
+            diffs[c] = full - np.asarray(evaluate(rest, params), np.float64)
     return full, diffs
 
 
@@ -159,6 +186,6 @@ def prune_model(scene: Scene, options: PruneOptions = PruneOptions(), params: Pa
     )
     if options.timing:
         for attr, cs in (("full_seconds", comps), ("pruned_seconds", kept)):
-            f = jax.jit(lambda p, m=build_model(scene, opts, cs): m(p))
-            setattr(report, attr, median_seconds(f, params, 30))
+            m = build_model(scene, opts, cs)
+            setattr(report, attr, median_seconds(lambda p, m=m: evaluate(m, p), params, 30))
     return report
