@@ -8,17 +8,34 @@ the forward model once per contact count and maps it over the contact positions
 
 from __future__ import annotations
 
+import functools
+import math
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-import math
 
 from ..model import ModelOptions, Params, build_model, sample_counts
 from ..model.geometry import zone_edges
 from ..scene import Scene, Touch
 
 __all__ = ["random_contacts", "shadowed", "simulate_contacts"]
+
+
+@eqx.filter_jit
+def _contact_frames(model, p0, n_contacts, noise, poisson, saturation, contacts, keys):
+    """The frames of a batch of contact configurations: compiled once per model structure (the
+    model is an argument: a ``jax.jit`` of a closure made per call compiled on every call)."""
+
+    def one(c, key):
+        p = p0.replace(touch_xy_m=c[:, :2], touch_strength=c[:, 2]) if n_contacts else p0
+        lam = model(p)
+        if not noise:
+            return lam
+        return sample_counts(key, lam, poisson=poisson, saturation=saturation)
+
+    return jax.vmap(one)(contacts, keys)
 
 
 def simulate_contacts(
@@ -47,14 +64,7 @@ def simulate_contacts(
     model = build_model(proto, options)
     p0 = Params.from_scene(proto, options.jnp_dtype)
 
-    def one(c, key):
-        p = p0.replace(touch_xy_m=c[:, :2], touch_strength=c[:, 2]) if N else p0
-        lam = model(p)
-        if not noise:
-            return lam
-        return sample_counts(key, lam, poisson=scene.noise.poisson, saturation=scene.sensor.saturation_counts)
-
-    f = jax.jit(jax.vmap(one))
+    f = functools.partial(_contact_frames, model, p0, N, noise, scene.noise.poisson, scene.sensor.saturation_counts)
     keys = jax.random.split(jax.random.key(seed), C)
     out = []
     for i in range(0, C, chunk):
