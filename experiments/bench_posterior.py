@@ -260,6 +260,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "gradient_evaluations": warm.gradient_evaluations,
         "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
         "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
+        # where the gradients go: the warm-up's share (its trees are deeper than the draws')
+        "warmup_gradient_evaluations": warm.warmup_gradient_evaluations,
+        "warmup_share_of_gradients": warm.warmup_gradient_evaluations / warm.gradient_evaluations,
+        "gradients_per_draw": (warm.gradient_evaluations - warm.warmup_gradient_evaluations
+                               - int(s["start_info"].get("gradient_evaluations", 0))) / (nuts.chains * nuts.draws),
     }
     print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
     em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)

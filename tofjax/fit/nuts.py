@@ -76,7 +76,12 @@ class NutsOptions:
     measured worse: the ridge's width is not the Laplace one), ``threads`` (chains run at the
     same time, each in its own thread on the one compiled program; None: one per CPU core,
     at most ``chains``; 1: one after the other. The draws are the same whatever it is: each
-    chain's are fixed by its key; only the wall time changes)."""
+    chain's are fixed by its key; only the wall time changes), ``pilot_warmup``,
+    ``pilot_draws`` (the pilot's lengths; None: ``warmup``, ``draws``) and ``pilot_adapt_mass``
+    (the pilot's mass matrix adaptation; False: its step size only, in the Laplace-whitened
+    coordinates): a short pilot whose chains' draws are pooled is a cross-chain mass matrix
+    (every chain's draws, not one chain's last window), and the kept run then needs only its
+    step size (``adapt_mass=False``) and a short ``warmup``."""
 
     chains: int = 4
     warmup: int = 250
@@ -94,13 +99,18 @@ class NutsOptions:
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
     threads: int | None = 1
+    pilot_warmup: int | None = None
+    pilot_draws: int | None = None
+    pilot_adapt_mass: bool = True
 
     def __post_init__(self):
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, (int, np.integer))
                                          or self.threads < 1):
             raise NutsOptionsError(f"threads: must be an integer >= 1 or None (one per CPU core), got {self.threads!r}")
-        for k, lo in (("chains", 1), ("warmup", 10), ("draws", 10), ("max_tree_depth", 1)):
+        for k, lo in (("chains", 1), ("warmup", 10), ("draws", 10), ("max_tree_depth", 1), ("pilot_warmup", 10), ("pilot_draws", 10)):
             v = getattr(self, k)
+            if v is None and k.startswith("pilot_"):
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise NutsOptionsError(f"{k}: must be an integer >= {lo}, got {v!r}")
         if not 0.5 <= self.target_accept < 1:
@@ -128,6 +138,7 @@ class NutsResult:
     diagnostics: dict[str, Any]
     options: NutsOptions
     start_info: dict = dataclasses.field(default_factory=dict)  # posterior_mode's info (start "mode")
+    warmup_gradient_evaluations: int = 0  # leapfrog steps of the warm-up (pilot included), all chains
 
     def summary(self) -> dict[str, Any]:
         d = self.diagnostics
@@ -152,6 +163,7 @@ class NutsResult:
             "mean_tree_depth": self.mean_tree_depth,
             "mean_accept": self.mean_accept,
             "gradient_evaluations": self.gradient_evaluations,
+            "warmup_gradient_evaluations": self.warmup_gradient_evaluations,
             "wall_s": self.wall_s,
             "compile_s": self.compile_s,
             "ess_bulk": d["ess_bulk"],
@@ -403,7 +415,10 @@ def sample_nuts(
     k_start, k_chains, k_main = jax.random.split(key, 3)
     z0 = jax.random.normal(k_start, (options.chains, P), dtype)  # draws from the Laplace approximation
     statics = (options.warmup, options.draws, options.dense, float(options.target_accept), options.max_tree_depth, options.adapt_mass)
+    pilot_statics = (options.pilot_warmup or options.warmup, options.pilot_draws or options.draws, options.dense,
+                     float(options.target_accept), options.max_tree_depth, options.pilot_adapt_mass)
     compile_s = wall = 0.0
+    warm_grads = 0
     if options.start == "mode":
         t = time.perf_counter()
         jax.block_until_ready(_value_and_grad(ld.problem, ld.template, ld.args, jnp.asarray(ld.flat0, dtype), ld.idx))
@@ -430,14 +445,16 @@ def sample_nuts(
         keys = jax.random.split(k, options.chains)
         chain_args = [(ld.problem, ld.template, ld.args, ld.idx, jnp.asarray(centre, dtype), jnp.asarray(chol, dtype),
                        keys[c], jnp.asarray(z0[c], dtype), ridge_j) for c in range(options.chains)]
+        st = pilot_statics if i + 1 < len(runs) else statics
         t = time.perf_counter()
-        compiled = _compiled(chain_args[0], statics)  # one compiled program serves every chain, the pilot and the run
+        compiled = _compiled(chain_args[0], st)  # one compiled program serves every chain (and the pilot, if its lengths are the run's)
         compile_s += time.perf_counter() - t
         t = time.perf_counter()
-        outs = _run_chains(compiled, chain_args, statics, _threads(options))
+        outs = _run_chains(compiled, chain_args, st, _threads(options))
         wall += time.perf_counter() - t
         zs, div, nsteps, acc, depth_used, step_size, warm_steps = (np.stack(x) for x in zip(*outs))
         grads += int(nsteps.sum() + warm_steps.sum())
+        warm_grads += int(warm_steps.sum()) + (int(nsteps.sum()) if i + 1 < len(runs) else 0)
         if i + 1 < len(runs):  # the pilot: whiten the run by its draws' mean and covariance
             flats = centre[None, None, :] + np.einsum("ij,cnj->cni", chol, zs)  # sheared (y)
             pooled = flats.reshape(-1, P)
@@ -465,6 +482,7 @@ def sample_nuts(
         diagnostics=diag,
         options=options,
         start_info=mode_info,
+        warmup_gradient_evaluations=warm_grads,
     )
 
 
