@@ -42,6 +42,7 @@ splits emcee's batch over threads (default 1, as before: the reference).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -52,7 +53,7 @@ import numpy as np
 
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
-from tofjax.fit.nuts import NutsOptions, _threads, diagnostics, sample_nuts
+from tofjax.fit.nuts import NutsOptions, NutsOptionsError, _threads, diagnostics, sample_nuts
 from tofjax.fit.posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
@@ -216,25 +217,13 @@ def small_scene_of(scene_name: str, small=None):
     return scene, f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
-        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1) -> dict:
-    scene, label = small_scene_of(scene_name, small)
-    cap = simulate(scene, frames, seed=1)
-    cal = Calibrator(scene, FitConfig())
-    t = time.perf_counter()
-    fit = cal.fit(cap)
-    fit_s = time.perf_counter() - t
-    print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
-    load_start = os.getloadavg()[0]
-    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold, gain_prior)
-    cost = evaluation_cost(ld, walkers)
-    print(f"value+gradient {1e3 * cost['value_and_gradient_s']:.2f} ms, {walkers} values batched "
-          f"{1e3 * cost['batch_of_walkers_values_s']:.2f} ms", flush=True)
+def nuts_row_of(cal, cap, fit, ld, nuts: NutsOptions) -> dict:
+    """One NUTS run on ``ld`` with ``nuts``: its row of the JSON."""
     t = time.perf_counter()
     warm = sample_nuts(cal, cap, fit, nuts, density=ld)
     warm_total = time.perf_counter() - t
     s = warm.summary()
-    nuts_row = {
+    row = {
         "chains": nuts.chains,
         "warmup": nuts.warmup,
         "draws": nuts.draws,
@@ -255,6 +244,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
         "pilot": nuts.pilot,
+        "pilot_warmup": nuts.pilot_warmup,
+        "pilot_draws": nuts.pilot_draws,
+        "pilot_adapt_mass": nuts.pilot_adapt_mass,
+        "adapt_mass": nuts.adapt_mass,
+        "seed": nuts.seed,
         "shear": nuts.shear,
         "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
@@ -266,7 +260,27 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "gradients_per_draw": (warm.gradient_evaluations - warm.warmup_gradient_evaluations
                                - int(s["start_info"].get("gradient_evaluations", 0))) / (nuts.chains * nuts.draws),
     }
-    print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
+    print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}, "
+          f"{row['gradient_evaluations']} gradients ({row['warmup_gradient_evaluations']} in warm-up)", flush=True)
+    return row
+
+
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
+        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1, compare=()) -> dict:
+    scene, label = small_scene_of(scene_name, small)
+    cap = simulate(scene, frames, seed=1)
+    cal = Calibrator(scene, FitConfig())
+    t = time.perf_counter()
+    fit = cal.fit(cap)
+    fit_s = time.perf_counter() - t
+    print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
+    load_start = os.getloadavg()[0]
+    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold, gain_prior)
+    cost = evaluation_cost(ld, walkers)
+    print(f"value+gradient {1e3 * cost['value_and_gradient_s']:.2f} ms, {walkers} values batched "
+          f"{1e3 * cost['batch_of_walkers_values_s']:.2f} ms", flush=True)
+    nuts_row = nuts_row_of(cal, cap, fit, ld, nuts)
+    others = {f"nuts_{label}": nuts_row_of(cal, cap, fit, ld, o) for label, o in compare}  # side by side, same run
     em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)
     ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
     per_eval = nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"] if em["ess_min_per_evaluation"] > 0 else float("inf")
@@ -301,8 +315,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
                       if gain_prior == "log-uniform" else "integrated out analytically (flat priors)"},
         "fit_s": fit_s,
         "evaluation_cost": cost,
-        "samplers": {"nuts": nuts_row, "emcee": em},
+        "samplers": {"nuts": nuts_row, **others, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
+        **({"compared_nuts_over_emcee_ess_min_per_s": {k: v["ess_min_per_s"] / em["ess_min_per_s"] for k, v in others.items()},
+            "compared_nuts_over_emcee_ess_min_per_evaluation": {
+                k: v["ess_min_per_gradient"] / em["ess_min_per_evaluation"] for k, v in others.items()}} if others else {}),
         "nuts_over_emcee_ess_min_per_evaluation": per_eval,
         "interleaved_cost": ic,
         "nuts_over_emcee_ess_min_per_s_load_robust": ic["per_evaluation_ratio_times_cost_ratio"]["as_run"],
@@ -358,11 +375,20 @@ def main(argv=None):
                     help="NUTS: shear the coordinates along the albedo ridge (NutsOptions.shear)")
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
-    ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
+    ap.add_argument("--pilot", action=argparse.BooleanOptionalAction, default=dflt.pilot,
+                    help="NUTS: a pilot run first (its chains' pooled draws whiten the kept run)")
     ap.add_argument("--threads", type=int, default=dflt.threads,
                     help="NUTS: chains run at the same time (NutsOptions.threads; default 1: one after the other)")
     ap.add_argument("--emcee-threads", type=int, default=1,
                     help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
+    ap.add_argument("--seed", type=int, default=dflt.seed, help="NUTS: its key (the draws are fixed by it)")
+    ap.add_argument("--pilot-warmup", type=int, default=dflt.pilot_warmup, help="NUTS: the pilot's warm-up (with --pilot)")
+    ap.add_argument("--pilot-draws", type=int, default=dflt.pilot_draws, help="NUTS: the pilot's draws (with --pilot)")
+    ap.add_argument("--pilot-adapt-mass", action=argparse.BooleanOptionalAction, default=dflt.pilot_adapt_mass)
+    ap.add_argument("--adapt-mass", action=argparse.BooleanOptionalAction, default=dflt.adapt_mass)
+    ap.add_argument("--compare", nargs="*", default=[], metavar="JSON",
+                    help='NUTS settings run too, side by side in the same run: JSON objects of NutsOptions fields '
+                         'overriding the run\'s, with a "label" (e.g. \'{"label": "main", "threads": 1}\')')
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
@@ -386,8 +412,18 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
                        target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
-                       shear=a.shear, threads=a.threads)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads)
+                       shear=a.shear, threads=a.threads, seed=a.seed, pilot_warmup=a.pilot_warmup, pilot_draws=a.pilot_draws,
+                       pilot_adapt_mass=a.pilot_adapt_mass, adapt_mass=a.adapt_mass)
+    compare = []
+    for spec in a.compare:
+        try:
+            kw = json.loads(spec)
+            label = str(kw.pop("label"))
+            kw = {k: tuple(v) if k == "hold" else v for k, v in kw.items()}
+            compare.append((label, dataclasses.replace(nuts, **kw)))
+        except (ValueError, KeyError, TypeError, NutsOptionsError) as e:
+            raise SystemExit(f"--compare: a JSON object of NutsOptions fields with a label, got {spec!r} ({e})")
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads, compare)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})

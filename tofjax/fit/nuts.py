@@ -88,7 +88,7 @@ class NutsOptions:
     draws: int = 700
     start: str = "mode"
     seed: int = 0
-    target_accept: float = 0.95
+    target_accept: float = 0.9
     max_tree_depth: int = 10
     dense: bool = True
     pilot: bool = False
@@ -98,7 +98,7 @@ class NutsOptions:
     nuisance_width: float | None = NUISANCE_WIDTH
     hold: tuple[str, ...] = HELD
     gain_prior: str = GAIN_PRIOR
-    threads: int | None = 1
+    threads: int | None = None
     pilot_warmup: int | None = None
     pilot_draws: int | None = None
     pilot_adapt_mass: bool = True
