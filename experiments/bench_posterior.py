@@ -22,7 +22,9 @@ through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up includ
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
 load-independent figures. Writes ``posterior.json`` in ``--out``. NUTS's settings are
 :class:`~tofjax.fit.nuts.NutsOptions`' defaults unless given (4 x (250 + 700) at target
-acceptance 0.95, dense mass matrix, the ridge shear; the light-entry width held at the fit);
+acceptance 0.9 (0.95 before issue 16's nuts10x branch), chains in threads, one per core, dense mass matrix,
+the ridge shear; the light-entry width held at the fit); ``--compare`` runs other NUTS settings
+side by side in the same run (e.g. main's before: ``'{"label": "main_settings", "target_accept": 0.95, "threads": 1}'``);
 with 32 walkers x 3000 steps they made about 55k gradients and 96k values on the default
 baseline (docs/results/posterior.json; before the shear: posterior_noshear.json, posterior_idle.json,
 posterior_loaded.json).
@@ -34,9 +36,10 @@ On a loaded machine the two samplers' wall times, minutes apart, vary with the l
 runs at load 7-18, the same draws (same seeds), gave NUTS over emcee 4.3x-7.1x per second): ``interleaved_cost``
 measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
 ``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
-ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default 1, one
-after the other: two threads were not a reliable gain on the loaded VM); ``--emcee-threads``
-splits emcee's batch over threads (default 1, as before: the reference).
+ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default: one per
+core; on the idle VM two threads made a gradient 1.75x cheaper, posterior_idle_main.json, while
+emcee's batch split over two threads gained nothing); ``--emcee-threads`` splits emcee's batch
+over threads (default 1, as before: the reference).
 """
 
 from __future__ import annotations
@@ -341,7 +344,8 @@ def collect(paths, out: Path, note: str = "") -> dict:
             for line in Path(p).read_text().splitlines():
                 if line.strip():
                     v = _json.loads(line)
-                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations", "ess_min",
+                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations",
+                                                           "warmup_gradient_evaluations", "ess_min",
                                                            "rhat_max", "ess_min_per_gradient", "wall_s", "mean_tree_depth",
                                                            "mean_accept", "load_average")} | {"source": str(p)})
             continue
@@ -350,10 +354,14 @@ def collect(paths, out: Path, note: str = "") -> dict:
                "nuts_over_emcee_ess_min_per_s": r["nuts_over_emcee_ess_min_per_s"],
                "nuts_over_emcee_ess_min_per_evaluation": r["nuts_over_emcee_ess_min_per_evaluation"],
                "nuts_over_emcee_ess_min_per_s_load_robust": r.get("nuts_over_emcee_ess_min_per_s_load_robust"),
+               "compared_nuts_over_emcee_ess_min_per_s": r.get("compared_nuts_over_emcee_ess_min_per_s"),
+               "compared_nuts_over_emcee_ess_min_per_evaluation": r.get("compared_nuts_over_emcee_ess_min_per_evaluation"),
+               "load_average": r.get("load_average"),
                "interleaved_cost": r.get("interleaved_cost"), "targets": r["targets"]}
         for k, v in r["samplers"].items():
             row[k] = {q: v.get(q) for q in ("ess_min", "ess_min_per_s", "wall_s", "rhat_max", "threads", "divergences",
-                                            "gradient_evaluations", "log_density_evaluations")}
+                                            "gradient_evaluations", "log_density_evaluations", "target_accept",
+                                            "warmup_gradient_evaluations", "gradients_per_draw", "mean_tree_depth")}
         runs.append(row)
     res = {**({"note": note} if note else {}), "runs": runs, **({"nuts_variants": variants} if variants else {})}
     atomic_write_text(out, _json.dumps(res, indent=1))
@@ -378,7 +386,7 @@ def main(argv=None):
     ap.add_argument("--pilot", action=argparse.BooleanOptionalAction, default=dflt.pilot,
                     help="NUTS: a pilot run first (its chains' pooled draws whiten the kept run)")
     ap.add_argument("--threads", type=int, default=dflt.threads,
-                    help="NUTS: chains run at the same time (NutsOptions.threads; default 1: one after the other)")
+                    help="NUTS: chains run at the same time (NutsOptions.threads; default: one per core)")
     ap.add_argument("--emcee-threads", type=int, default=1,
                     help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
     ap.add_argument("--seed", type=int, default=dflt.seed, help="NUTS: its key (the draws are fixed by it)")
