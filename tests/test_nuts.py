@@ -74,6 +74,7 @@ def test_nuts_short_run(fitted, tmp_path):
     assert s["wall_s"] > 0 and s["ess_min_per_s"] == pytest.approx(s["ess_min"] / s["wall_s"])
     assert 0 < s["ess_min"] and 0.9 < s["rhat_max"]
     assert r.gradient_evaluations >= 2 * 120
+    assert 2 * 60 <= r.warmup_gradient_evaluations < r.gradient_evaluations and s["warmup_gradient_evaluations"] > 0
     assert s["start"] == "mode" and s["start_info"]["used"] == "mode"
     import json
 
@@ -129,7 +130,7 @@ def test_diagnostics_properties():
 
 @pytest.mark.parametrize("kw", [{"chains": 0}, {"warmup": 5}, {"draws": -1}, {"draws": 1.5}, {"target_accept": 1.0},
                                 {"max_tree_depth": 0}, {"chains": True}, {"gain_prior": "jeffreys"},
-                                {"threads": 0}, {"threads": True}, {"threads": 1.5}])
+                                {"threads": 0}, {"threads": True}, {"threads": 1.5}, {"pilot_warmup": 5}, {"pilot_draws": 2.0}])
 def test_bad_options_are_one_line_errors(kw):
     with pytest.raises(UserError, match=next(iter(kw))):
         NutsOptions(**kw)
