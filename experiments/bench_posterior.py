@@ -347,7 +347,8 @@ def collect(paths, out: Path, note: str = "") -> dict:
                     variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations",
                                                            "warmup_gradient_evaluations", "ess_min",
                                                            "rhat_max", "ess_min_per_gradient", "wall_s", "mean_tree_depth",
-                                                           "mean_accept", "load_average")} | {"source": str(p)})
+                                                           "mean_accept", "load_average", "draws_over_laplace_variance",
+                                                           "widest_direction", "narrowest_direction")} | {"source": str(p)})
             continue
         r = _json.loads(Path(p).read_text())
         row = {"source": str(p), "note": r.get("note", ""), "machine": r["machine"],
