@@ -22,7 +22,9 @@ through the stretch move). ``wall_s`` is the sampling time (NUTS: warm-up includ
 burn-in included). ESS per gradient (NUTS) and per log-density value (emcee) are the
 load-independent figures. Writes ``posterior.json`` in ``--out``. NUTS's settings are
 :class:`~tofjax.fit.nuts.NutsOptions`' defaults unless given (4 x (250 + 700) at target
-acceptance 0.95, dense mass matrix, the ridge shear; the light-entry width held at the fit);
+acceptance 0.9 (0.95 before issue 16's nuts10x branch), chains in threads, one per core, dense mass matrix,
+the ridge shear; the light-entry width held at the fit); ``--compare`` runs other NUTS settings
+side by side in the same run (e.g. main's before: ``'{"label": "main_settings", "target_accept": 0.95, "threads": 1}'``);
 with 32 walkers x 3000 steps they made about 55k gradients and 96k values on the default
 baseline (docs/results/posterior.json; before the shear: posterior_noshear.json, posterior_idle.json,
 posterior_loaded.json).
@@ -34,14 +36,16 @@ On a loaded machine the two samplers' wall times, minutes apart, vary with the l
 runs at load 7-18, the same draws (same seeds), gave NUTS over emcee 4.3x-7.1x per second): ``interleaved_cost``
 measures a NUTS gradient and an emcee value (on one thread and on two) interleaved, and
 ``nuts_over_emcee_ess_min_per_s_load_robust`` is the per-evaluation ratio times their cost
-ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default 1, one
-after the other: two threads were not a reliable gain on the loaded VM); ``--emcee-threads``
-splits emcee's batch over threads (default 1, as before: the reference).
+ratio. ``--threads`` runs NUTS's chains that many at a time (NutsOptions.threads; default: one per
+core; on the idle VM two threads made a gradient 1.75x cheaper, posterior_idle_main.json, while
+emcee's batch split over two threads gained nothing); ``--emcee-threads`` splits emcee's batch
+over threads (default 1, as before: the reference).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -52,7 +56,7 @@ import numpy as np
 
 import tofjax
 from tofjax.fit.calibrate import Calibrator, FitConfig
-from tofjax.fit.nuts import NutsOptions, _threads, diagnostics, sample_nuts
+from tofjax.fit.nuts import NutsOptions, NutsOptionsError, _threads, diagnostics, sample_nuts
 from tofjax.fit.posterior import GAIN_PRIOR, GAIN_PRIORS, HELD, NUISANCE_WIDTH, log_density
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
@@ -216,25 +220,13 @@ def small_scene_of(scene_name: str, small=None):
     return scene, f"{scene_name} reduced to {S} sensors x {Z} zones x {B} bins (not the default baseline)"
 
 
-def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
-        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1) -> dict:
-    scene, label = small_scene_of(scene_name, small)
-    cap = simulate(scene, frames, seed=1)
-    cal = Calibrator(scene, FitConfig())
-    t = time.perf_counter()
-    fit = cal.fit(cap)
-    fit_s = time.perf_counter() - t
-    print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
-    load_start = os.getloadavg()[0]
-    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold, gain_prior)
-    cost = evaluation_cost(ld, walkers)
-    print(f"value+gradient {1e3 * cost['value_and_gradient_s']:.2f} ms, {walkers} values batched "
-          f"{1e3 * cost['batch_of_walkers_values_s']:.2f} ms", flush=True)
+def nuts_row_of(cal, cap, fit, ld, nuts: NutsOptions) -> dict:
+    """One NUTS run on ``ld`` with ``nuts``: its row of the JSON."""
     t = time.perf_counter()
     warm = sample_nuts(cal, cap, fit, nuts, density=ld)
     warm_total = time.perf_counter() - t
     s = warm.summary()
-    nuts_row = {
+    row = {
         "chains": nuts.chains,
         "warmup": nuts.warmup,
         "draws": nuts.draws,
@@ -255,13 +247,43 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
         "mean_tree_depth": warm.mean_tree_depth,
         "mean_accept": warm.mean_accept,
         "pilot": nuts.pilot,
+        "pilot_warmup": nuts.pilot_warmup,
+        "pilot_draws": nuts.pilot_draws,
+        "pilot_adapt_mass": nuts.pilot_adapt_mass,
+        "adapt_mass": nuts.adapt_mass,
+        "seed": nuts.seed,
         "shear": nuts.shear,
         "start_info": s["start_info"],
         "gradient_evaluations": warm.gradient_evaluations,
         "ess_min_per_gradient": s["ess_min"] / warm.gradient_evaluations,
         "gradient_evaluations_per_s": warm.gradient_evaluations / warm.wall_s,
+        # where the gradients go: the warm-up's share (its trees are deeper than the draws')
+        "warmup_gradient_evaluations": warm.warmup_gradient_evaluations,
+        "warmup_share_of_gradients": warm.warmup_gradient_evaluations / warm.gradient_evaluations,
+        "gradients_per_draw": (warm.gradient_evaluations - warm.warmup_gradient_evaluations
+                               - int(s["start_info"].get("gradient_evaluations", 0))) / (nuts.chains * nuts.draws),
     }
-    print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}", flush=True)
+    print(f"NUTS warm {warm.wall_s:.1f} s, min ESS {s['ess_min']:.0f}, max R-hat {s['rhat_max']:.3f}, "
+          f"{row['gradient_evaluations']} gradients ({row['warmup_gradient_evaluations']} in warm-up)", flush=True)
+    return row
+
+
+def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_steps: int, out: Path, small=None,
+        gain_prior: str = GAIN_PRIOR, note: str = "", emcee_threads: int = 1, compare=()) -> dict:
+    scene, label = small_scene_of(scene_name, small)
+    cap = simulate(scene, frames, seed=1)
+    cal = Calibrator(scene, FitConfig())
+    t = time.perf_counter()
+    fit = cal.fit(cap)
+    fit_s = time.perf_counter() - t
+    print(f"fit {fit_s:.1f} s: {fit.result}", flush=True)
+    load_start = os.getloadavg()[0]
+    ld = log_density(cal, cap, fit, nuts.nuisance_width, nuts.hold, gain_prior)
+    cost = evaluation_cost(ld, walkers)
+    print(f"value+gradient {1e3 * cost['value_and_gradient_s']:.2f} ms, {walkers} values batched "
+          f"{1e3 * cost['batch_of_walkers_values_s']:.2f} ms", flush=True)
+    nuts_row = nuts_row_of(cal, cap, fit, ld, nuts)
+    others = {f"nuts_{label}": nuts_row_of(cal, cap, fit, ld, o) for label, o in compare}  # side by side, same run
     em = run_emcee(ld, walkers, emcee_steps, threads=emcee_threads)
     ratio = nuts_row["ess_min_per_s"] / em["ess_min_per_s"] if em["ess_min_per_s"] > 0 else float("inf")
     per_eval = nuts_row["ess_min_per_gradient"] / em["ess_min_per_evaluation"] if em["ess_min_per_evaluation"] > 0 else float("inf")
@@ -296,8 +318,11 @@ def run(scene_name: str, frames: int, nuts: NutsOptions, walkers: int, emcee_ste
                       if gain_prior == "log-uniform" else "integrated out analytically (flat priors)"},
         "fit_s": fit_s,
         "evaluation_cost": cost,
-        "samplers": {"nuts": nuts_row, "emcee": em},
+        "samplers": {"nuts": nuts_row, **others, "emcee": em},
         "nuts_over_emcee_ess_min_per_s": ratio,
+        **({"compared_nuts_over_emcee_ess_min_per_s": {k: v["ess_min_per_s"] / em["ess_min_per_s"] for k, v in others.items()},
+            "compared_nuts_over_emcee_ess_min_per_evaluation": {
+                k: v["ess_min_per_gradient"] / em["ess_min_per_evaluation"] for k, v in others.items()}} if others else {}),
         "nuts_over_emcee_ess_min_per_evaluation": per_eval,
         "interleaved_cost": ic,
         "nuts_over_emcee_ess_min_per_s_load_robust": ic["per_evaluation_ratio_times_cost_ratio"]["as_run"],
@@ -319,19 +344,25 @@ def collect(paths, out: Path, note: str = "") -> dict:
             for line in Path(p).read_text().splitlines():
                 if line.strip():
                     v = _json.loads(line)
-                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations", "ess_min",
+                    variants.append({k: v.get(k) for k in ("label", "options", "divergences", "gradient_evaluations",
+                                                           "warmup_gradient_evaluations", "ess_min",
                                                            "rhat_max", "ess_min_per_gradient", "wall_s", "mean_tree_depth",
-                                                           "mean_accept", "load_average")} | {"source": str(p)})
+                                                           "mean_accept", "load_average", "draws_over_laplace_variance",
+                                                           "widest_direction", "narrowest_direction")} | {"source": str(p)})
             continue
         r = _json.loads(Path(p).read_text())
         row = {"source": str(p), "note": r.get("note", ""), "machine": r["machine"],
                "nuts_over_emcee_ess_min_per_s": r["nuts_over_emcee_ess_min_per_s"],
                "nuts_over_emcee_ess_min_per_evaluation": r["nuts_over_emcee_ess_min_per_evaluation"],
                "nuts_over_emcee_ess_min_per_s_load_robust": r.get("nuts_over_emcee_ess_min_per_s_load_robust"),
+               "compared_nuts_over_emcee_ess_min_per_s": r.get("compared_nuts_over_emcee_ess_min_per_s"),
+               "compared_nuts_over_emcee_ess_min_per_evaluation": r.get("compared_nuts_over_emcee_ess_min_per_evaluation"),
+               "load_average": r.get("load_average"),
                "interleaved_cost": r.get("interleaved_cost"), "targets": r["targets"]}
         for k, v in r["samplers"].items():
             row[k] = {q: v.get(q) for q in ("ess_min", "ess_min_per_s", "wall_s", "rhat_max", "threads", "divergences",
-                                            "gradient_evaluations", "log_density_evaluations")}
+                                            "gradient_evaluations", "log_density_evaluations", "target_accept",
+                                            "warmup_gradient_evaluations", "gradients_per_draw", "mean_tree_depth")}
         runs.append(row)
     res = {**({"note": note} if note else {}), "runs": runs, **({"nuts_variants": variants} if variants else {})}
     atomic_write_text(out, _json.dumps(res, indent=1))
@@ -353,11 +384,20 @@ def main(argv=None):
                     help="NUTS: shear the coordinates along the albedo ridge (NutsOptions.shear)")
     ap.add_argument("--hold", nargs="*", default=list(HELD), help="coordinates held at the fit (none: sample all)")
     ap.add_argument("--gain-prior", choices=GAIN_PRIORS, default=GAIN_PRIOR)
-    ap.add_argument("--pilot", action="store_true", help="NUTS: a pilot run first (whitens the kept run by its draws)")
+    ap.add_argument("--pilot", action=argparse.BooleanOptionalAction, default=dflt.pilot,
+                    help="NUTS: a pilot run first (its chains' pooled draws whiten the kept run)")
     ap.add_argument("--threads", type=int, default=dflt.threads,
-                    help="NUTS: chains run at the same time (NutsOptions.threads; default 1: one after the other)")
+                    help="NUTS: chains run at the same time (NutsOptions.threads; default: one per core)")
     ap.add_argument("--emcee-threads", type=int, default=1,
                     help="emcee: its batch of walkers split over this many threads (default 1: one call, the reference)")
+    ap.add_argument("--seed", type=int, default=dflt.seed, help="NUTS: its key (the draws are fixed by it)")
+    ap.add_argument("--pilot-warmup", type=int, default=dflt.pilot_warmup, help="NUTS: the pilot's warm-up (with --pilot)")
+    ap.add_argument("--pilot-draws", type=int, default=dflt.pilot_draws, help="NUTS: the pilot's draws (with --pilot)")
+    ap.add_argument("--pilot-adapt-mass", action=argparse.BooleanOptionalAction, default=dflt.pilot_adapt_mass)
+    ap.add_argument("--adapt-mass", action=argparse.BooleanOptionalAction, default=dflt.adapt_mass)
+    ap.add_argument("--compare", nargs="*", default=[], metavar="JSON",
+                    help='NUTS settings run too, side by side in the same run: JSON objects of NutsOptions fields '
+                         'overriding the run\'s, with a "label" (e.g. \'{"label": "main", "threads": 1}\')')
     ap.add_argument("--walkers", type=int, default=32)
     ap.add_argument("--emcee-steps", type=int, default=3000)
     ap.add_argument("--small", type=int, nargs=3, metavar=("SENSORS", "ZONES", "BINS"),
@@ -381,8 +421,18 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     nuts = NutsOptions(chains=a.chains, warmup=a.warmup, draws=a.draws, nuisance_width=a.nuisance_width,
                        target_accept=a.target_accept, max_tree_depth=a.max_tree_depth, hold=tuple(a.hold), pilot=a.pilot,
-                       shear=a.shear, threads=a.threads)
-    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads)
+                       shear=a.shear, threads=a.threads, seed=a.seed, pilot_warmup=a.pilot_warmup, pilot_draws=a.pilot_draws,
+                       pilot_adapt_mass=a.pilot_adapt_mass, adapt_mass=a.adapt_mass)
+    compare = []
+    for spec in a.compare:
+        try:
+            kw = json.loads(spec)
+            label = str(kw.pop("label"))
+            kw = {k: tuple(v) if k == "hold" else v for k, v in kw.items()}
+            compare.append((label, dataclasses.replace(nuts, **kw)))
+        except (ValueError, KeyError, TypeError, NutsOptionsError) as e:
+            raise SystemExit(f"--compare: a JSON object of NutsOptions fields with a label, got {spec!r} ({e})")
+    r = run(a.scene, a.frames, nuts, a.walkers, a.emcee_steps, out, a.small, a.gain_prior, a.note, a.emcee_threads, compare)
     print(json.dumps({k: v for k, v in r.items() if k != "samplers"}, indent=1))
     for k, v in r["samplers"].items():
         print(k, {q: v[q] for q in ("wall_s", "ess_min", "ess_min_per_s", "rhat_max")})

@@ -22,6 +22,8 @@ import pickle
 import time
 from pathlib import Path
 
+import numpy as np
+
 import tofjax
 
 
@@ -65,11 +67,23 @@ def main(argv=None):
         r = nm.sample_nuts(cal, cap, fit, o, density=ld)
         s = r.summary()
         row = dict(label=label, options=kw, fractions=fractions, steep=steep, divergences=r.divergences,
-                   gradient_evaluations=r.gradient_evaluations, ess_min=s["ess_min"], rhat_max=s["rhat_max"],
+                   gradient_evaluations=r.gradient_evaluations,
+                   warmup_gradient_evaluations=r.warmup_gradient_evaluations, ess_min=s["ess_min"], rhat_max=s["rhat_max"],
                    ess_min_per_gradient=s["ess_min"] / r.gradient_evaluations, wall_s=r.wall_s, compile_s=r.compile_s,
                    total_s=time.perf_counter() - t, step_size=r.step_size.tolist(), mean_tree_depth=r.mean_tree_depth,
                    mean_accept=r.mean_accept, ess_bulk=s["ess_bulk"], ess_tail=s["ess_tail"],
                    ridge_tail_alpha=r.start_info.get("ridge_tail_alpha"), load_average=os.getloadavg()[0])
+        # the posterior's shape against the Laplace approximation at the fit (the samplers' coordinates):
+        # the eigenvalues of the draws' covariance whitened by the Laplace covariance, and the
+        # widest and narrowest directions' loadings (which coordinates the sampler finds off)
+        w = post._to_sampler_np(r.chains_unconstrained.reshape(-1, ld.flat0.size), ld.idx)
+        L = np.linalg.cholesky(ld.laplace_cov)
+        ev, vec = np.linalg.eigh(np.linalg.solve(L, np.linalg.solve(L, np.cov(w.T)).T))
+        row["draws_over_laplace_variance"] = ev.tolist()
+        sd = np.sqrt(np.diag(ld.laplace_cov))
+        for name, j in (("widest_direction", -1), ("narrowest_direction", 0)):  # in Laplace sd of each coordinate
+            d = L @ vec[:, j] / sd
+            row[name] = {k: round(float(v), 3) for k, v in zip(ld.coords, d / np.abs(d).max())}
         print(json.dumps(row), flush=True)
         with open(a.out, "a") as f:
             f.write(json.dumps(row) + "\n")
