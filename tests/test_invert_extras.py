@@ -200,3 +200,17 @@ def test_reconstructor_solve_compiles_once(scene, monkeypatch):
     b = reconstruct.build_reconstructor(scene, np.full(scene.shape, 120.0), options=opts).strengths(h)[0]
     assert n >= 1 and len(loops) == n
     assert a.shape == b.shape and np.isfinite(b).all() and b.max() > 0 and not np.array_equal(a, b)
+
+
+def test_simulated_contacts_compile_once_per_model_structure(scene, monkeypatch):
+    """simulate_contacts compiles once per contact count: a second batch (other positions, other
+    seed) traces nothing (before, a ``jax.jit`` of a closure made per call compiled each call).
+    Traces are counted where the noise is drawn (at trace time only)."""
+    from tofjax.invert import synth
+
+    traced = []
+    draw = synth.sample_counts
+    monkeypatch.setattr(synth, "sample_counts", lambda *a, **k: traced.append(1) or draw(*a, **k))
+    a = simulate_contacts(scene, np.array([[[0.11, 0.07, 1.0]]]), seed=1)
+    b = simulate_contacts(scene, np.array([[[0.21, 0.17, 0.8]]]), seed=2)
+    assert len(traced) == 1 and a.shape == b.shape and not np.array_equal(a, b)
