@@ -54,9 +54,15 @@ def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes
     return Nodes(t=t, h=h, r=0.5 * c1 * (t - params.emission_time_s), dr=0.5 * c1 * h, c1=c1)
 
 
-#: Gauss-Legendre points per piece of a node (each node's range is split where r = d) for the
-#: near field's shape correction (:func:`shape_correction`)
-SHAPE_POINTS = 6
+#: The near field's shape correction (:func:`shape_correction`): a binomial series where
+#: ``s = min(r, d) / max(r, d) <= SHAPE_SERIES_SPLIT`` (``r <= d/4`` or ``r >= 4 d``), with
+#: SHAPE_SERIES_TERMS terms (the worst case, p = 1, converges as ``k 4^-k``); between,
+#: Gauss-Legendre with SHAPE_POINTS points; on a node grid (:func:`node_shape_correction`) the
+#: quadrature only on a window of SHAPE_WINDOW edges
+SHAPE_SERIES_SPLIT = 0.25
+SHAPE_SERIES_TERMS = {"float64": 24, "float32": 13}
+SHAPE_POINTS = 20
+SHAPE_WINDOW = 16
 
 
 def _pow_small(s, p):
@@ -80,40 +86,159 @@ def falloff(r, near_field, shape=2.0):
     return jnp.exp(-(2.0 / shape) * jnp.log1p(_pow_small(s, shape))) / m**2
 
 
-def _shape_excess(u, shape):
-    """``w_p(u) - 1``, ``w_p(u) = (d^2 / cos^2 u) G_p(d tan u)``: G's shape relative to ``p = 2``
-    in the variable ``u = atan(r / d)`` (in which ``G_2`` integrates to ``u / d``). ``w_p``
-    depends on ``s = tan(min(u, pi/2 - u))`` only, lies between 1/2 and 2, and is exactly 1 at
-    ``p = 2``."""
-    s = jnp.tan(jnp.clip(jnp.minimum(u, 0.5 * jnp.pi - u), 0.0, 0.25 * jnp.pi))
-    return jnp.expm1(jnp.log1p(s * s) - (2.0 / shape) * jnp.log1p(_pow_small(s, shape)))
+def _binomial_coefficients(p, n):
+    """``binom(-2/p, k)``, k = 1..n (the series ``(1 + x)^(-2/p) = sum_k binom(-2/p, k) x^k``)."""
+    c, out = 1.0, []
+    for k in range(n):
+        c = c * (-2.0 / p - k) / (k + 1)
+        out.append(c)
+    return out
+
+
+def _horner(coeffs, x):
+    acc = coeffs[-1]
+    for c in coeffs[-2::-1]:
+        acc = acc * x + c
+    return acc
+
+
+def _exprel(a):
+    """``expm1(a) / a``, 1 at ``a = 0`` (a double-where keeps the gradient finite)."""
+    small = jnp.abs(a) < 1e-3
+    safe = jnp.where(small, 1.0, a)
+    return jnp.where(small, 1.0 + a * (0.5 + a * (1.0 / 6.0 + a / 24.0)), jnp.expm1(safe) / safe)
+
+
+def _shape_series(s, ls, inner, shape):
+    """The antiderivatives of :func:`shape_correction` (in units of ``d``: multiply by ``1/d``, 1,
+    ``d``) at ``s <= 1/4`` (``ls = ln s``), from the binomial series ``phi_p(s) = (1 + s^p)^(-2/p)
+    = sum_k c_k s^(kp)`` integrated term by term, minus the same at ``p = 2`` (so ``p = 2`` gives
+    exactly 0). ``r <= d`` (``r = d s``, ``inner``): ``int_0^r G r^j dr = d^(j-1) int_0^s s^j phi ds``;
+    ``r >= d`` (``r = d / s``): ``-int_r^inf G r^j dr = -d^(j-1) int_0^s phi / s^j ds`` (j = 2: the
+    integral diverges; its terms' antiderivatives instead, ``s^(kp-1) / (kp-1)``, the ``k = 1``
+    one written ``ln s exprel((p-1) ln s)``: a log at ``p = 1``)."""
+    n = SHAPE_SERIES_TERMS[jnp.dtype(s.dtype).name]
+    pos = s > 0
+    out = [0.0, 0.0, 0.0]
+    for q, sign in ((shape, 1.0), (2.0, -1.0)):
+        x = jnp.where(pos, jnp.exp(q * ls), 0.0)  # s^q
+        c = _binomial_coefficients(q, n)
+
+        def series(den, c=c, x=x):  # sum_k c_k x^(k-1) / den_k, k = 1..n
+            return _horner([ck / dk for ck, dk in zip(c, den)], x)
+
+        k = range(1, n + 1)
+        m = s * x * series([j * q + 1.0 for j in k])  # both sides
+        f_in = s * s * x * series([j * q + 2.0 for j in k])
+        f_out = x * series([j * q for j in k])
+        s2_in = s * s * s * x * series([j * q + 3.0 for j in k])
+        s2_out = c[0] * ls * _exprel((q - 1.0) * ls) + x * x / jnp.where(pos, s, 1.0) * _horner(
+            [ck / (j * q - 1.0) for ck, j in zip(c[1:], k[1:])], x)
+        out[0] = out[0] + sign * jnp.where(inner, m, -m)
+        out[1] = out[1] + sign * jnp.where(inner, f_in, -f_out)
+        out[2] = out[2] + sign * jnp.where(inner, s2_in, -s2_out)
+    return out
+
+
+def _shape_band(s, inner, shape):
+    """What :func:`_shape_series` misses for ``1/4 <= s <= 1``: ``+-int_{1/4}^s (phi_p - phi_2)
+    (s^j or s^-j) ds`` (``+`` for ``r <= d``), by Gauss-Legendre, :data:`SHAPE_POINTS` points graded
+    towards ``s`` (where, at ``s`` near 1 and large ``p``, ``phi_p`` bends within ~1/p). The
+    integrand is analytic on the interval (``s^p``'s branch point at 0 lies beyond it)."""
+    x, w = np.polynomial.legendre.leggauss(SHAPE_POINTS)
+    v = jnp.asarray(0.5 * (x + 1.0), s.dtype)
+    w = jnp.asarray(w, s.dtype)
+    a = SHAPE_SERIES_SPLIT
+    top = jnp.maximum(s, a)
+    width = (top - a)[..., None]
+    t = top[..., None] - width * v * v  # (..., points) in [a, max(s, a)]: never near 0
+    lt = jnp.log(t)
+    y = jnp.exp(2.0 * lt)  # t^2, written as t^p is (at p = 2 the two cancel exactly)
+    g = jnp.expm1(jnp.log1p(y) - (2.0 / shape) * jnp.log1p(jnp.exp(shape * lt))) / (1.0 + y)  # phi_p - phi_2
+    g = g * (w * v) * width  # ds = 2 width v dv, dv = dx / 2
+    it = 1.0 / t
+    up = jnp.where(inner[..., None], t, it)
+    sign = jnp.where(inner, 1.0, -1.0)
+    return [sign * jnp.sum(g, -1), sign * jnp.sum(g * up, -1), sign * jnp.sum(g * up * up, -1)]
+
+
+def _shape_edges(e, near_field, shape, band=True):
+    """The antiderivatives ``A_j(e)`` (j = 0, 1, 2) of ``(G_p - G_2) r^j`` at edges ``e >= 0``:
+    ``int_0^e`` for ``e <= d``, ``-int_e^inf`` (up to a constant, j = 2) beyond; series plus, for
+    ``1/4 < s < 1`` and ``band``, the band's quadrature; and the side (``e <= d``)."""
+    d = near_field
+    inner = e <= d
+    s = jnp.where(inner, e / d, d / jnp.where(inner, 1.0, e))
+    pos = s > 0
+    sc = jnp.minimum(s, SHAPE_SERIES_SPLIT)
+    ls = jnp.log(jnp.where(pos, sc, 1.0))
+    out = _shape_series(jnp.where(pos, sc, 0.0), ls, inner, shape)
+    if band:
+        out = [o + b for o, b in zip(out, _shape_band(s, inner, shape))]
+    return out, inner
+
+
+def _scale(a, d):
+    return (a[0] / d, a[1], a[2] * d)
+
+
+def _shape_nodes(a_lo, in_lo, a_hi, in_hi, near_field, shape):
+    """Node integrals from the edges' antiderivatives; a node across ``r = d`` adds the two sides'
+    values at ``d``."""
+    d = near_field
+    one = jnp.ones((), jnp.asarray(a_lo[0]).dtype)
+    at_d = []
+    for inner in (one > 0, one < 0):  # s = 1 on either side
+        ser = _shape_series(one * SHAPE_SERIES_SPLIT, jnp.log(one * SHAPE_SERIES_SPLIT), inner, shape)
+        at_d.append([x + b for x, b in zip(ser, _shape_band(one, inner, shape))])
+    at_d_in, at_d_out = at_d
+    across = in_lo & ~in_hi
+    return _scale([jnp.where(across, hi - o + i - lo, hi - lo) for lo, hi, i, o in zip(a_lo, a_hi, at_d_in, at_d_out)], d)
 
 
 def shape_correction(lo, hi, near_field, shape):
     """What the shape ``p`` adds to ``int G``, ``int r G`` and ``int r^2 G`` over ``[lo, hi]``
     (``0 <= lo <= hi``) relative to the closed forms at ``p = 2``: ``(dM, dF1, dF2)``, each 0 at
-    ``p = 2``. Gauss-Legendre in ``u = atan(r / d)`` (``dr = d du / cos^2 u``: the integrand is
-    bounded), each node split at ``r = d`` (``u = pi/4``), where ``G``'s shape bends most
-    (a kink as ``p`` grows): :data:`SHAPE_POINTS` points on each piece."""
-    d = near_field
-    ulo, uhi = jnp.arctan(lo / d), jnp.arctan(hi / d)
-    q = 0.25 * jnp.pi
-    x, wts = np.polynomial.legendre.leggauss(SHAPE_POINTS)
-    x, wts = jnp.asarray(x, lo.dtype), jnp.asarray(wts, lo.dtype)
-    v = 0.5 * (x + 1.0)  # on [0, 1]
-    dm = df1 = df2 = 0.0
-    # graded towards the bend: u = bend -+ width v^2 on each side (the points crowd where the
-    # shape bends sharply, within ~1/p of pi/4 in u)
-    for bend, far_end in ((jnp.maximum(jnp.minimum(uhi, q), ulo), ulo), (jnp.minimum(jnp.maximum(ulo, q), uhi), uhi)):
-        width = (far_end - bend)[..., None]
-        u = bend[..., None] + width * v * v  # (..., points)
-        g = _shape_excess(u, shape) * (wts * v) * jnp.abs(width)  # du = 2 |width| v dv, dv = dx / 2
-        t = jnp.tan(u)
-        dm = dm + jnp.sum(g, -1) / d
-        df1 = df1 + jnp.sum(g * t, -1)
-        df2 = df2 + d * jnp.sum(g * t * t, -1)
-    return dm, df1, df2
+    ``p = 2``. In ``s = min(r, d) / max(r, d)`` (``G dr = phi_p(s) ds / d`` on either side of
+    ``r = d``, ``phi_p = (1 + s^p)^(-2/p)``, bounded and smooth but at ``s = 0`` and, for large
+    ``p``, near ``s = 1``): antiderivatives at the edges, a binomial series for ``s <= 1/4``
+    (:func:`_shape_series`) and Gauss-Legendre from there (:func:`_shape_band`); a node across
+    ``r = d`` is split there. See :func:`node_shape_correction` for a grid of nodes."""
+    (a_lo, in_lo), (a_hi, in_hi) = _shape_edges(lo, near_field, shape), _shape_edges(hi, near_field, shape)
+    return _shape_nodes(a_lo, in_lo, a_hi, in_hi, near_field, shape)
 
+
+def node_shape_correction(lo, hi, near_field, shape):
+    """:func:`shape_correction` for a grid of contiguous nodes (``lo``, ``hi``: (K,), non-decreasing,
+    ``hi[k]`` the edge ``lo[k + 1]``), at a fraction of its cost: the band's quadrature
+    (:func:`_shape_band`, ``d / 4 < r < 4 d``) runs only on a window of :data:`SHAPE_WINDOW`
+    edges from the first one beyond ``d / 4`` (a dynamic slice); every other edge takes the
+    series alone (one log and two exps). Where the window does not hold every edge between
+    ``d / 4`` and ``4 d`` (a near field deeper than about 3 nodes) the band runs on all edges
+    (a ``lax.cond``; under ``vmap`` both branches run)."""
+    K = lo.shape[-1]
+    if lo.ndim != 1 or K + 1 <= SHAPE_WINDOW:
+        return shape_correction(lo, hi, near_field, shape)
+    d = near_field
+    edges = jnp.concatenate([lo[:1], hi])
+    a = SHAPE_SERIES_SPLIT
+    start = jnp.clip(jnp.sum(edges <= a * d), 0, K + 1 - SHAPE_WINDOW)  # edges before: series only
+    valid = jnp.sum(edges < d / a) <= start + SHAPE_WINDOW  # and the edges after the window
+
+    def windowed(edges):
+        out, inner = _shape_edges(edges, d, shape, band=False)
+        w = jax.lax.dynamic_slice(edges, (start,), (SHAPE_WINDOW,))
+        band = _shape_band(*_s_of(w, d), shape)
+        out = [jax.lax.dynamic_update_slice(o, jax.lax.dynamic_slice(o, (start,), (SHAPE_WINDOW,)) + b, (start,)) for o, b in zip(out, band)]
+        return out, inner
+
+    out, inner = jax.lax.cond(valid, windowed, lambda e: _shape_edges(e, d, shape), edges)
+    return _shape_nodes([o[:-1] for o in out], inner[:-1], [o[1:] for o in out], inner[1:], d, shape)
+
+
+def _s_of(e, d):
+    inner = e <= d
+    return jnp.where(inner, e / d, d / jnp.where(inner, 1.0, e)), inner
 
 def node_falloff(nodes: Nodes, near_field, shape=2.0):
     """G integrated over each node's range: (atan(r_hi/r0) - atan(r_lo/r0)) / r0 at ``p = 2``
@@ -203,7 +328,7 @@ def node_falloff_after_emission(nodes: Nodes, near_field, shape=2.0):
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
     # the closed forms of G at p = 2, plus what another shape p adds (0 at p = 2)
-    dm, df1, df2 = shape_correction(lo, hi, r0, shape)
+    dm, df1, df2 = node_shape_correction(lo, hi, r0, shape)
     mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0) + r0 * dm, 0.0) / r0
     first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2)) + df1  # int r G dr
     some = mass > 1e-9 * (0.5 * jnp.pi / r0)  # the double-where keeps the gradient finite
