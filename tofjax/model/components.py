@@ -60,7 +60,7 @@ def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes
 #: Gauss-Legendre with SHAPE_POINTS points; on a node grid (:func:`node_shape_correction`) the
 #: quadrature only on a window of SHAPE_WINDOW edges
 SHAPE_SERIES_SPLIT = 0.25
-SHAPE_SERIES_TERMS = {"float64": 24, "float32": 13}
+SHAPE_SERIES_TERMS = {"float64": 24, "float32": 13}  # at most 24
 SHAPE_POINTS = 20
 SHAPE_WINDOW = 16
 
@@ -86,22 +86,6 @@ def falloff(r, near_field, shape=2.0):
     return jnp.exp(-(2.0 / shape) * jnp.log1p(_pow_small(s, shape))) / m**2
 
 
-def _binomial_coefficients(p, n):
-    """``binom(-2/p, k)``, k = 1..n (the series ``(1 + x)^(-2/p) = sum_k binom(-2/p, k) x^k``)."""
-    c, out = 1.0, []
-    for k in range(n):
-        c = c * (-2.0 / p - k) / (k + 1)
-        out.append(c)
-    return out
-
-
-def _horner(coeffs, x):
-    acc = coeffs[-1]
-    for c in coeffs[-2::-1]:
-        acc = acc * x + c
-    return acc
-
-
 def _exprel(a):
     """``expm1(a) / a``, 1 at ``a = 0`` (a double-where keeps the gradient finite)."""
     small = jnp.abs(a) < 1e-3
@@ -119,25 +103,35 @@ def _shape_series(s, ls, inner, shape):
     one written ``ln s exprel((p-1) ln s)``: a log at ``p = 1``)."""
     n = SHAPE_SERIES_TERMS[jnp.dtype(s.dtype).name]
     pos = s > 0
-    out = [0.0, 0.0, 0.0]
-    for q, sign in ((shape, 1.0), (2.0, -1.0)):
-        x = jnp.where(pos, jnp.exp(q * ls), 0.0)  # s^q
-        c = _binomial_coefficients(q, n)
-
-        def series(den, c=c, x=x):  # sum_k c_k x^(k-1) / den_k, k = 1..n
-            return _horner([ck / dk for ck, dk in zip(c, den)], x)
-
-        k = range(1, n + 1)
-        m = s * x * series([j * q + 1.0 for j in k])  # both sides
-        f_in = s * s * x * series([j * q + 2.0 for j in k])
-        f_out = x * series([j * q for j in k])
-        s2_in = s * s * s * x * series([j * q + 3.0 for j in k])
-        s2_out = c[0] * ls * _exprel((q - 1.0) * ls) + x * x / jnp.where(pos, s, 1.0) * _horner(
-            [ck / (j * q - 1.0) for ck, j in zip(c[1:], k[1:])], x)
-        out[0] = out[0] + sign * jnp.where(inner, m, -m)
-        out[1] = out[1] + sign * jnp.where(inner, f_in, -f_out)
-        out[2] = out[2] + sign * jnp.where(inner, s2_in, -s2_out)
-    return out
+    q = jnp.stack([jnp.asarray(shape, s.dtype), jnp.asarray(2.0, s.dtype)])  # p, and 2 (the same ops)
+    qb = q.reshape((2,) + (1,) * s.ndim)
+    x = jnp.where(pos, jnp.exp(qb * ls), 0.0)  # s^q, (2, ...)
+    # c_k = binom(-2/q, k) = (-1)^k prod_{j<k} (2/q + j) / (j + 1), k = 1..n, over (kq + a):
+    # vectorised, and the powers x^k as an outer product of x^1..x^8 and (x^8)^0..2 (elementwise
+    # ops and one contraction, which compile fast: Horner's unrolled chain or a cumprod compile
+    # slowly, their gradients more so)
+    k = jnp.arange(1, n + 1, dtype=s.dtype)
+    a = 2.0 / q[:, None]
+    # |c_k| = prod_{j<k} (a + j) / (j + 1): a running sum of logs, as a product with a triangular
+    # matrix (a cumsum lowers to a scan that compiles slowly; lgamma to a long expansion)
+    tri = jnp.asarray(np.tril(np.ones((n, n))), s.dtype)
+    c = jnp.where(k % 2 == 1, -1.0, 1.0) * jnp.exp(jnp.log((a + k - 1.0) / k) @ tri.T)
+    kq = k * q[:, None]
+    den = jnp.stack([kq + 1.0, kq + 2.0, kq, kq + 3.0, jnp.where(k > 1, kq - 1.0, 1.0)], -1)
+    coef = jnp.where((k > 1)[:, None] | (jnp.arange(5) < 4), c[..., None] / den, 0.0)  # (2, n, 5)
+    low = jnp.stack([x**j for j in range(1, 9)], -1)  # (2, ..., 8)
+    x8 = low[..., -1:]
+    powers = (low[..., None, :] * jnp.concatenate([jnp.ones_like(x8), x8, x8 * x8], -1)[..., :, None])
+    powers = powers.reshape(powers.shape[:-2] + (24,))[..., :n]  # x^k, k = 1..n
+    t = jnp.einsum("q...n,qnc->q...c", powers, coef)
+    t = [t[..., i] for i in range(5)]
+    c1 = -2.0 / qb  # binom(-2/q, 1)
+    m = s * t[0]  # both sides
+    f_in, f_out = s * s * t[1], t[2]
+    s2_in = s * s * s * t[3]
+    s2_out = c1 * ls * _exprel((qb - 1.0) * ls) + t[4] / jnp.where(pos, s, 1.0)
+    out = (jnp.where(inner, m, -m), jnp.where(inner, f_in, -f_out), jnp.where(inner, s2_in, -s2_out))
+    return [o[0] - o[1] for o in out]
 
 
 def _shape_band(s, inner, shape):
@@ -162,38 +156,39 @@ def _shape_band(s, inner, shape):
     return [sign * jnp.sum(g, -1), sign * jnp.sum(g * up, -1), sign * jnp.sum(g * up * up, -1)]
 
 
-def _shape_edges(e, near_field, shape, band=True):
-    """The antiderivatives ``A_j(e)`` (j = 0, 1, 2) of ``(G_p - G_2) r^j`` at edges ``e >= 0``:
-    ``int_0^e`` for ``e <= d``, ``-int_e^inf`` (up to a constant, j = 2) beyond; series plus, for
-    ``1/4 < s < 1`` and ``band``, the band's quadrature; and the side (``e <= d``)."""
+def _shape_points(e, near_field, shape, band=True):
+    """The antiderivatives ``A_j(e)`` (j = 0, 1, 2) of ``(G_p - G_2) r^j`` at edges ``e >= 0``
+    (1-D), in units of ``d^(j-1)``: ``int_0^e`` for ``e <= d``, ``-int_e^inf`` beyond (up to a
+    constant, j = 2); the series plus (``band``) the band's quadrature; then the same at ``r = d``
+    on either side, two more values (one call of each: compiled once). Returns ``(A (3 x (E,)),
+    inner (E,), at_d (3 x (2,)))``."""
     d = near_field
-    inner = e <= d
-    s = jnp.where(inner, e / d, d / jnp.where(inner, 1.0, e))
+    inner = jnp.concatenate([e <= d, jnp.asarray([True, False])])
+    s = jnp.concatenate([jnp.where(e <= d, e / d, d / jnp.where(e <= d, 1.0, e)), jnp.ones((2,), e.dtype)])
     pos = s > 0
     sc = jnp.minimum(s, SHAPE_SERIES_SPLIT)
-    ls = jnp.log(jnp.where(pos, sc, 1.0))
-    out = _shape_series(jnp.where(pos, sc, 0.0), ls, inner, shape)
-    if band:
+    out = _shape_series(jnp.where(pos, sc, 0.0), jnp.log(jnp.where(pos, sc, 1.0)), inner, shape)
+    if band is True:
         out = [o + b for o, b in zip(out, _shape_band(s, inner, shape))]
-    return out, inner
+    elif band is not False:  # (start, width, valid): the band on ``width`` points from ``start``
+        start, width, valid = band  # (and at d) if ``valid``, else on all (only the band in the cond)
+
+        def window(s, inner):
+            idx = jnp.concatenate([start + jnp.arange(width), jnp.asarray([-2, -1]) + s.shape[0]])
+            return [jnp.zeros_like(s).at[idx].add(x) for x in _shape_band(s[idx], inner[idx], shape)]
+
+        b = jax.lax.cond(valid, window, lambda s, inner: _shape_band(s, inner, shape), s, inner)
+        out = [o + x for o, x in zip(out, b)]
+    return [o[:-2] for o in out], inner[:-2], [o[-2:] for o in out]
 
 
-def _scale(a, d):
-    return (a[0] / d, a[1], a[2] * d)
-
-
-def _shape_nodes(a_lo, in_lo, a_hi, in_hi, near_field, shape):
+def _shape_nodes(a_lo, in_lo, a_hi, in_hi, at_d, near_field):
     """Node integrals from the edges' antiderivatives; a node across ``r = d`` adds the two sides'
     values at ``d``."""
     d = near_field
-    one = jnp.ones((), jnp.asarray(a_lo[0]).dtype)
-    at_d = []
-    for inner in (one > 0, one < 0):  # s = 1 on either side
-        ser = _shape_series(one * SHAPE_SERIES_SPLIT, jnp.log(one * SHAPE_SERIES_SPLIT), inner, shape)
-        at_d.append([x + b for x, b in zip(ser, _shape_band(one, inner, shape))])
-    at_d_in, at_d_out = at_d
     across = in_lo & ~in_hi
-    return _scale([jnp.where(across, hi - o + i - lo, hi - lo) for lo, hi, i, o in zip(a_lo, a_hi, at_d_in, at_d_out)], d)
+    out = [jnp.where(across, hi - x[1] + x[0] - lo, hi - lo) for lo, hi, x in zip(a_lo, a_hi, at_d)]
+    return out[0] / d, out[1], out[2] * d
 
 
 def shape_correction(lo, hi, near_field, shape):
@@ -204,18 +199,21 @@ def shape_correction(lo, hi, near_field, shape):
     ``p``, near ``s = 1``): antiderivatives at the edges, a binomial series for ``s <= 1/4``
     (:func:`_shape_series`) and Gauss-Legendre from there (:func:`_shape_band`); a node across
     ``r = d`` is split there. See :func:`node_shape_correction` for a grid of nodes."""
-    (a_lo, in_lo), (a_hi, in_hi) = _shape_edges(lo, near_field, shape), _shape_edges(hi, near_field, shape)
-    return _shape_nodes(a_lo, in_lo, a_hi, in_hi, near_field, shape)
+    lo, hi = jnp.broadcast_arrays(jnp.asarray(lo), jnp.asarray(hi))
+    shp, n = lo.shape, lo.size
+    a, inner, at_d = _shape_points(jnp.concatenate([lo.ravel(), hi.ravel()]), near_field, shape)
+    out = _shape_nodes([x[:n] for x in a], inner[:n], [x[n:] for x in a], inner[n:], at_d, near_field)
+    return tuple(x.reshape(shp) for x in out)
 
 
 def node_shape_correction(lo, hi, near_field, shape):
     """:func:`shape_correction` for a grid of contiguous nodes (``lo``, ``hi``: (K,), non-decreasing,
     ``hi[k]`` the edge ``lo[k + 1]``), at a fraction of its cost: the band's quadrature
     (:func:`_shape_band`, ``d / 4 < r < 4 d``) runs only on a window of :data:`SHAPE_WINDOW`
-    edges from the first one beyond ``d / 4`` (a dynamic slice); every other edge takes the
-    series alone (one log and two exps). Where the window does not hold every edge between
-    ``d / 4`` and ``4 d`` (a near field deeper than about 3 nodes) the band runs on all edges
-    (a ``lax.cond``; under ``vmap`` both branches run)."""
+    edges from the first one beyond ``d / 4``; every other edge takes the series alone (one log
+    and two exps). Where the window does not hold every edge between ``d / 4`` and ``4 d`` (a
+    near field deeper than about 3 nodes) the band runs on all edges (a ``lax.cond``; under
+    ``vmap`` both branches run)."""
     K = lo.shape[-1]
     if lo.ndim != 1 or K + 1 <= SHAPE_WINDOW:
         return shape_correction(lo, hi, near_field, shape)
@@ -224,21 +222,9 @@ def node_shape_correction(lo, hi, near_field, shape):
     a = SHAPE_SERIES_SPLIT
     start = jnp.clip(jnp.sum(edges <= a * d), 0, K + 1 - SHAPE_WINDOW)  # edges before: series only
     valid = jnp.sum(edges < d / a) <= start + SHAPE_WINDOW  # and the edges after the window
+    out, inner, at_d = _shape_points(edges, d, shape, (start, SHAPE_WINDOW, valid))
+    return _shape_nodes([o[:-1] for o in out], inner[:-1], [o[1:] for o in out], inner[1:], at_d, d)
 
-    def windowed(edges):
-        out, inner = _shape_edges(edges, d, shape, band=False)
-        w = jax.lax.dynamic_slice(edges, (start,), (SHAPE_WINDOW,))
-        band = _shape_band(*_s_of(w, d), shape)
-        out = [jax.lax.dynamic_update_slice(o, jax.lax.dynamic_slice(o, (start,), (SHAPE_WINDOW,)) + b, (start,)) for o, b in zip(out, band)]
-        return out, inner
-
-    out, inner = jax.lax.cond(valid, windowed, lambda e: _shape_edges(e, d, shape), edges)
-    return _shape_nodes([o[:-1] for o in out], inner[:-1], [o[1:] for o in out], inner[1:], d, shape)
-
-
-def _s_of(e, d):
-    inner = e <= d
-    return jnp.where(inner, e / d, d / jnp.where(inner, 1.0, e)), inner
 
 def node_falloff(nodes: Nodes, near_field, shape=2.0):
     """G integrated over each node's range: (atan(r_hi/r0) - atan(r_lo/r0)) / r0 at ``p = 2``
