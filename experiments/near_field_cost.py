@@ -1,16 +1,16 @@
 """What the near field's shape costs one model evaluation (issue 13 / issue 16 trade-off).
 
-Times the default model's value and value-and-gradient (float64, the OptoSkin scene, 50 calls x 7
-rounds, medians) as it is and with the shape's terms switched off in this process only (the node
-integrals' correction ``node_shape_correction``, and/or the per-ray ``falloff`` at p = 2), or
-replaced (``main_quadrature``: the correction of main at 4533487, 6-point Gauss-Legendre in
-``u = atan(r/d)`` on both halves of every node; ``all_edges``: today's correction without the
-window, its quadrature on every edge), each variant in its own process, alternating ``--rounds``
-times. The variants are diagnostics, not models anyone should fit with. The model is evaluated at
-the scene's parameters with ``near_field_shape`` 3 (the correction is computed whatever p is, but a
-traced 2 is the case a fit starts from; 3 keeps it honest). Simulated scene, no data. Writes JSON.
+Times the default model's value and value-and-gradient (float64, the OptoSkin scene at its
+parameters with ``near_field_shape`` 3) as it is and with the shape's terms switched off in this
+process only (the node integrals' correction ``node_shape_correction``, and/or the per-ray
+``falloff`` at p = 2), or replaced (``main_quadrature``: main's correction at 4533487, 6-point
+Gauss-Legendre in ``u = atan(r/d)`` on both halves of every node; ``all_edges``: today's
+correction without its window, the quadrature on every edge). All variants are compiled in one
+process, then timed in turn, ``--rounds`` rounds of ``--calls`` calls each, medians of the
+per-round means: on a loaded machine the swings fall on all variants alike. The variants are
+diagnostics, not models anyone should fit with. Simulated scene, no data. Writes JSON.
 
-    python experiments/near_field_cost.py --out docs/results/near_field_cost.json
+    python experiments/near_field_cost.py --out docs/results/near_field_cost_cheap.json
 """
 
 from __future__ import annotations
@@ -20,9 +20,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
-import sys
-from pathlib import Path
 
 VARIANTS = ("as_is", "main_quadrature", "all_edges", "no_node_correction", "no_ray_shape", "no_shape")
 
@@ -57,16 +54,13 @@ def _main_shape_correction(lo, hi, near_field, shape, points=6):
     return dm, df1, df2
 
 
-def worker(variant: str) -> dict:
-    import time
-
-    import jax
+def _patched(variant: str):
+    """Patch the model's near-field pieces for ``variant`` (this process only); returns an undo."""
     import jax.numpy as jnp
-    import numpy as np
 
-    jax.config.update("jax_enable_x64", True)
     import tofjax.model.components as C
 
+    saved = (C.falloff, C.node_shape_correction)
     if variant in ("no_ray_shape", "no_shape"):
         f0 = C.falloff
         C.falloff = lambda r, d, shape=2.0: f0(r, d, 2.0)
@@ -76,60 +70,79 @@ def worker(variant: str) -> dict:
         C.node_shape_correction = _main_shape_correction
     if variant == "all_edges":
         C.node_shape_correction = C.shape_correction
+
+    def undo():
+        C.falloff, C.node_shape_correction = saved
+
+    return undo
+
+
+def interleaved(variants, rounds: int, calls: int) -> dict:
+    """Compile every variant in this process (each traced under its patch), then time them in
+    turn, ``calls`` calls per variant per round, ``rounds`` rounds: a loaded machine's swings fall
+    on all variants alike. Per-round mean times; medians over the rounds."""
+    import time
+
+    import jax
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
     from tofjax.model import ModelOptions, Params, build_model
     from tofjax.scene import load_scene
 
     sc = load_scene("optoskin")
     m = build_model(sc, ModelOptions())
     p = Params.from_scene(sc, jnp.float64).replace(near_field_shape=3.0)
-    fns = {"value": jax.jit(lambda p: jnp.sum(m(p) ** 2)),
-           "value_and_grad": jax.jit(jax.value_and_grad(lambda p: jnp.sum(m(p) ** 2)))}
-    out = {}
-    for name, fn in fns.items():
-        jax.block_until_ready(fn(p))
-        ts = []
-        for _ in range(7):
-            t = time.perf_counter()
-            for _ in range(50):
-                jax.block_until_ready(fn(p))
-            ts.append((time.perf_counter() - t) / 50)
-        out[name + "_ms"] = 1e3 * float(np.median(ts))
-    return out
+    fns, compile_s = {}, {}
+    for v in variants:
+        undo = _patched(v)
+        try:
+            for name, f in (("value", lambda p: jnp.sum(m(p) ** 2)), ("value_and_grad", jax.value_and_grad(lambda p: jnp.sum(m(p) ** 2)))):
+                t = time.perf_counter()
+                fns[v, name] = jax.jit(f).lower(p).compile()
+                compile_s[f"{v}/{name}"] = time.perf_counter() - t
+                jax.block_until_ready(fns[v, name](p))
+        finally:
+            undo()
+    runs = {v: [] for v in variants}
+    for _ in range(rounds):
+        for v in variants:
+            row = {}
+            for name in ("value", "value_and_grad"):
+                fn = fns[v, name]
+                t = time.perf_counter()
+                for _ in range(calls):
+                    jax.block_until_ready(fn(p))
+                row[name + "_ms"] = 1e3 * (time.perf_counter() - t) / calls
+            runs[v].append(row)
+    return {"runs": runs, "compile_s": compile_s}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", help="JSON file to write (required unless --worker)")
-    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--rounds", type=int, default=15)
+    ap.add_argument("--calls", type=int, default=20)
     ap.add_argument("--note", default="")
-    ap.add_argument("--worker", choices=VARIANTS, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    if a.worker:
-        print(json.dumps(worker(a.worker)))
-        return 0
-    if not a.out:
-        ap.error("--out is required")
-    root = Path(__file__).resolve().parents[1]
-    env = dict(os.environ, TOFJAX_PROGRAM_STORE="0", PYTHONPATH=os.pathsep.join(filter(None, (str(root), os.environ.get("PYTHONPATH")))))
-    runs: dict = {v: [] for v in VARIANTS}
     loads = [os.getloadavg()[0]]
-    for _ in range(a.rounds):
-        for v in VARIANTS:
-            r = subprocess.run([sys.executable, __file__, "--worker", v], env=env, capture_output=True, text=True, check=True)
-            runs[v].append(json.loads(r.stdout.strip().splitlines()[-1]))
-            print(v, runs[v][-1], flush=True)
-        loads.append(os.getloadavg()[0])
+    res = interleaved(VARIANTS, a.rounds, a.calls)
+    loads.append(os.getloadavg()[0])
+    runs = res["runs"]
     med = {v: {k: statistics.median(x[k] for x in rs) for k in rs[0]} for v, rs in runs.items()}
-    out = {"what": "cost of one default-model evaluation (OptoSkin, float64) with and without the near field's shape terms",
-           "data": "simulated scene, no data", "variants": list(VARIANTS), "runs": runs, "median_ms": med,
+    out = {"what": "cost of one default-model evaluation (OptoSkin, float64, near_field_shape 3) with the near field's shape terms as they are, as on main, or off",
+           "data": "simulated scene, no data", "variants": list(VARIANTS),
+           "method": f"one process, all variants compiled, then {a.rounds} rounds of {a.calls} calls per variant in turn; medians of the per-round means",
+           "median_ms": med,
            "ratio_over_no_shape": {v: {k: med[v][k] / med["no_shape"][k] for k in med[v]} for v in VARIANTS},
            "ratio_over_no_node_correction": {v: {k: med[v][k] / med["no_node_correction"][k] for k in med[v]} for v in VARIANTS},
-           "note": a.note,
-           "machine": {"description": "x86_64 CPU VM, 2 cores shared with other jobs (loaded: see load_average_1min)", "platform": platform.platform(), "cpus": os.cpu_count(), "load_average_1min": loads}}
+           "compile_s": res["compile_s"], "runs": runs, "note": a.note,
+           "machine": {"description": "x86_64 CPU VM, 2 cores shared with other jobs (loaded: see load_average_1min)",
+                       "platform": platform.platform(), "cpus": os.cpu_count(), "load_average_1min": loads}}
     from tofjax.outputs import atomic_write_text
 
     atomic_write_text(a.out, json.dumps(out, indent=1) + "\n")
-    print(json.dumps(out["median_ms"]), json.dumps(out["ratio_over_no_shape"]))
+    print(json.dumps(out["median_ms"]), json.dumps(out["ratio_over_no_node_correction"]))
     return 0
 
 

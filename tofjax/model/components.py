@@ -108,14 +108,15 @@ def _shape_series(s, ls, inner, shape):
     x = jnp.where(pos, jnp.exp(qb * ls), 0.0)  # s^q, (2, ...)
     # c_k = binom(-2/q, k) = (-1)^k prod_{j<k} (2/q + j) / (j + 1), k = 1..n, over (kq + a):
     # vectorised, and the powers x^k as an outer product of x^1..x^8 and (x^8)^0..2 (elementwise
-    # ops and one contraction, which compile fast: Horner's unrolled chain or a cumprod compile
+    # ops and reductions, which compile fast: Horner's unrolled chain or a cumprod compile
     # slowly, their gradients more so)
     k = jnp.arange(1, n + 1, dtype=s.dtype)
     a = 2.0 / q[:, None]
     # |c_k| = prod_{j<k} (a + j) / (j + 1): a running sum of logs, as a product with a triangular
-    # matrix (a cumsum lowers to a scan that compiles slowly; lgamma to a long expansion)
+    # matrix, summed elementwise (a cumsum lowers to a scan that compiles slowly, lgamma to a long
+    # expansion, a matrix product to a library call: all slower to compile than a fused reduction)
     tri = jnp.asarray(np.tril(np.ones((n, n))), s.dtype)
-    c = jnp.where(k % 2 == 1, -1.0, 1.0) * jnp.exp(jnp.log((a + k - 1.0) / k) @ tri.T)
+    c = jnp.where(k % 2 == 1, -1.0, 1.0) * jnp.exp(jnp.sum(jnp.log((a + k - 1.0) / k)[:, None, :] * tri, -1))
     kq = k * q[:, None]
     den = jnp.stack([kq + 1.0, kq + 2.0, kq, kq + 3.0, jnp.where(k > 1, kq - 1.0, 1.0)], -1)
     coef = jnp.where((k > 1)[:, None] | (jnp.arange(5) < 4), c[..., None] / den, 0.0)  # (2, n, 5)
@@ -123,7 +124,7 @@ def _shape_series(s, ls, inner, shape):
     x8 = low[..., -1:]
     powers = (low[..., None, :] * jnp.concatenate([jnp.ones_like(x8), x8, x8 * x8], -1)[..., :, None])
     powers = powers.reshape(powers.shape[:-2] + (24,))[..., :n]  # x^k, k = 1..n
-    t = jnp.einsum("q...n,qnc->q...c", powers, coef)
+    t = jnp.sum(powers[..., None] * coef.reshape((2,) + (1,) * s.ndim + coef.shape[1:]), -2)  # (2, ..., 5)
     t = [t[..., i] for i in range(5)]
     c1 = -2.0 / qb  # binom(-2/q, 1)
     m = s * t[0]  # both sides
