@@ -7,7 +7,9 @@ process only (the node integrals' correction ``node_shape_correction``, and/or t
 Gauss-Legendre in ``u = atan(r/d)`` on both halves of every node; ``all_edges``: today's
 correction without its window, the quadrature on every edge). All variants are compiled in one
 process, then timed in turn, ``--rounds`` rounds of ``--calls`` calls each, medians of the
-per-round means: on a loaded machine the swings fall on all variants alike. The variants are
+per-round means, wall and this process's CPU time (``*_cpu_ms``: on a loaded machine the less
+disturbed of the two, with XLA's CPU work on one thread, ``--one-thread``, the default): the swings
+fall on all variants alike. The variants are
 diagnostics, not models anyone should fit with. Simulated scene, no data. Writes JSON.
 
     python experiments/near_field_cost.py --out docs/results/near_field_cost_cheap.json
@@ -110,10 +112,11 @@ def interleaved(variants, rounds: int, calls: int) -> dict:
             row = {}
             for name in ("value", "value_and_grad"):
                 fn = fns[v, name]
-                t = time.perf_counter()
+                t, c = time.perf_counter(), time.process_time()
                 for _ in range(calls):
                     jax.block_until_ready(fn(p))
                 row[name + "_ms"] = 1e3 * (time.perf_counter() - t) / calls
+                row[name + "_cpu_ms"] = 1e3 * (time.process_time() - c) / calls
             runs[v].append(row)
     return {"runs": runs, "compile_s": compile_s}
 
@@ -124,7 +127,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument("--calls", type=int, default=20)
     ap.add_argument("--note", default="")
+    ap.add_argument("--one-thread", action=argparse.BooleanOptionalAction, default=True,
+                    help="XLA's CPU work on one thread (set before jax starts)")
     a = ap.parse_args(argv)
+    if a.one_thread:
+        os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS"), "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")))
     loads = [os.getloadavg()[0]]
     res = interleaved(VARIANTS, a.rounds, a.calls)
     loads.append(os.getloadavg()[0])
@@ -132,7 +139,8 @@ def main(argv=None) -> int:
     med = {v: {k: statistics.median(x[k] for x in rs) for k in rs[0]} for v, rs in runs.items()}
     out = {"what": "cost of one default-model evaluation (OptoSkin, float64, near_field_shape 3) with the near field's shape terms as they are, as on main, or off",
            "data": "simulated scene, no data", "variants": list(VARIANTS),
-           "method": f"one process, all variants compiled, then {a.rounds} rounds of {a.calls} calls per variant in turn; medians of the per-round means",
+           "method": f"one process, all variants compiled, then {a.rounds} rounds of {a.calls} calls per variant in turn; medians of the per-round means (wall, and process CPU time)",
+           "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "median_ms": med,
            "ratio_over_no_shape": {v: {k: med[v][k] / med["no_shape"][k] for k in med[v]} for v in VARIANTS},
            "ratio_over_no_node_correction": {v: {k: med[v][k] / med["no_node_correction"][k] for k in med[v]} for v in VARIANTS},
