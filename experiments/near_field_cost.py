@@ -23,6 +23,8 @@ import os
 import platform
 import statistics
 
+import numpy as np
+
 VARIANTS = ("as_is", "main_quadrature", "all_edges", "no_node_correction", "no_ray_shape", "no_shape")
 
 
@@ -121,6 +123,84 @@ def interleaved(variants, rounds: int, calls: int) -> dict:
     return {"runs": runs, "compile_s": compile_s}
 
 
+FIT_VARIANTS = ("as_is", "main_quadrature")
+
+
+def fit_worker(variant: str, captures: int, repeats: int) -> dict:
+    """``Calibrator.fit`` on ``captures`` simulated 100-frame baselines with ``variant``'s
+    correction: the end points and the warm fit's wall and CPU time (after a first, compiling fit)."""
+    import time
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    _patched(variant)
+    from tofjax.fit.calibrate import Calibrator
+    from tofjax.scene import load_scene
+    from tofjax.simulate import simulate
+
+    scene = load_scene("optoskin")
+    cal = Calibrator(scene)
+    caps = [simulate(scene, 100, seed=1000 + i) for i in range(captures)]
+    t = time.perf_counter()
+    cal.fit(caps[0])
+    out = {"first_fit_s": time.perf_counter() - t, "fits": [], "wall_s": [], "cpu_s": []}
+    for r in range(repeats):
+        for i, c in enumerate(caps):
+            t, cpu = time.perf_counter(), time.process_time()
+            res = cal.fit(c)
+            out["wall_s"].append(time.perf_counter() - t)
+            out["cpu_s"].append(time.process_time() - cpu)
+            if r == 0:
+                v, e = res.values, res.stderr
+                pick = lambda x: {k: float(np.asarray(x[k]).ravel()[0]) for k in ("n1", "mu_s_per_m", "mu_a_per_m", "near_field_shape", "near_field_m") if k in x}  # noqa: E731
+                out["fits"].append({"values": pick(v), "stderr": pick(e), "reduced_chi2": float(res.reduced_chi2), "steps": int(res.steps)})
+    return out
+
+
+def fit_compare(captures: int, repeats: int, out_path: str, note: str) -> int:
+    """Each of :data:`FIT_VARIANTS` in its own process (a compiled fit is cached by its function,
+    not by the patched model), at the same time (the same load for both)."""
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0",
+               PYTHONPATH=os.pathsep.join(filter(None, (str(root), os.environ.get("PYTHONPATH")))))
+    loads = [os.getloadavg()[0]]
+    with tempfile.TemporaryDirectory() as tmp:
+        procs = {v: subprocess.Popen([sys.executable, __file__, "--fit-worker", v, "--captures", str(captures), "--repeats", str(repeats),
+                                      "--out", str(Path(tmp) / f"{v}.json")], env=env) for v in FIT_VARIANTS}
+        for p in procs.values():
+            if p.wait() != 0:
+                raise SystemExit("a fit worker failed")
+        runs = {v: json.loads((Path(tmp) / f"{v}.json").read_text()) for v in FIT_VARIANTS}
+    loads.append(os.getloadavg()[0])
+    a, b = runs["as_is"], runs["main_quadrature"]
+    diffs = []
+    for fa, fb in zip(a["fits"], b["fits"]):
+        d = {k: {"as_is": fa["values"][k], "main_quadrature": fb["values"][k], "difference_in_stderr": (fa["values"][k] - fb["values"][k]) / fb["stderr"][k]}
+             for k in fa["values"] if fb["stderr"].get(k)}
+        mt = [f["values"]["mu_s_per_m"] + f["values"]["mu_a_per_m"] for f in (fa, fb)]
+        d["mu_t_per_m"] = {"as_is": mt[0], "main_quadrature": mt[1], "relative_difference": mt[0] / mt[1] - 1.0}
+        d["reduced_chi2"] = {"as_is": fa["reduced_chi2"], "main_quadrature": fb["reduced_chi2"]}
+        diffs.append(d)
+    med = {v: {"wall_s": statistics.median(r["wall_s"]), "cpu_s": statistics.median(r["cpu_s"])} for v, r in runs.items()}
+    out = {"what": "Calibrator.fit on simulated 100-frame OptoSkin baselines (seeds 1000..): the near field's correction as it is against main's",
+           "data": "simulated", "comparison": diffs, "warm_fit_median": med,
+           "ratio_as_is_over_main": {k: med["as_is"][k] / med["main_quadrature"][k] for k in ("wall_s", "cpu_s")},
+           "runs": runs, "note": note,
+           "machine": {"description": "x86_64 CPU VM, 2 cores shared with other jobs (loaded: see load_average_1min); the two variants ran at the same time",
+                       "platform": platform.platform(), "cpus": os.cpu_count(), "load_average_1min": loads}}
+    from tofjax.outputs import atomic_write_text
+
+    atomic_write_text(out_path, json.dumps(out, indent=1) + "\n")
+    print(json.dumps(out["ratio_as_is_over_main"]), json.dumps(diffs, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, help="JSON file to write")
@@ -129,7 +209,18 @@ def main(argv=None) -> int:
     ap.add_argument("--note", default="")
     ap.add_argument("--one-thread", action=argparse.BooleanOptionalAction, default=True,
                     help="XLA's CPU work on one thread (set before jax starts)")
+    ap.add_argument("--fit", action="store_true", help="instead: Calibrator.fit end points and warm time, as_is against main_quadrature")
+    ap.add_argument("--captures", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--fit-worker", choices=FIT_VARIANTS, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.fit_worker:
+        from tofjax.outputs import atomic_write_text
+
+        atomic_write_text(a.out, json.dumps(fit_worker(a.fit_worker, a.captures, a.repeats)))
+        return 0
+    if a.fit:
+        return fit_compare(a.captures, a.repeats, a.out, a.note)
     if a.one_thread:
         os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS"), "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")))
     loads = [os.getloadavg()[0]]
