@@ -222,6 +222,7 @@ def main(argv=None) -> int:
     ap.add_argument("--note", default="")
     ap.add_argument("--one-thread", action=argparse.BooleanOptionalAction, default=True,
                     help="XLA's CPU work on one thread (set before jax starts)")
+    ap.add_argument("--variants", nargs="+", choices=VARIANTS, help="a subset (no_node_correction is always added)")
     ap.add_argument("--part", action="store_true", help="time the node integrals (node_falloff_after_emission) alone")
     ap.add_argument("--fit", action="store_true", help="instead: Calibrator.fit end points and warm time, as_is against main_quadrature")
     ap.add_argument("--captures", type=int, default=2)
@@ -238,7 +239,9 @@ def main(argv=None) -> int:
     if a.one_thread:
         os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS"), "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")))
     loads = [os.getloadavg()[0]]
-    variants = ("as_is", "main_quadrature", "all_edges", "no_node_correction") if a.part else VARIANTS
+    variants = tuple(a.variants or (("as_is", "main_quadrature", "all_edges", "no_node_correction") if a.part else VARIANTS))
+    if "no_node_correction" not in variants:
+        variants += ("no_node_correction",)
     res = interleaved(variants, a.rounds, a.calls, a.part)
     loads.append(os.getloadavg()[0])
     runs = res["runs"]
