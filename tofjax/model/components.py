@@ -208,8 +208,8 @@ def node_shape_correction(lo, hi, near_field, shape):
     """:func:`shape_correction` for a grid of contiguous nodes (``lo``, ``hi``: (K,), non-decreasing,
     ``hi[k]`` the edge ``lo[k + 1]``), at a fraction of its cost: the band's quadrature
     (:func:`_shape_band`, ``d / 4 < r < 4 d``) runs only on a window of :data:`SHAPE_WINDOW`
-    edges from the first one beyond ``d / 4``; every other edge takes the series alone (one log
-    and two exps). Where the window does not hold every edge between ``d / 4`` and ``4 d`` (a
+    edges from the first one beyond ``d / 4``; every other edge takes the series alone. Where
+    the window does not hold every edge between ``d / 4`` and ``4 d`` (a
     near field deeper than about 3 nodes) the band runs on all edges (a ``lax.cond``; under
     ``vmap`` both branches run)."""
     K = lo.shape[-1]
