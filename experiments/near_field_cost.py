@@ -112,6 +112,7 @@ def interleaved(variants, rounds: int, calls: int, part: bool = False) -> dict:
             return jnp.sum(m(p) ** 2)
     fns, compile_s = {}, {}
     for v in variants:
+        jax.clear_caches()  # the model's own jit (eqx.filter_jit) would hand back the last variant's trace
         undo = _patched(v)
         try:
             for name, f in (("value", loss), ("value_and_grad", jax.value_and_grad(loss))):
