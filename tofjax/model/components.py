@@ -54,9 +54,15 @@ def make_nodes(params: Params, bin_width_s: float, n_bins: int, q: int) -> Nodes
     return Nodes(t=t, h=h, r=0.5 * c1 * (t - params.emission_time_s), dr=0.5 * c1 * h, c1=c1)
 
 
-#: Gauss-Legendre points per piece of a node (each node's range is split where r = d) for the
-#: near field's shape correction (:func:`shape_correction`)
-SHAPE_POINTS = 6
+#: The near field's shape correction (:func:`shape_correction`): a binomial series where
+#: ``s = min(r, d) / max(r, d) <= SHAPE_SERIES_SPLIT`` (``r <= d/4`` or ``r >= 4 d``), with
+#: SHAPE_SERIES_TERMS terms (the worst case, p = 1, converges as ``k 4^-k``); between,
+#: Gauss-Legendre with SHAPE_POINTS points; on a node grid (:func:`node_shape_correction`) the
+#: quadrature only on a window of SHAPE_WINDOW edges
+SHAPE_SERIES_SPLIT = 0.25
+SHAPE_SERIES_TERMS = {"float64": 24, "float32": 13}
+SHAPE_POINTS = 20
+SHAPE_WINDOW = 16
 
 
 def _pow_small(s, p):
@@ -80,39 +86,141 @@ def falloff(r, near_field, shape=2.0):
     return jnp.exp(-(2.0 / shape) * jnp.log1p(_pow_small(s, shape))) / m**2
 
 
-def _shape_excess(u, shape):
-    """``w_p(u) - 1``, ``w_p(u) = (d^2 / cos^2 u) G_p(d tan u)``: G's shape relative to ``p = 2``
-    in the variable ``u = atan(r / d)`` (in which ``G_2`` integrates to ``u / d``). ``w_p``
-    depends on ``s = tan(min(u, pi/2 - u))`` only, lies between 1/2 and 2, and is exactly 1 at
-    ``p = 2``."""
-    s = jnp.tan(jnp.clip(jnp.minimum(u, 0.5 * jnp.pi - u), 0.0, 0.25 * jnp.pi))
-    return jnp.expm1(jnp.log1p(s * s) - (2.0 / shape) * jnp.log1p(_pow_small(s, shape)))
+def _exprel(a):
+    """``expm1(a) / a``, 1 at ``a = 0`` (a double-where keeps the gradient finite)."""
+    small = jnp.abs(a) < 1e-3
+    safe = jnp.where(small, 1.0, a)
+    return jnp.where(small, 1.0 + a * (0.5 + a * (1.0 / 6.0 + a / 24.0)), jnp.expm1(safe) / safe)
+
+
+def _shape_series(s, ls, inner, shape):
+    """The antiderivatives of :func:`shape_correction` (in units of ``d``: multiply by ``1/d``, 1,
+    ``d``) at ``s <= 1/4`` (``ls = ln s``), from the binomial series ``phi_p(s) = (1 + s^p)^(-2/p)
+    = sum_k c_k s^(kp)`` integrated term by term, minus the same at ``p = 2`` (so ``p = 2`` gives
+    exactly 0). ``r <= d`` (``r = d s``, ``inner``): ``int_0^r G r^j dr = d^(j-1) int_0^s s^j phi ds``;
+    ``r >= d`` (``r = d / s``): ``-int_r^inf G r^j dr = -d^(j-1) int_0^s phi / s^j ds`` (j = 2: the
+    integral diverges; its terms' antiderivatives instead, ``s^(kp-1) / (kp-1)``, the ``k = 1``
+    one written ``ln s exprel((p-1) ln s)``: a log at ``p = 1``)."""
+    n = SHAPE_SERIES_TERMS[jnp.dtype(s.dtype).name]
+    pos = s > 0
+    q = jnp.stack([jnp.asarray(shape, s.dtype), jnp.asarray(2.0, s.dtype)])  # p, and 2 (the same ops)
+    qb = q.reshape((2,) + (1,) * s.ndim)
+    # c_k = binom(-2/q, k) = (-1)^k prod_{j<k} (2/q + j) / (j + 1), k = 1..n, over (kq + a), all
+    # vectorised; the powers x^k as exp(k q ln s) and one contraction (timed: value and gradient
+    # 6x faster than products of powers of x summed elementwise; Horner's unrolled chain or a
+    # cumprod compile slowly, their gradients more so)
+    k = jnp.arange(1, n + 1, dtype=s.dtype)
+    a = 2.0 / q[:, None]
+    # |c_k| = prod_{j<k} (a + j) / (j + 1): a running sum of logs, as a product with a triangular
+    # matrix, summed elementwise (a cumsum lowers to a scan that compiles slowly, lgamma to a long
+    # expansion, a matrix product to a library call: all slower to compile than a fused reduction)
+    tri = jnp.asarray(np.tril(np.ones((n, n))), s.dtype)
+    c = jnp.where(k % 2 == 1, -1.0, 1.0) * jnp.exp(jnp.sum(jnp.log((a + k - 1.0) / k)[:, None, :] * tri, -1))
+    kq = k * q[:, None]
+    den = jnp.stack([kq + 1.0, kq + 2.0, kq, kq + 3.0, jnp.where(k > 1, kq - 1.0, 1.0)], -1)
+    coef = jnp.where((k > 1)[:, None] | (jnp.arange(5) < 4), c[..., None] / den, 0.0)  # (2, n, 5)
+    powers = jnp.where(pos[..., None], jnp.exp((qb * ls)[..., None] * k), 0.0)  # x^k = exp(k q ln s), (2, ..., n)
+    t = jnp.einsum("q...n,qnc->q...c", powers, coef)  # (2, ..., 5)
+    t = [t[..., i] for i in range(5)]
+    c1 = -2.0 / qb  # binom(-2/q, 1)
+    m = s * t[0]  # both sides
+    f_in, f_out = s * s * t[1], t[2]
+    s2_in = s * s * s * t[3]
+    s2_out = c1 * ls * _exprel((qb - 1.0) * ls) + t[4] / jnp.where(pos, s, 1.0)
+    out = (jnp.where(inner, m, -m), jnp.where(inner, f_in, -f_out), jnp.where(inner, s2_in, -s2_out))
+    return [o[0] - o[1] for o in out]
+
+
+def _shape_band(s, inner, shape):
+    """What :func:`_shape_series` misses for ``1/4 <= s <= 1``: ``+-int_{1/4}^s (phi_p - phi_2)
+    (s^j or s^-j) ds`` (``+`` for ``r <= d``), by Gauss-Legendre, :data:`SHAPE_POINTS` points graded
+    towards ``s`` (where, at ``s`` near 1 and large ``p``, ``phi_p`` bends within ~1/p). The
+    integrand is analytic on the interval (``s^p``'s branch point at 0 lies beyond it)."""
+    x, w = np.polynomial.legendre.leggauss(SHAPE_POINTS)
+    v = jnp.asarray(0.5 * (x + 1.0), s.dtype)
+    w = jnp.asarray(w, s.dtype)
+    a = SHAPE_SERIES_SPLIT
+    top = jnp.maximum(s, a)
+    width = (top - a)[..., None]
+    t = top[..., None] - width * v * v  # (..., points) in [a, max(s, a)]: never near 0
+    lt = jnp.log(t)
+    y = jnp.exp(2.0 * lt)  # t^2, written as t^p is (at p = 2 the two cancel exactly)
+    g = jnp.expm1(jnp.log1p(y) - (2.0 / shape) * jnp.log1p(jnp.exp(shape * lt))) / (1.0 + y)  # phi_p - phi_2
+    g = g * (w * v) * width  # ds = 2 width v dv, dv = dx / 2
+    it = 1.0 / t
+    up = jnp.where(inner[..., None], t, it)
+    sign = jnp.where(inner, 1.0, -1.0)
+    return [sign * jnp.sum(g, -1), sign * jnp.sum(g * up, -1), sign * jnp.sum(g * up * up, -1)]
+
+
+def _shape_points(e, near_field, shape, band=True):
+    """The antiderivatives ``A_j(e)`` (j = 0, 1, 2) of ``(G_p - G_2) r^j`` at edges ``e >= 0``
+    (1-D), in units of ``d^(j-1)``: ``int_0^e`` for ``e <= d``, ``-int_e^inf`` beyond (up to a
+    constant, j = 2); the series plus (``band``) the band's quadrature; then the same at ``r = d``
+    on either side, two more values (one call of each: compiled once). Returns ``(A (3 x (E,)),
+    inner (E,), at_d (3 x (2,)))``."""
+    d = near_field
+    inner = jnp.concatenate([e <= d, jnp.asarray([True, False])])
+    s = jnp.concatenate([jnp.where(e <= d, e / d, d / jnp.where(e <= d, 1.0, e)), jnp.ones((2,), e.dtype)])
+    pos = s > 0
+    sc = jnp.minimum(s, SHAPE_SERIES_SPLIT)
+    out = _shape_series(jnp.where(pos, sc, 0.0), jnp.log(jnp.where(pos, sc, 1.0)), inner, shape)
+    if band is True:
+        out = [o + b for o, b in zip(out, _shape_band(s, inner, shape))]
+    elif band is not False:  # (start, width, valid): the band on ``width`` points from ``start``
+        start, width, valid = band  # (and at d) if ``valid``, else on all (only the band in the cond)
+
+        def window(s, inner):
+            idx = jnp.concatenate([start + jnp.arange(width), jnp.asarray([-2, -1]) + s.shape[0]])
+            return [jnp.zeros_like(s).at[idx].add(x) for x in _shape_band(s[idx], inner[idx], shape)]
+
+        b = jax.lax.cond(valid, window, lambda s, inner: _shape_band(s, inner, shape), s, inner)
+        out = [o + x for o, x in zip(out, b)]
+    return [o[:-2] for o in out], inner[:-2], [o[-2:] for o in out]
+
+
+def _shape_nodes(a_lo, in_lo, a_hi, in_hi, at_d, near_field):
+    """Node integrals from the edges' antiderivatives; a node across ``r = d`` adds the two sides'
+    values at ``d``."""
+    d = near_field
+    across = in_lo & ~in_hi
+    out = [jnp.where(across, hi - x[1] + x[0] - lo, hi - lo) for lo, hi, x in zip(a_lo, a_hi, at_d)]
+    return out[0] / d, out[1], out[2] * d
 
 
 def shape_correction(lo, hi, near_field, shape):
     """What the shape ``p`` adds to ``int G``, ``int r G`` and ``int r^2 G`` over ``[lo, hi]``
     (``0 <= lo <= hi``) relative to the closed forms at ``p = 2``: ``(dM, dF1, dF2)``, each 0 at
-    ``p = 2``. Gauss-Legendre in ``u = atan(r / d)`` (``dr = d du / cos^2 u``: the integrand is
-    bounded), each node split at ``r = d`` (``u = pi/4``), where ``G``'s shape bends most
-    (a kink as ``p`` grows): :data:`SHAPE_POINTS` points on each piece."""
+    ``p = 2``. In ``s = min(r, d) / max(r, d)`` (``G dr = phi_p(s) ds / d`` on either side of
+    ``r = d``, ``phi_p = (1 + s^p)^(-2/p)``, bounded and smooth but at ``s = 0`` and, for large
+    ``p``, near ``s = 1``): antiderivatives at the edges, a binomial series for ``s <= 1/4``
+    (:func:`_shape_series`) and Gauss-Legendre from there (:func:`_shape_band`); a node across
+    ``r = d`` is split there. See :func:`node_shape_correction` for a grid of nodes."""
+    lo, hi = jnp.broadcast_arrays(jnp.asarray(lo), jnp.asarray(hi))
+    shp, n = lo.shape, lo.size
+    a, inner, at_d = _shape_points(jnp.concatenate([lo.ravel(), hi.ravel()]), near_field, shape)
+    out = _shape_nodes([x[:n] for x in a], inner[:n], [x[n:] for x in a], inner[n:], at_d, near_field)
+    return tuple(x.reshape(shp) for x in out)
+
+
+def node_shape_correction(lo, hi, near_field, shape):
+    """:func:`shape_correction` for a grid of contiguous nodes (``lo``, ``hi``: (K,), non-decreasing,
+    ``hi[k]`` the edge ``lo[k + 1]``), at a fraction of its cost: the band's quadrature
+    (:func:`_shape_band`, ``d / 4 < r < 4 d``) runs only on a window of :data:`SHAPE_WINDOW`
+    edges from the first one beyond ``d / 4``; every other edge takes the series alone. Where
+    the window does not hold every edge between ``d / 4`` and ``4 d`` (a
+    near field deeper than about 3 nodes) the band runs on all edges (a ``lax.cond``; under
+    ``vmap`` both branches run)."""
+    K = lo.shape[-1]
+    if lo.ndim != 1 or K + 1 <= SHAPE_WINDOW:
+        return shape_correction(lo, hi, near_field, shape)
     d = near_field
-    ulo, uhi = jnp.arctan(lo / d), jnp.arctan(hi / d)
-    q = 0.25 * jnp.pi
-    x, wts = np.polynomial.legendre.leggauss(SHAPE_POINTS)
-    x, wts = jnp.asarray(x, lo.dtype), jnp.asarray(wts, lo.dtype)
-    v = 0.5 * (x + 1.0)  # on [0, 1]
-    dm = df1 = df2 = 0.0
-    # graded towards the bend: u = bend -+ width v^2 on each side (the points crowd where the
-    # shape bends sharply, within ~1/p of pi/4 in u)
-    for bend, far_end in ((jnp.maximum(jnp.minimum(uhi, q), ulo), ulo), (jnp.minimum(jnp.maximum(ulo, q), uhi), uhi)):
-        width = (far_end - bend)[..., None]
-        u = bend[..., None] + width * v * v  # (..., points)
-        g = _shape_excess(u, shape) * (wts * v) * jnp.abs(width)  # du = 2 |width| v dv, dv = dx / 2
-        t = jnp.tan(u)
-        dm = dm + jnp.sum(g, -1) / d
-        df1 = df1 + jnp.sum(g * t, -1)
-        df2 = df2 + d * jnp.sum(g * t * t, -1)
-    return dm, df1, df2
+    edges = jnp.concatenate([lo[:1], hi])
+    a = SHAPE_SERIES_SPLIT
+    start = jnp.clip(jnp.sum(edges <= a * d), 0, K + 1 - SHAPE_WINDOW)  # edges before: series only
+    valid = jnp.sum(edges < d / a) <= start + SHAPE_WINDOW  # and the edges after the window
+    out, inner, at_d = _shape_points(edges, d, shape, (start, SHAPE_WINDOW, valid))
+    return _shape_nodes([o[:-1] for o in out], inner[:-1], [o[1:] for o in out], inner[1:], at_d, d)
 
 
 def node_falloff(nodes: Nodes, near_field, shape=2.0):
@@ -203,7 +311,7 @@ def node_falloff_after_emission(nodes: Nodes, near_field, shape=2.0):
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
     # the closed forms of G at p = 2, plus what another shape p adds (0 at p = 2)
-    dm, df1, df2 = shape_correction(lo, hi, r0, shape)
+    dm, df1, df2 = node_shape_correction(lo, hi, r0, shape)
     mass = jnp.maximum(jnp.arctan(hi / r0) - jnp.arctan(lo / r0) + r0 * dm, 0.0) / r0
     first = 0.5 * (jnp.log1p((hi / r0) ** 2) - jnp.log1p((lo / r0) ** 2)) + df1  # int r G dr
     some = mass > 1e-9 * (0.5 * jnp.pi / r0)  # the double-where keeps the gradient finite
