@@ -135,7 +135,8 @@ class FitDetectOptions:
                 raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
         if self.max_contacts < 1 or self.iterations < 1:
             raise ConfigError("max_contacts and iterations must be >= 1")
-        if self.n_sigma_absorbed is not None and not (self.n_sigma_absorbed >= 0 and math.isfinite(self.n_sigma_absorbed)):
+        na = self.n_sigma_absorbed
+        if na is not None and not (na >= 0 and math.isfinite(na)):
             raise ConfigError(f"n_sigma_absorbed: must be a finite number >= 0 or None, got {self.n_sigma_absorbed!r}")
         if self.pair_candidates < 1 or self.pair_pool < 2:
             raise ConfigError("pair_candidates must be >= 1 and pair_pool >= 2")
@@ -489,8 +490,9 @@ class FitDetector:
             if not np.isfinite(drop[i, j]):
                 break
             a, b = xy[i], xy[j]
-            if any(min(np.hypot(*(a - p)) + np.hypot(*(b - q)), np.hypot(*(a - q)) + np.hypot(*(b - p))) < o.min_separation_m
-                   for p, q in ((self.centres[u], self.centres[v]) for u, v, *_ in out)):
+            seen = ((self.centres[u], self.centres[v]) for u, v, *_ in out)
+            if any(min(np.hypot(*(a - p)) + np.hypot(*(b - q)), np.hypot(*(a - q)) + np.hypot(*(b - p)))
+                   < o.min_separation_m for p, q in seen):
                 continue  # the same pair moved by a cell or two
             out.append((int(pool[i]), int(pool[j]), float(sa[i, j]), float(sb[i, j]), float(drop[i, j])))
             if len(out) == n:
@@ -617,8 +619,8 @@ class FitDetector:
     def _prune(self, theta, active, chi, y, thr, thr_absorbed=None):
         """Backward pruning: the contact whose removal (with refit) raises the chi-square least goes while that is
         at most ``thr``; at most ``thr_absorbed`` (when given) where the refit moved another contact by more than
-        half ``min_separation_m`` (it absorbs the removed one: a pair fitted as one contact between them; the question is then
-        one contact or two, not whether there is a contact at all)."""
+        half ``min_separation_m`` (it absorbs the removed one: a pair fitted as one contact between them; the question
+        is then one contact or two, not whether there is a contact at all)."""
         K = self.K
         thr_absorbed = thr if thr_absorbed is None else thr_absorbed
         while len(active):
