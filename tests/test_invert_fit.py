@@ -197,10 +197,36 @@ def test_fast_split_and_multi_start_leave_local_optima(stand_in):
     # (b) multi-start
     truth = np.array([[0.109, 0.076, 0.658], [0.061, 0.12, 0.591]])
     frame = _frame(sc, base, truth, K)[None]
-    # (without the death-and-birth move, which finds them from one start too: tests/test_greedy_rebirth.py)
-    one, two, reborn = (det.with_options(dataclasses.replace(opts, starts=s, rebirth=rb)).process(frame)
+    # (without the death-and-birth move, which finds them from one start too: tests/test_greedy_rebirth.py; and
+    # without the pair moves, which cost time here and are tested below)
+    one, two, reborn = (det.with_options(dataclasses.replace(opts, starts=s, rebirth=rb, pair_split=False))
+                        .process(frame)
                         for s, rb in ((1, False), (2, False), (1, True)))
     assert match(one.detections[0].positions(), truth[:, :2], 0.01)[0] < 2 and one.chi2[0] > 16.0, one.chi2
     for res in (two, reborn):
         assert len(res.detections[0].touches) == 2 and match(res.detections[0].positions(), truth[:, :2], 0.01)[0] == 2
         assert res.chi2[0] < 1.0
+
+
+def test_fast_pair_split_replaces_a_bound_ghost_by_the_pair_it_stands_for(stand_in):
+    """Noise-free (stand-in model): one contact fitted between two true ones, 10 cm apart, sits at the strength
+    bound 1. The split move (pairs of local maxima of the residual without it) leaves one of them missed; the
+    pair move (best pair of cells by the responses' 2 x 2 normal equations) finds both, chi-square ~0."""
+    sc, base, optical = stand_in
+    K = 3
+    det = build_fit_detector(sc, base, optical, FitDetectOptions(cell_m=0.01, max_contacts=K, iterations=4,
+                                                                 relocate_candidates=2), n_baseline=10**9)
+    truth = np.array([[0.126, 0.107, 0.763], [0.022, 0.1, 0.508]])
+    y = (_frame(sc, base, truth, K).ravel() - det.base) / det.sigma
+    t = np.zeros(3 * K)
+    t[0], t[K], t[2 * K] = *truth[:, :2].mean(0), 1.0
+    t, chi, r = det._refit(t, np.array([0]), y)
+    assert t[2 * K] > 0.99 and chi > 500, (t, chi)  # the ghost at the bound
+    one = np.array([0])
+    ts, act_s, chi_s, _ = det._split(t, one, chi, r, y, 16.0)
+    tp, act_p, chi_p, _ = det._pair_split(t, one, chi, r, y, 16.0)
+    assert match(np.c_[ts[act_s], ts[K + act_s]], truth[:, :2], 0.01)[0] < 2 and chi_s > 30, chi_s
+    assert len(act_p) == 2 and match(np.c_[tp[act_p], tp[K + act_p]], truth[:, :2], 0.01)[0] == 2, tp
+    assert chi_p < 5.0, chi_p
+    with pytest.raises(ConfigError, match="pair_candidates"):
+        FitDetectOptions(pair_candidates=0)
