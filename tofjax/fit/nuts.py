@@ -62,8 +62,10 @@ class NutsOptions:
     """``chains`` (run one after the other), ``warmup`` steps of window adaptation per chain,
     ``draws`` kept per chain, ``start`` ("mode": the chains start at draws from the Laplace
     approximation at the log-density's mode, found first by BFGS, and work in coordinates
-    whitened by it; "fit": at the point fit and its Laplace covariance), ``seed``, ``target_accept`` (the adaptation's target acceptance; 0.9: on the default
-    baseline 0.95 gave 1.6-2.9x less min ESS per gradient on two seeds, 0.85 collapsed),
+    whitened by it; "fit": at the point fit and its Laplace covariance), ``seed``, ``target_accept`` (the adaptation's target acceptance; 0.95: on the default
+    baseline the sampler is fragile along the albedo / end reflectance / interface ridge; idle, seed 0,
+    0.9 gave min ESS 21-145 with 28 divergences, 0.95 1091 with none (docs/results/posterior_idle_second.json);
+    on two other runs 0.9 gave 1.6-2.9x more min ESS per gradient; 0.85 collapsed),
     ``max_tree_depth`` (at most 2^depth leapfrog steps per draw), ``dense`` (a dense mass
     matrix; False: diagonal), ``pilot`` (run the same chains twice: the first run, from the
     Laplace approximation at the fit, only finds the posterior's bulk and its covariance; the
@@ -89,7 +91,7 @@ class NutsOptions:
     draws: int = 700
     start: str = "mode"
     seed: int = 0
-    target_accept: float = 0.9
+    target_accept: float = 0.95
     max_tree_depth: int = 10
     dense: bool = True
     pilot: bool = False
