@@ -225,6 +225,7 @@ def test_extinction_albedo_coordinates_round_trip(fitted, mu_s, mu_a):
     assert float(back["mu_a_per_m"]) == pytest.approx(mu_a, rel=1e-9)
 
 
+@pytest.mark.slow  # 20 s (two extra fit compilations); the rule runs in every fit of the default suite
 def test_loss_rule_stops_early_within_a_fraction_of_a_standard_error(small):
     """The chi-square stopping rule (the default loss_tol) saves steps and moves the answer by
     << 1 standard error. With loss_tol = 1e-3 (the default before) this capture stopped after 13
