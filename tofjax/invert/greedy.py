@@ -527,17 +527,7 @@ class FitDetector:
             pairs, best1 = self._best_pairs(r0, t0, others, self.options.pair_candidates)
             k2 = self._free_slot(active)
             act = np.append(active, k2)
-            best = None
-            for a, b, sa, sb, drop in pairs:
-                if drop - best1 <= thr_add:
-                    break
-                t = t0.copy()
-                for slot, j, s in ((k, a, sa), (k2, b, sb)):
-                    t[slot], t[K + slot] = self.centres[j]
-                    t[2 * K + slot] = s
-                t, cc, rr = self._refit(t, act, y, iterations=2)
-                if cc < chi - thr_add and (best is None or cc < best[1]):
-                    best = (t, cc, rr)
+            best = self._refit_best_pair(t0, pairs, (k, k2), act, y, lambda drop: drop - best1 <= thr_add, chi - thr_add)
             if best is not None:
                 theta, chi, r = self._refit(best[0], act, y)
                 active = act
@@ -564,20 +554,29 @@ class FitDetector:
             c0, r0 = self._chi2(t0, y)
             rest = active[(active != k) & (active != m)]
             pairs, _ = self._best_pairs(r0, t0, rest, o.pair_candidates)
-            best = None
-            for a, b, sa, sb, drop in pairs:
-                if drop <= c0 - chi:  # no better than the two where they are, by the linear model
-                    break
-                t = t0.copy()
-                for slot, j, s in ((k, a, sa), (m, b, sb)):
-                    t[slot], t[K + slot] = self.centres[j]
-                    t[2 * K + slot] = s
-                t, cc, rr = self._refit(t, active, y, iterations=2)
-                if cc < chi - 0.1 and (best is None or cc < best[1]):
-                    best = (t, cc, rr)
+            # stop when a pair is no better than the two where they are, by the linear model
+            best = self._refit_best_pair(t0, pairs, (k, m), active, y, lambda drop: drop <= c0 - chi, chi - 0.1)
             if best is not None:
                 theta, chi, r = self._refit(best[0], active, y)
         return theta, chi, r
+
+    def _refit_best_pair(self, t0, pairs, slots, active, y, stop, below):
+        """The pair moves' trial: each of ``pairs`` (cells ``a``, ``b`` with strengths ``sa``, ``sb`` and their
+        linear drop, best first, until ``stop(drop)``) put in contacts ``slots`` of ``t0`` and refitted briefly
+        over ``active``; returns the lowest ``(theta, chi2, residual)`` with a chi-square under ``below``, or None."""
+        K = self.K
+        best = None
+        for a, b, sa, sb, drop in pairs:
+            if stop(drop):
+                break
+            t = t0.copy()
+            for slot, j, s in zip(slots, (a, b), (sa, sb)):
+                t[slot], t[K + slot] = self.centres[j]
+                t[2 * K + slot] = s
+            t, cc, rr = self._refit(t, active, y, iterations=2)
+            if cc < below and (best is None or cc < best[1]):
+                best = (t, cc, rr)
+        return best
 
     def _relocate(self, theta, active, chi, r, y):
         """Move each contact (weakest first) to where the residual without it wants a contact (the
