@@ -137,7 +137,6 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
     import numpy as np
 
     from tofjax.fit.calibrate import _data, fit_problem, fit_problem_batch
-    from tofjax.simulate import simulate
 
     fits = out["fits"]
     if a.reference:
@@ -155,12 +154,7 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
         out["reference"] = refs
 
     if a.batch:
-        pairs = []
-        for i in range(a.batch):
-            c = simulate(scene, a.frames, seed=2000 + i)
-            pairs.append(_data(c, dtype))
-        D = jnp.stack([p[0] for p in pairs])
-        G = jnp.stack([p[1] for p in pairs])
+        D, G = batch_data(a, scene, dtype)
         nocov = dict(kw, with_cov=False)
         jax.block_until_ready(fit_problem(pb, objective, solver, start, D[0], G[0], base, anchor, **nocov))
         _progress("batch: data simulated, fit_problem compiled")
@@ -194,6 +188,39 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
             "max_n1_diff_batch_vs_separate": float(np.max(np.abs(np.asarray(sols.params.n1)[: len(n1_sep)] - n1_sep))),
         }
     return out
+
+
+def batch_data(a, scene, dtype):
+    """The batch's ``--batch`` (mean, sigma) pairs, simulated with seeds 2000, 2001, ...
+
+    With ``--batch-data FILE`` (an ``.npz``), they are read from that file when it holds this scene,
+    frame count and batch, and simulated and written to it otherwise: a machine whose time is short
+    (a lent GPU) reads the data simulated beforehand elsewhere (the same seeds and the same code,
+    so the same numbers up to the backend's rounding) instead of simulating 100 baselines itself.
+    """
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.fit.calibrate import _data
+    from tofjax.simulate import simulate
+
+    key = {"scene": a.scene, "frames": a.frames, "batch": a.batch, "seed0": 2000}
+    path = Path(a.batch_data) if a.batch_data else None
+    if path is not None and path.exists():
+        with np.load(path) as z:
+            stored = json.loads(str(z["key"]))
+            if stored == key:
+                _progress(f"batch: data read from {path}")
+                return jnp.asarray(z["mean"], dtype), jnp.asarray(z["sigma"], dtype)
+        _progress(f"batch: {path} holds {stored}, not {key}: simulating")
+    pairs = [_data(simulate(scene, a.frames, seed=2000 + i), dtype) for i in range(a.batch)]
+    D = jnp.stack([p[0] for p in pairs])
+    G = jnp.stack([p[1] for p in pairs])
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, mean=np.asarray(D), sigma=np.asarray(G), key=json.dumps(key))
+        _progress(f"batch: data written to {path}")
+    return D, G
 
 
 def stage_times(a, cal, caps, scene, base, cfg, solver, objective, dtype) -> list:
@@ -338,6 +365,9 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--batch", type=int, default=100)
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
+    p.add_argument("--batch-data", help="an .npz of the batch's simulated data: read if it matches, else written")
+    p.add_argument("--simulate-batch-only", action="store_true",
+                   help="with --batch-data: only simulate the batch's data and write the file (no fits)")
     p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
     p.add_argument("--reference-steps", type=int, default=400)
     p.add_argument("--indep", type=int, default=0, help="also this many independent baselines (tests/indep_sim.py)")
@@ -357,6 +387,16 @@ def main(argv=None) -> int:
         atomic_write_text(Path(a.out) / "fit_bench_study_slice.json", json.dumps(rep, indent=2))
         print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk.startswith("max")} for k, v in rep.items() if k in ("own", "independent")}))
         return 0
+    if a.simulate_batch_only:
+        if not a.batch_data:
+            p.error("--simulate-batch-only needs --batch-data FILE")
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        from tofjax.scene import load_scene
+
+        batch_data(a, load_scene(a.scene), jax.numpy.float64)
+        return 0
     if a.worker:
         Path(a.out).write_text(json.dumps(worker(a)))
         return 0
@@ -371,6 +411,7 @@ def main(argv=None) -> int:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
+                   *(["--batch-data", str(Path(a.batch_data).resolve())] if a.batch_data else []),
                    "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
                 + (["--no-stages"] if a.no_stages else []) \
