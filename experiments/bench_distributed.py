@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ((1, 1), (1, 2), (2, 1))  # (processes, devices per process)
 
 
 def _worker(a) -> None:
@@ -125,6 +124,9 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--tasks", default="fits,mc", help="fits, mc or both (a task left out keeps its old rows)")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / f"tofjax-bench-distributed-{os.getuid()}"))
+    ap.add_argument("--configs", default="1x1,1x2,2x1",
+                    help="PROCESSESxDEVICES, comma-separated, the first the reference (default 1x1,1x2,2x1)")
+    ap.add_argument("--machine", help="the machine, in words, for the JSON (default: this 2-core shared VM)")
     ap.add_argument("--worker", choices=["fits", "mc"], help=argparse.SUPPRESS)
     ap.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--process-id", type=int, default=0, help=argparse.SUPPRESS)
@@ -136,25 +138,31 @@ def main(argv=None) -> None:
         return _worker(a)
     from tofjax.outputs import atomic_write_text, check_output
 
+    try:
+        configs = [tuple(int(x) for x in c.lower().split("x")) for c in a.configs.split(",")]
+        if any(len(c) != 2 or min(c) < 1 for c in configs):
+            raise ValueError
+    except ValueError:
+        ap.error(f"--configs: expected e.g. 1x1,1x2,2x1 (processes x devices, each >= 1), got {a.configs!r}")
     check_output(a.out, overwrite=True)
     t_start = time.perf_counter()
     old = json.loads(Path(a.out).read_text()) if Path(a.out).exists() else {}
     result: dict = {
         "benchmark": "studies on several devices and processes (tofjax.parallel)",
         "data": "simulated (fits: simulated optoskin baselines; Monte Carlo of optoskin)",
-        "machine": f"the 2-core shared CPU VM, loaded (other sessions running; load average at start "
-                   f"{os.getloadavg()[0]:.1f}), {platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "machine": (a.machine or "the 2-core shared CPU VM, loaded (other sessions running)")
+                   + f"; load average at start {os.getloadavg()[0]:.1f}, {platform.processor() or platform.machine()}, "
+                   f"{os.cpu_count()} cores",
         "load_average_at_start": os.getloadavg()[0],
-        "settings": {k: getattr(a, k) for k in ("fits", "frames", "chunk", "photons", "batch", "repeats")},
+        "settings": {k: getattr(a, k) for k in ("fits", "frames", "chunk", "photons", "batch", "repeats", "configs")},
         "note": "wall time of the timed runs after one untimed first run (compile), medians over repeats; "
-                "2 processes or 2 devices on 2 shared cores cannot beat 1 by more than 2x and compete with "
-                "the other sessions' processes",
+                "on N cores, P processes x D devices cannot beat 1 x 1 by more than min(N, P D)",
     }
     for task in a.tasks.split(","):
         result.pop(task, None)
         rows = []
         base = None
-        for p, d in CONFIGS:
+        for p, d in configs:
             r = _run_config(a, task, p, d)
             base = base or r
             rows.append({
