@@ -21,7 +21,8 @@ Cases (each call from scratch in one process, both calls timed):
 - ``fit_sensor``: the whole sensor fit of that capture (fast options); the second on fresh noise.
 
 ``lm_fit`` and ``fit_sensor`` are called five times (``later_median_s``: calls 2-5). Then, in one process of
-this tree (``greedy_in_one_process``), one detector's change and Jacobian compiled both ways (module-level,
+this tree (``in_one_process``): ``lm_fit``'s residual and Jacobian per call, compiled as before and
+module-level; and one detector's change and Jacobian compiled both ways (module-level,
 and a ``jax.jit`` of a closure as before): the per-evaluation difference, the detections and chi-square
 of the same frames, and the time per frame and per model evaluation, interleaved (module-level
 arguments are not folded in as constants: each evaluation computes what the closure's program had
@@ -143,7 +144,32 @@ def ab_worker() -> dict:
         d._change, d._jac = jax.jit(w2), jax.jit(jax.jacfwd(w2))
         second[name] = d
     x11 = {k: d.process(frames[:1]) for k, d in second.items()}
+    # lm_fit's residual and Jacobian of the sensor fit's zone problem: as fit_pulse compiled them before
+    # (a jax.jit of the cached residual) and module-level now, per call, interleaved
+    from test_sensor_fit import FAST, _truth_model
+
+    from tofjax.sensor import expected_counts as sensor_counts
+    from tofjax.sensor.fit import _jacobian, _residual, _zone_problem
+
+    h = np.random.default_rng(3).poisson(sensor_counts(_truth_model(), np.linspace(0.05, 0.35, 14))).astype(float)[:, 0]
+    q = FAST.knots_per_bin
+    K = int(round(FAST.pulse_bins * q)) + 1
+    resid = _zone_problem(K, 14, -FAST.pulse_before_bins, 1.0 / q, h.shape[1], FAST.pile_up, FAST.smoothness, FAST.dnl,
+                          FAST.order, False)[2]
+    x = np.concatenate([np.ones(K), [15.0], np.full(14, 20.0), np.full(14, 8.0), np.full(14, 100.0)])
+    args = (jnp.asarray(h), jnp.ones(14), jnp.full(14, 20.0), jnp.asarray(0.0))
+    fns = {"residual_closure": jax.jit(resid), "residual_module_level": lambda *a: _residual(resid, *a),
+           "jacobian_closure": jax.jit(jax.jacfwd(resid)), "jacobian_module_level": lambda *a: _jacobian(resid, *a)}
+    lm_same = all(np.array_equal(fns[f"{k}_closure"](x, *args), fns[f"{k}_module_level"](x, *args)) for k in ("residual", "jacobian"))
+    lm_t = {k: [] for k in fns}
+    for _ in range(5):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            for _ in range(50):
+                np.asarray(f(x, *args))
+            lm_t[k].append((time.perf_counter() - t) / 50)
     return {
+        "lm_fit_bit_identical": lm_same, "lm_fit_call_s_median": {k: statistics.median(v) for k, v in lm_t.items()},
         "baseline_x1.1_chi2": {k: float(r.chi2[0]) for k, r in x11.items()},
         "baseline_x1.1_positions_m": {k: r.detections[0].positions().round(6).tolist() for k, r in x11.items()},
         "change_max_rel_difference": dc, "jacobian_max_rel_difference": dj,
@@ -275,8 +301,9 @@ def main(argv=None) -> int:
         "change_call_ratio_after_over_before": med["after"]["greedy_change_call"]["median_s"]
         / med["before"]["greedy_change_call"]["median_s"],
         "bit_identical": identical,
-        "greedy_in_one_process": ab,
-        "greedy_in_one_process_note": "one detector, its change and Jacobian compiled module-level (now) and as a "
+        "in_one_process": ab,
+        "in_one_process_note": "lm_fit_*: the sensor fit's zone residual and Jacobian per call (14 frames, 64 bins), "
+                               "compiled as fit_pulse did before and module-level, interleaved; the rest: one detector, its change and Jacobian compiled module-level (now) and as a "
                                       "jax.jit of a closure (before: the model, optics and sigma folded in as "
                                       "constants), process of the same 4 frames (3 two-contact, 1 no-touch) "
                                       "interleaved; per-evaluation differences relative to the largest value",
