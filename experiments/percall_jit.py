@@ -100,6 +100,45 @@ def _package(base: str, where: Path) -> Path:
     return where
 
 
+def run_variants(script: str, base: str, cases, rounds: int, prefix: str, worker_args: list[str]):
+    """Run ``script``'s worker in its own process for each variant (``before``: the package at ``base``
+    from ``git archive``; ``after``: this tree), alternating ``rounds`` times, without the compilation
+    caches; each worker prints its timings as JSON and saves its outputs (one array per case) to the
+    ``--dump`` file. Returns (runs per variant, bit identity per case with the largest relative
+    difference where not identical, 1-min load averages)."""
+    import numpy as np
+
+    root = Path(__file__).resolve().parents[1]
+    tmp = Path(tempfile.mkdtemp(prefix=prefix))
+    paths = {"before": _package(base, tmp / "before"), "after": root}
+    runs: dict = {v: [] for v in VARIANTS}
+    identical: dict = {}
+    loads = [os.getloadavg()[0]]
+    for k in range(rounds):
+        for v in VARIANTS:
+            env = {key: val for key, val in os.environ.items() if key not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
+            env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(paths[v]))
+            dump = tmp / f"{v}{k}.npz"
+            args = [x.format(variant=v) for x in worker_args]
+            r = subprocess.run([sys.executable, script, *args, "--dump", str(dump)], env=env, cwd=paths[v],
+                               capture_output=True, text=True)
+            if r.returncode:
+                raise SystemExit(f"worker {v} failed: {r.stderr.strip().splitlines()[-3:]}")
+            runs[v].append(json.loads(r.stdout.strip().splitlines()[-1]))
+            print(v, runs[v][-1], flush=True)
+            loads.append(os.getloadavg()[0])
+        b, f = np.load(tmp / f"before{k}.npz"), np.load(tmp / f"after{k}.npz")
+        for c in cases:
+            same = bool(b[c].shape == f[c].shape and np.array_equal(b[c], f[c]))
+            identical[c] = identical.get(c, True) and same
+            if not same and b[c].shape == f[c].shape:
+                d = np.abs(b[c] - f[c])
+                rel = float(np.max(d / np.maximum(np.abs(b[c]), 1e-300)))
+                identical[c + "_max_abs_difference"] = max(identical.get(c + "_max_abs_difference", 0.0), float(d.max()))
+                identical[c + "_max_rel_difference"] = max(identical.get(c + "_max_rel_difference", 0.0), rel)
+    return runs, identical, loads
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", help="JSON file to write (required unless --worker)")
@@ -115,33 +154,7 @@ def main(argv=None) -> int:
     from tofjax.outputs import atomic_write_text, check_output
 
     check_output(a.out, overwrite=True)
-    import numpy as np
-
-    root = Path(__file__).resolve().parents[1]
-    tmp = Path(tempfile.mkdtemp(prefix="percall_jit_"))
-    before = _package(BASE, tmp / "before")
-    paths = {"before": before, "after": root}
-    runs: dict = {v: [] for v in VARIANTS}
-    identical: dict = {}
-    loads = [os.getloadavg()[0]]
-    for k in range(a.rounds):
-        for v in VARIANTS:
-            env = {key: val for key, val in os.environ.items() if key not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
-            env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(paths[v]))
-            dump = tmp / f"{v}{k}.npz"
-            r = subprocess.run([sys.executable, __file__, "--worker", v, "--dump", str(dump)], env=env, cwd=paths[v],
-                               capture_output=True, text=True)
-            if r.returncode:
-                raise SystemExit(f"worker {v} failed: {r.stderr.strip().splitlines()[-1:]}")
-            runs[v].append(json.loads(r.stdout.strip().splitlines()[-1]))
-            print(v, runs[v][-1], flush=True)
-            loads.append(os.getloadavg()[0])
-        b, f = np.load(tmp / f"before{k}.npz"), np.load(tmp / f"after{k}.npz")
-        for c in CASES:
-            same = bool(np.array_equal(b[c], f[c]))
-            identical[c] = identical.get(c, True) and same
-            if not same:
-                identical[c + "_max_abs_difference"] = float(np.max(np.abs(b[c] - f[c])))
+    runs, identical, loads = run_variants(__file__, BASE, CASES, a.rounds, "percall_jit_", ["--worker", "{variant}"])
     med = {v: {c: {t: statistics.median(x[c][t] for x in rs) for t in ("first_s", "second_s")} for c in CASES}
            for v, rs in runs.items()}
     out = {

@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 import tofjax
-from tofjax.model import ModelOptions, Params, build_model
+from tofjax.model import ModelOptions, Params, build_model, speed_in_guide
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 
@@ -68,7 +68,7 @@ def main(argv=None):
     wg = dataclasses.replace(nominal.waveguide, n1=args.n1, mu_s_per_m=ALBEDO * args.mu_t, mu_a_per_m=(1 - ALBEDO) * args.mu_t)
     scene = nominal.replace(waveguide=wg)
     rows = profile(scene, args.q)
-    c1 = 299_792_458.0 / args.n1
+    c1 = speed_in_guide(args.n1)
     rpb = c1 * scene.sensor.bin_width_s / 2
     res = {
         "study": f"tofjax quadrature {args.q} against 16, per component (ForwardModel.breakdown), zone-mean relative error per bin",

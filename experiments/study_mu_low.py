@@ -675,7 +675,7 @@ def quadrature_profile(out: Path, n1: float = 1.45, mu_ts=(0.05, 2.0), frames: i
     """Where tofjax's default quadrature (2 time nodes per bin) differs from its converged self
     (8 nodes; 16 as the check of 8): the zone-mean relative difference and pull (photon noise of
     ``frames`` frames) per bin, on the study's scene at each true mu_t."""
-    from tofjax.model import ModelOptions
+    from tofjax.model import ModelOptions, speed_in_guide
     from tofjax.simulate import expected_counts
 
     path = check_output(out / "mu_low_quadrature_profile.json", overwrite=overwrite)
@@ -687,7 +687,7 @@ def quadrature_profile(out: Path, n1: float = 1.45, mu_ts=(0.05, 2.0), frames: i
         ref = lam[8]
         rel = (lam[2] - ref) / np.maximum(ref, 1.0)
         pull = (lam[2] - ref) / np.sqrt(np.maximum(ref, 1.0) / frames)
-        c1 = 299_792_458.0 / n1
+        c1 = speed_in_guide(n1)
         rows[str(mu_t)] = {
             "range_per_bin_m": c1 * truth.sensor.bin_width_s / 2,
             "q2_vs_q8_zone_mean_rel_by_bin": rel.mean((0, 1)).round(5).tolist(),

@@ -50,6 +50,7 @@ from ..errors import UserError
 from ..model.components import falloff, transmittance
 from ..model.forward import OPTICS
 from ..model.geometry import Geometry
+from ..model.guided import launch_band
 from ..model.params import speed_in_guide
 from ..model.pulse import binned_response
 from ..scene import Scene
@@ -182,8 +183,7 @@ class OpticalParams:
         the guided model's contact peaks move 7% per metre more than ``2/c1``)."""
         if self.optics != "guided":
             return self.c1
-        launch = min(math.sin(0.5 * math.radians(scene.sensor.fov_deg)) / self.n1, math.sqrt(1.0 - 1.0 / self.n1**2))
-        c_out = math.sqrt(1.0 - launch**2 / 3.0)
+        c_out = float(launch_band(float(self.n1), math.radians(scene.sensor.fov_deg))[2])  # the guided model's
         return 2.0 * self.c1 / (1.0 / c_out + 2.0 * self.n1 / (self.n1 + 1.0))
 
     def log_decay(self, r) -> np.ndarray:

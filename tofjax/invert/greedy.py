@@ -40,9 +40,11 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -208,13 +210,12 @@ class FitDetector:
         K = o.max_contacts
         change, dtype = _contact_change(scene, optical, K, o.contact_radius_m)
         sig = jnp.asarray(self.sigma, dtype)
-
-        def weighted_change(theta):  # theta (3K,): x, y, strength -> (model change) / sigma, (n,)
-            return change(theta) / sig
-
         self._dtype = dtype
-        self._change = jax.jit(weighted_change)
-        self._jac = jax.jit(jax.jacfwd(weighted_change))
+        # theta (3K,): x, y, strength -> (model change) / sigma, (n,), and its Jacobian: module-level
+        # compiled functions taking the model, optics and baseline as arguments, so a second detector
+        # (another baseline or calibration, same scene and slots) compiles nothing
+        self._change = functools.partial(_weighted_change, change, sig)
+        self._jac = functools.partial(_weighted_jacobian, change, sig)
         self.K = K
         self._cache = {}  # the responses' Gram matrix, computed on the first pair proposal (shared by with_options)
         self._sat = float(scene.sensor.saturation_counts)
@@ -703,12 +704,35 @@ def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: floa
     model = build_model(proto, mopts, components=proto.components())
     p0 = _params_with_optics(proto, optical, mopts.jnp_dtype)
     f0 = model(p0.replace(touch_strength=jnp.zeros(K, mopts.jnp_dtype))).ravel()
+    return _ContactChange(model, p0, f0, K), mopts.jnp_dtype
 
-    def change(theta):
+
+class _ContactChange(eqx.Module):
+    """``theta = (x_1..x_K, y_1..y_K, strength_1..strength_K)`` -> the model's change of the histograms
+    (flattened) from ``f0``, its value with every slot at strength 0 (see :func:`_contact_change`). A pytree
+    of the model and the optics, so the compiled functions below take it as an argument."""
+
+    model: eqx.Module
+    p0: eqx.Module
+    f0: jax.Array
+    K: int = eqx.field(static=True)
+
+    def __call__(self, theta):
+        K = self.K
         xy = jnp.stack([theta[:K], theta[K : 2 * K]], -1)
-        return model(p0.replace(touch_xy_m=xy, touch_strength=theta[2 * K :])).ravel() - f0
+        return self.model(self.p0.replace(touch_xy_m=xy, touch_strength=theta[2 * K :])).ravel() - self.f0
 
-    return change, mopts.jnp_dtype
+
+@eqx.filter_jit
+def _weighted_change(change, sig, theta):
+    """The contacts' change in noise units, ``change(theta) / sig``: compiled once per model structure."""
+    return change(theta) / sig
+
+
+@eqx.filter_jit
+def _weighted_jacobian(change, sig, theta):
+    """The Jacobian of :func:`_weighted_change` in ``theta`` (forward mode)."""
+    return jax.jacfwd(lambda t: change(t) / sig)(theta)
 
 
 def build_fit_detector(scene: Scene, baseline: np.ndarray, optical: OpticalParams | None = None,

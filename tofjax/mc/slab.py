@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..config import ConfigError
-from ..model.components import SPEED_OF_LIGHT_M_PER_S
+from ..model.params import speed_in_guide  # c / n, as the transport kernel (and the model) take it
 from .transport import LEDGER, _EXTRA, _run_kernel, _Static
 
 __all__ = ["SlabOptions", "SlabResult", "run_slab"]
@@ -114,7 +114,7 @@ class _SlabStatic(_Static):
         self.nee, self.nee_points, self.nee_aperture = False, 1, 1
         self.slab = True
         self.key = (self.S, self.Z, self.K, 0, "absorb", self.max_events, False, 1, 1, True)
-        c1 = SPEED_OF_LIGHT_M_PER_S / o.n
+        c1 = speed_in_guide(o.n)
         mu_t = o.mu_s_per_m + o.mu_a_per_m
         L_max = o.max_path_m
         if L_max is None and o.time_bins > 1:

@@ -50,7 +50,7 @@ import numpy as np
 from ..scene import Scene
 from .components import Nodes, deposit, smooth_like_deposit
 
-__all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inward_normals"]
+__all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inward_normals", "launch_band"]
 
 #: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
 #: they are smooth in time already, and their cost grows with the node count.
@@ -175,13 +175,24 @@ class _Elev(NamedTuple):
     mu_out: jax.Array  # mean |mu| of the launched beam
 
 
+def launch_band(n1, fov_rad: float):
+    """The guided band and the launched beam in a slab of index ``n1`` (air outside), lit by a beam of
+    full angle ``fov_rad``: ``(cg, launch, c_out)``, ``cg = sqrt(1 - 1/n1^2)`` the largest guided
+    ``|mu|`` (``mu = sin`` elevation), ``launch = min(sin(fov/2) / n1, cg)`` the launched beam's (a round
+    beam refracted at the edge) and ``c_out = sqrt(1 - launch^2 / 3)`` its RMS cosine. The one place
+    these are computed (the model's elevations, the inversion's range speed); JAX values (traced
+    included) give JAX values, floats and NumPy values give NumPy values."""
+    xp = jnp if isinstance(n1, jax.Array) else np
+    cg = xp.sqrt(xp.maximum(1.0 - 1.0 / n1**2, 1e-12))
+    launch = xp.minimum(math.sin(0.5 * fov_rad) / n1, cg)
+    return cg, launch, xp.sqrt(1.0 - launch**2 / 3.0)
+
+
 def _elevations(gg: GuidedGeometry, n1, distributed: bool = False) -> _Elev:
-    cg = jnp.sqrt(jnp.maximum(1.0 - 1.0 / n1**2, 1e-12))
+    cg, launch, c_out = launch_band(jnp.asarray(n1), gg.fov)
     x, wx = (gg.xd, gg.wxd) if distributed else (gg.x, gg.wx)
     mu = cg * x
-    launch = jnp.minimum(math.sin(0.5 * gg.fov) / n1, cg)
-    return _Elev(mu=mu, c=jnp.sqrt(1.0 - mu**2), dmu=2.0 * cg * wx,
-                 c_out=jnp.sqrt(1.0 - launch**2 / 3.0), mu_out=0.5 * launch)
+    return _Elev(mu=mu, c=jnp.sqrt(1.0 - mu**2), dmu=2.0 * cg * wx, c_out=c_out, mu_out=0.5 * launch)
 
 
 def _weighted_step(times, weights, nodes: Nodes):

@@ -137,14 +137,28 @@ def peak_positions(hist):
 
 
 # ---- Levenberg-Marquardt -------------------------------------------------------------------
-def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10, compiled=None):
+@functools.partial(jax.jit, static_argnums=0)
+def _residual(resid, x, *args):
+    """``resid(x, *args)``, compiled once per residual function (and argument shapes)."""
+    return resid(x, *args)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _jacobian(resid, x, *args):
+    """The Jacobian of ``resid`` in ``x`` (forward mode), compiled once per residual function."""
+    return jax.jacfwd(resid)(x, *args)
+
+
+def lm_fit(resid, x0, args, *, max_iterations=60, rtol=1e-10):
     """Minimise ``sum(resid(x, *args)^2)`` by Levenberg-Marquardt on dense normal equations.
 
     Returns ``(x, cost, J at x, iterations, converged)``. ``resid`` must be jittable; its
-    Jacobian is taken in forward mode (the fits here have a few hundred parameters).
-    ``compiled``: ``(jit(resid), jit(jacfwd(resid)))`` to reuse across calls.
+    Jacobian is taken in forward mode (the fits here have a few hundred parameters). Both are
+    module-level compiled functions taking ``resid`` (static: the same function object, not a
+    new closure per call) and the data ``args``: a second fit of new data of the same shapes
+    compiles nothing.
     """
-    r_fn, j_fn = compiled or (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
+    r_fn, j_fn = functools.partial(_residual, resid), functools.partial(_jacobian, resid)
     x = np.asarray(x0, float)
     r = np.asarray(r_fn(x, *args))
     cost = float(r @ r)
@@ -235,8 +249,7 @@ def _zone_problem(K, F, start, step, n_bins, pile, smooth, dnl, drift=0, echo=Fa
                 extra.append((math.sqrt(smooth / step**3) * jnp.diff(dr, 2, axis=-1) / jnp.max(jnp.abs(pdf))).ravel())
         return jnp.concatenate([r.ravel(), *extra])
 
-    compiled = (jax.jit(resid), jax.jit(jax.jacfwd(resid)))
-    return unpack, jax.jit(model), resid, edges, compiled
+    return unpack, jax.jit(model), resid, edges
 
 
 def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift=None):
@@ -261,14 +274,14 @@ def fit_pulse(hist, shift0, options: SensorFitOptions, n_pulses0=4e6, zero_shift
     prof = np.maximum(prof / F, 0.0)
     prof /= step * prof.sum()
     a0 = np.log(np.maximum(h.sum(1) - amb0 * B, 10.0))
-    unpack, model, resid, edges, compiled = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl,
+    unpack, model, resid, edges = _zone_problem(K, F, start, step, B, options.pile_up, options.smoothness, options.dnl,
                                                           options.order, options.echo and zero_shift is not None)
     th0 = np.concatenate([prof, [math.log(n_pulses0)], shift0, a0, amb0, np.zeros(B - 1 if options.dnl else 0),
                           np.zeros(K * options.order), np.log(np.exp(a0) * 1e-3) if options.echo and zero_shift is not None else []])
     w = np.ones(F)
     zs = jnp.asarray(0.0 if zero_shift is None else float(zero_shift))
-    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0), zs), max_iterations=options.max_iterations,
-                                compiled=compiled)
+    th, cost, J, its, conv = lm_fit(resid, th0, (jnp.asarray(h), jnp.asarray(w), jnp.asarray(shift0), zs),
+                                max_iterations=options.max_iterations)
     mu = np.asarray(model(jnp.asarray(th), zs))
     pdf, logn, shift, loga, amb = (np.asarray(v) for v in unpack(th))
     area = step * (pdf.sum() - 0.5 * (pdf[0] + pdf[-1]))

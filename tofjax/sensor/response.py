@@ -25,12 +25,13 @@ import numpy as np
 
 from ..errors import UserError
 from ..model.forward import pile_up
+from ..model.params import SPEED_OF_LIGHT_M_PER_S
 from ..model.pulse import template_bin_masses
 
 __all__ = ["SensorResponse", "SensorModelError", "expected_counts", "load_sensor_model", "C_AIR"]
 
 #: Speed of light in air (n = 1.000277 at 20 degC, 1 atm), m/s.
-C_AIR = 299_792_458.0 / 1.000277
+C_AIR = SPEED_OF_LIGHT_M_PER_S / 1.000277
 FORMAT = "tofjax.sensor"
 VERSION = 1
 
