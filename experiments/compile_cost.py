@@ -55,12 +55,35 @@ POINTS = (
 )
 
 
-def worker(part: str, out: str) -> None:
+def _patch(variant: str) -> None:
+    """Diagnostics (this process only; not models to fit with): ``no_correction``, the node
+    correction switched off (what it costs to compile); ``no_fallback``, the band on its window
+    only, without the ``lax.cond`` to all edges (wrong for a near field deeper than the window)."""
+    import jax.numpy as jnp
+
+    import tofjax.model.components as C
+
+    if variant == "no_correction":
+        C.node_shape_correction = lambda lo, hi, d, shape: (jnp.zeros_like(lo),) * 3
+    elif variant == "no_fallback":
+        points = C._shape_points
+
+        def window_only(e, d, shape, band=True):
+            return points(e, d, shape, band if band in (True, False) else (band[0], band[1], True))
+
+        C._shape_points = window_only
+    elif variant != "as_is":
+        raise SystemExit(f"unknown variant {variant}")
+
+
+def worker(part: str, out: str, variant: str = "as_is") -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
     import numpy as np
+
+    _patch(variant)
 
     from tofjax.model import ModelOptions, Params, build_model
     from tofjax.scene import load_scene
@@ -110,39 +133,49 @@ def worker(part: str, out: str) -> None:
     Path(out).write_text(json.dumps(res))
 
 
-def run_one(tree: Path, part: str, out: Path) -> None:
+def run_one(tree: Path, part: str, out: Path, variant: str = "as_is") -> None:
     env = dict(os.environ, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0", PYTHONPATH=str(tree))
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
-    subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", part, "--out", str(out)], env=env, check=True, cwd=str(tree))
+    subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", part, "--variant", variant, "--out", str(out)],
+                   env=env, check=True, cwd=str(tree))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--base", required=True, help="a checkout of the tree before the change")
+    ap.add_argument("--base", help="a checkout of the tree before the change (required)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--parts", default=",".join(PARTS))
     ap.add_argument("--base-label", default="before")
     ap.add_argument("--out", default="docs/results/compile_cost.json")
+    ap.add_argument("--diagnostics", default="no_correction,no_fallback",
+                    help="variants of this tree timed alongside (correction and model only; empty: none)")
     ap.add_argument("--worker")
+    ap.add_argument("--variant", default="as_is")
     a = ap.parse_args(argv)
     if a.worker:
-        worker(a.worker, a.out)
+        worker(a.worker, a.out, a.variant)
         return 0
+    if not a.base:
+        ap.error("--base: required")
     import numpy as np
 
     here = Path(__file__).resolve().parents[1]
     trees = {"before": Path(a.base).resolve(), "after": here}
     parts = a.parts.split(",")
+    diag = [v for v in a.diagnostics.split(",") if v]
     runs = {t: {p: [] for p in parts} for t in trees}
+    diag_runs = {v: {p: [] for p in parts if p != "calibration"} for v in diag}
     loads = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(a.rounds):
             for part in parts:
-                for t, tree in (trees.items() if r % 2 == 0 else reversed(list(trees.items()))):
+                order = [(t, tree, "as_is") for t, tree in trees.items()]
+                order += [(v, here, v) for v in diag if part != "calibration"]
+                for t, tree, variant in (order if r % 2 == 0 else order[::-1]):
                     f = Path(tmp) / f"{t}-{part}-{r}.json"
-                    run_one(tree, part, f)
-                    runs[t][part].append(json.loads(f.read_text()))
-                    print(t, part, r, runs[t][part][-1], flush=True)
+                    run_one(tree, part, f, variant)
+                    (runs if t in trees else diag_runs)[t][part].append(json.loads(f.read_text()))
+                    print(t, part, r, f.read_text(), flush=True)
             loads.append(os.getloadavg()[0])
         acc = {}
         for t, tree in trees.items():
@@ -155,6 +188,8 @@ def main(argv=None) -> int:
         worst[name] = float(np.max(np.abs(x - b)[keep] / np.abs(b)[keep]))
     median = {t: {p: {k: statistics.median(r[k] for r in runs[t][p]) for k in ("wall_s", "cpu_s")} for p in parts} for t in trees}
     ratio = {p: {k: median["after"][p][k] / median["before"][p][k] for k in ("wall_s", "cpu_s")} for p in parts}
+    median_diag = {v: {p: {k: statistics.median(r[k] for r in rs) for k in ("wall_s", "cpu_s")} for p, rs in d.items()}
+                   for v, d in diag_runs.items()}
     doc = {
         "what": "compile cost (trace + lower + compile) of the near field's node correction alone, of the model's value and gradient, "
                 "and one cold calibration (compile + one fit), before and after a change to the correction; float64, OptoSkin scene",
@@ -166,6 +201,7 @@ def main(argv=None) -> int:
         "median": median,
         "ratio_after_over_before": ratio,
         "runs": runs,
+        "diagnostics": {"what": _patch.__doc__.replace("\n    ", " "), "median": median_diag, "runs": diag_runs},
         "accuracy": {"what": "largest relative difference after vs before of the model's counts (above 1e-12 of the peak), "
                              "at the scene's parameters and at extremes", "points": dict(POINTS), "max_rel_diff": worst,
                      "max_over_all": max(worst.values())},
