@@ -45,8 +45,13 @@ def main(argv=None) -> int:
         load0 = os.getloadavg()[0]
         procs = {t: _start(tree, ids, logs / f"{t}-{len(rows)}.log") for t, tree in trees.items()}
         row = {"select": ids, "load_average_at_start": load0}
-        for t, (p, t0, tmp) in procs.items():
-            _, status, ru = os.wait4(p.pid, 0)
+        left = {p.pid: t for t, (p, _, _) in procs.items()}
+        while left:  # whichever ends first: each one's own wall time
+            pid, status, ru = os.wait4(-1, 0)
+            if pid not in left:
+                continue
+            t = left.pop(pid)
+            p, t0, tmp = procs[t]
             p.returncode = os.waitstatus_to_exitcode(status)
             row[t] = {"cpu_s": ru.ru_utime + ru.ru_stime, "user_s": ru.ru_utime, "wall_s": time.perf_counter() - t0,
                       "passed": p.returncode == 0, "summary": (logs / f"{t}-{len(rows)}.log").read_text().strip().splitlines()[-1]}
