@@ -205,8 +205,11 @@ def test_covariance_jacobian_matches_autodiff(fitted):
     prior = problem.pack_jax(cal.base_params(), problem.free)
     data = jnp.asarray(cap.mean())
     sigma = jnp.sqrt(jnp.maximum(data, 1.0) / cap.n_frames)
-    ad = np.asarray(jax.jacfwd(lambda f: problem.full_residuals(unravel(f), res.params, prior, data, sigma))(flat))
     import equinox as eqx
+
+    # compiled once (eagerly, forward-mode AD through the profiled model ran op by op, each op compiled alone)
+    ad = np.asarray(eqx.filter_jit(lambda pr, f, q, pri, d, s: jax.jacfwd(lambda g: pr.full_residuals(unravel(g), q, pri, d, s))(f))(
+        problem, flat, res.params, prior, data, sigma))
 
     ours = np.asarray(eqx.filter_jit(type(problem).covariance_jacobian)(problem, res.params, lin, cal.base_params(), data, sigma))
     assert ours.shape == ad.shape
@@ -326,8 +329,11 @@ def test_profiled_counts_are_never_negative(fitted):
     problem = cal.problem
     data = jnp.asarray(cap.mean())
     sigma = jnp.sqrt(jnp.maximum(data, 1.0) / cap.n_frames)
+    import equinox as eqx
+
+    profile = eqx.filter_jit(type(problem).profile)  # one compiled program for both points (eagerly: op by op)
     for n1 in (1.2, 1.7):
-        _, m, _, lin = problem.profile(res.params.replace(n1=n1, mu_s_per_m=5.0), data, sigma)
+        _, m, _, lin = profile(problem, res.params.replace(n1=n1, mu_s_per_m=5.0), data, sigma)
         for k, v in lin.items():
             assert (np.asarray(v) >= 0).all(), k
         assert np.isfinite(np.asarray(m)).all()

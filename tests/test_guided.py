@@ -7,6 +7,7 @@ the per-file budget; the comparison with the Monte Carlo and the benchmark run a
 import math
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -114,7 +115,7 @@ def test_guided_model_is_linear_and_differentiable():
     model = build_model(sc, opts)
     p = Params.from_scene(sc)
     y = np.asarray(model(p))
-    R, P = model.linear_parts(p)
+    R, P = eqx.filter_jit(model.linear_parts)(p)  # compiled, as a fit uses it (eagerly it ran op by op)
     lin = p.gain[:, None, None] * R + p.crosstalk_counts[..., None] * P + p.ambient_counts[..., None]
     np.testing.assert_allclose(np.asarray(lin), y, rtol=1e-9, atol=1e-9 * y.max())
     parts = sum(np.asarray(v) for v in model.breakdown(p).values())

@@ -26,17 +26,20 @@ def fitted(optoskin):
 
 
 def test_log_density_is_shared_and_whitenable(fitted):
-    """One log-density: the bound function and the batched one (emcee's) agree; it is finite
-    with a finite gradient at the fit; the Laplace covariance is symmetric positive definite;
-    the nuisance prior and holding the slow tail at the fit (a conditional posterior) only
-    narrow it; held coordinates are neither sampled nor reported."""
-    import jax
+    """One log-density: the compiled value and gradient NUTS follows and the batched one
+    (emcee's) agree; it is finite with a finite gradient at the fit; the Laplace covariance is
+    symmetric positive definite; the nuisance prior and holding the slow tail at the fit (a
+    conditional posterior) only narrow it; held coordinates are neither sampled nor reported."""
     import jax.numpy as jnp
+
+    from tofjax.fit.posterior import _value_and_grad
 
     _, cal, res, cap = fitted
     ld = log_density(cal, cap, res)
     f0 = jnp.asarray(ld.flat0)
-    v, g = jax.value_and_grad(ld.fn)(f0)
+    # NUTS's own program (test_log_density_gain_prior_and_gradient and the coverage study's
+    # NUTS compile the same one; jax.value_and_grad(ld.fn) eagerly compiled pieces of its own)
+    v, g = _value_and_grad(ld.problem, ld.template, ld.args, f0, ld.idx)
     assert np.isfinite(float(v)) and np.isfinite(np.asarray(g)).all()
     # the same function, vmapped or not: they differ only by the summation order of per-bin terms far larger than the
     # total (a fresh clone saw 1.1e-12 relative after the near field's shape; a different density differs by far more)

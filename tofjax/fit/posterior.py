@@ -268,7 +268,13 @@ def log_density(
         raise CalibrationError(f"gain_prior: one of {', '.join(GAIN_PRIORS)}, got {gain_prior!r}")
     args = (base, data, sigma, prior, widths, held, jnp.asarray(float(gain_prior == "log-uniform"), dtype))
     extra = {k: np.zeros(np.shape(v)) + (1.0 / float(widths[k]) ** 2 if k in widths else 0.0) for k, v in template.items()}
-    cov = normal_covariance(_jtj_flat(problem, template, args[:4], held, flat0), np.concatenate([np.ravel(extra[k]) for k in sorted(extra)]))
+    # J^T J over every coordinate the fit has (the held ones at their values: the same point), then
+    # the sampled coordinates' block: one compiled program whatever is held
+    full, _ = jax.flatten_util.ravel_pytree(packed)
+    pos = np.cumsum([0] + [int(np.size(packed[k])) for k in sorted(packed)])
+    keep = np.concatenate([np.arange(pos[i], pos[i + 1]) for i, k in enumerate(sorted(packed)) if k in template])
+    jtj = np.asarray(_jtj_flat(problem, packed, args[:4], {}, full))[np.ix_(keep, keep)]
+    cov = normal_covariance(jtj, np.concatenate([np.ravel(extra[k]) for k in sorted(extra)]))
     # the fractions sampled as w (LOG_FRACTIONS); flat0 and the covariance carried there
     sizes = {k: int(np.size(v)) for k, v in template.items()}
     starts = np.cumsum([0] + [sizes[k] for k in sorted(template)])
