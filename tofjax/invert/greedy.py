@@ -216,8 +216,14 @@ class FitDetector:
         # (compiled once per structure, taking those arrays as arguments): a second detector (another
         # baseline or calibration, same scene and slots) compiles nothing, and no evaluation recomputes
         # the contact-independent part (see _folded)
-        self._change = _folded(_change_over_sigma, change, sig, (3 * K,), dtype)
-        self._jac = _folded(_jacobian_over_sigma, change, sig, (3 * K,), dtype)
+        # (a change that is not an eqx.Module, e.g. a test's stand-in closure made per detector, has no
+        # structure to cache a split by: it takes the unsplit compiled functions, as before)
+        if isinstance(change, eqx.Module):
+            self._change = _folded(_change_over_sigma, change, sig, (3 * K,), dtype)
+            self._jac = _folded(_jacobian_over_sigma, change, sig, (3 * K,), dtype)
+        else:
+            self._change = functools.partial(_weighted_change, change, sig)
+            self._jac = functools.partial(_weighted_jacobian, change, sig)
         self.K = K
         self._cache = {}  # the responses' Gram matrix, computed on the first pair proposal (shared by with_options)
         self._sat = float(scene.sensor.saturation_counts)
@@ -740,6 +746,11 @@ def _jacobian_over_sigma(change, sig, theta):
 _weighted_change = eqx.filter_jit(_change_over_sigma)
 _weighted_jacobian = eqx.filter_jit(_jacobian_over_sigma)
 
+def _typeof(x):
+    """``x``'s abstract value (shape, dtype, weak type): ``jax.typeof`` (jax >= 0.5), ``jax.core.get_aval`` before."""
+    return jax.typeof(x) if hasattr(jax, "typeof") else jax.core.get_aval(x)
+
+
 #: (function, structure of the model and sigma, their static values, avals, theta's aval, the model's trace
 #: switches) -> (the theta-independent part, compiled; the theta-dependent part, compiled)
 _SPLITS: dict = {}
@@ -764,7 +775,7 @@ def _folded(fn, change, sig, theta_shape, dtype):
     leaves, tdef = jax.tree_util.tree_flatten(dyn)
     sleaves, stdef = jax.tree_util.tree_flatten(static)
     theta = jax.ShapeDtypeStruct(theta_shape, dtype)
-    key = (fn, tdef, stdef, tuple(sleaves), tuple(jax.typeof(x) for x in leaves), (theta.shape, str(theta.dtype)),
+    key = (fn, tdef, stdef, tuple(sleaves), tuple(_typeof(x) for x in leaves), (theta.shape, str(theta.dtype)),
            _trace_switches(), bool(jax.config.jax_enable_x64))
     if key not in _SPLITS:
 
