@@ -741,10 +741,20 @@ def _jacobian_over_sigma(change, sig, theta):
     return jax.jacfwd(lambda t: change(t) / sig)(theta)
 
 
-#: The same, compiled with the model and sigma as arguments (one program per model structure); every
-#: evaluation recomputes what does not depend on theta. The reference for :func:`_folded` (experiments).
-_weighted_change = eqx.filter_jit(_change_over_sigma)
-_weighted_jacobian = eqx.filter_jit(_jacobian_over_sigma)
+# The same, compiled with the model and sigma as arguments (one program per model structure): every
+# evaluation recomputes what does not depend on theta. Used for a change that is not an eqx.Module, and the
+# reference for _folded (tests, experiments).
+@eqx.filter_jit
+def _weighted_change(change, sig, theta):
+    """:func:`_change_over_sigma`, compiled."""
+    return change(theta) / sig
+
+
+@eqx.filter_jit
+def _weighted_jacobian(change, sig, theta):
+    """:func:`_jacobian_over_sigma`, compiled."""
+    return jax.jacfwd(lambda t: change(t) / sig)(theta)
+
 
 def _typeof(x):
     """``x``'s abstract value (shape, dtype, weak type): ``jax.typeof`` (jax >= 0.5), ``jax.core.get_aval`` before."""
