@@ -61,3 +61,17 @@ def test_folded_guided_model_equals_unsplit():
         for f, g in ((fc, greedy._weighted_change), (fj, greedy._weighted_jacobian)):
             ref = np.asarray(g(change, sig, t))
             assert np.max(np.abs(np.asarray(f(t)) - ref)) <= 1e-12 * np.max(np.abs(ref))
+
+
+def test_folded_falls_back_to_the_unsplit_program_without_jax_partial_eval(monkeypatch):
+    """The split uses JAX's private partial evaluation: where a JAX lacks it, the detector still works,
+    through the unsplit compiled functions (the same values)."""
+    from jax._src.interpreters import partial_eval as pe
+
+    monkeypatch.delattr(pe, "partial_eval_jaxpr_nounits")
+    theta = jnp.asarray([0.06, 0.11, 0.10, 0.05, 0.9, 0.3])
+    ch, sig = _Change(jnp.linspace(0.1, 2.0, 40)), jnp.linspace(1.0, 3.0, 40)
+    n_before = len(greedy._SPLITS)
+    fc = greedy._folded(greedy._change_over_sigma, ch, sig, (6,), jnp.float64)
+    assert fc.func is greedy._weighted_change and len(greedy._SPLITS) == n_before
+    np.testing.assert_array_equal(fc(theta), greedy._weighted_change(ch, sig, theta))

@@ -756,6 +756,10 @@ def _weighted_jacobian(change, sig, theta):
     return jax.jacfwd(lambda t: change(t) / sig)(theta)
 
 
+#: the unsplit compiled form of each function :func:`_folded` splits
+_UNSPLIT = {_change_over_sigma: _weighted_change, _jacobian_over_sigma: _weighted_jacobian}
+
+
 def _typeof(x):
     """``x``'s abstract value (shape, dtype, weak type): ``jax.typeof`` (jax >= 0.5), ``jax.core.get_aval`` before."""
     return jax.typeof(x) if hasattr(jax, "typeof") else jax.core.get_aval(x)
@@ -776,9 +780,13 @@ def _folded(fn, change, sig, theta_shape, dtype):
     what a ``jax.jit`` of a closure over the model got from XLA's constant folding, without a compile per
     detector. Both parts are traced and compiled once per model structure (cached in ``_SPLITS``); the
     same operations as ``fn``, so the same values up to XLA's fusion (~1e-15 relative)."""
-    from jax._src import core
-    from jax._src.interpreters import partial_eval as pe
+    try:  # JAX's own partial evaluation is not public API: where it moved, the unsplit program (same values)
+        from jax._src import core
+        from jax._src.interpreters import partial_eval as pe
 
+        pe.partial_eval_jaxpr_nounits, core.jaxpr_as_fun  # noqa: B018
+    except (ImportError, AttributeError):
+        return functools.partial(_UNSPLIT[fn], change, sig)
     from ..model.forward import _trace_switches
 
     dyn, static = eqx.partition((change, sig), eqx.is_array)
