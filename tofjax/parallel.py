@@ -226,8 +226,10 @@ def split_items(n: int, process_id: int, processes: int) -> range:
 def sharded_fit_batch(mesh=None, chunk: int = DEFAULT_CHUNK) -> Callable:
     """A function with :func:`~tofjax.fit.calibrate.fit_problem_batch`'s signature that runs the
     batch over the devices of ``mesh`` (default: :func:`local_mesh`) in chunks of ``chunk``
-    fits: chunk ``j`` goes to device ``j mod D`` and is dispatched asynchronously, so the devices
-    fit at once, each in the one-device program, each stopping when its own chunk is done. A
+    fits: chunk ``j`` goes to device ``j mod D`` and is dispatched asynchronously, so separate
+    accelerators fit at once, each in the one-device program, each stopping when its own chunk is
+    done (XLA's forced host devices in one CPU process run one after the other: the same results,
+    no speed; on a CPU host use processes, ``experiments/host_devices_parallel.py``). A
     short last chunk is padded with copies of its first fit. Every fit thus runs in a program of
     the same shape: the results do not depend on the number of devices or processes. Returns
     host (numpy) arrays."""
