@@ -154,19 +154,6 @@ def ab_worker() -> dict:
             "eval_ratio_to_closure": {k: v / em["closure_" + k.rsplit("_", 1)[1]] for k, v in em.items()}}
 
 
-def _package(commit: str, where: Path) -> Path:
-    where.mkdir(parents=True)
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "tofjax", "configs"], capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", str(where)], input=archive.stdout, check=True)
-    return where
-
-
-def _env(path) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
-    env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(path))
-    return env
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", help="JSON file to write (required unless --worker)")
@@ -185,15 +172,16 @@ def main(argv=None) -> int:
         ap.error("--out is required")
     import numpy as np
 
+    from percall_jit import package_at, worker_env
     from tofjax.outputs import atomic_write_text, check_output
 
     check_output(a.out, overwrite=True)
     tmp = Path(tempfile.mkdtemp(prefix="greedy_fold_"))
-    paths = {v: (_package(c, tmp / v) if c else ROOT) for v, c in VERSIONS.items()}
+    paths = {v: (package_at(c, tmp / v) if c else ROOT) for v, c in VERSIONS.items()}
     runs = {v: [] for v in VERSIONS}
     loads = [os.getloadavg()[0]]
     same: dict = {}
-    r = subprocess.run([sys.executable, str(ROOT / "experiments" / "greedy_fold.py"), "--ab"], env=_env(ROOT), cwd=ROOT,
+    r = subprocess.run([sys.executable, str(ROOT / "experiments" / "greedy_fold.py"), "--ab"], env=worker_env(ROOT), cwd=ROOT,
                        capture_output=True, text=True)
     if r.returncode:
         raise SystemExit(f"A/B worker failed: {r.stderr.strip().splitlines()[-3:]}")
@@ -204,7 +192,7 @@ def main(argv=None) -> int:
         for v in VERSIONS:
             dump = tmp / f"{v}{k}.npz"
             r = subprocess.run([sys.executable, str(ROOT / "experiments" / "greedy_fold.py"), "--worker", "--dump", str(dump)],
-                               env=_env(paths[v]), cwd=paths[v], capture_output=True, text=True)
+                               env=worker_env(paths[v]), cwd=paths[v], capture_output=True, text=True)
             if r.returncode:
                 raise SystemExit(f"worker {v} failed: {r.stderr.strip().splitlines()[-3:]}")
             runs[v].append(json.loads(r.stdout.strip().splitlines()[-1]))

@@ -92,7 +92,16 @@ def worker(variant: str, dump: str) -> dict:
     return out
 
 
-def _package(base: str, where: Path) -> Path:
+def worker_env(path) -> dict:
+    """The environment of a worker process that imports the tofjax package at ``path``: no compilation
+    caches (each process pays its own compiles), nothing else on ``PYTHONPATH``."""
+    env = {key: val for key, val in os.environ.items() if key not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
+    env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(path))
+    return env
+
+
+def package_at(base: str, where: Path) -> Path:
+    """``tofjax/`` and ``configs/`` of commit ``base``, extracted into ``where`` (``git archive``)."""
     root = Path(__file__).resolve().parents[1]
     where.mkdir(parents=True)
     archive = subprocess.run(["git", "-C", str(root), "archive", base, "tofjax", "configs"], capture_output=True, check=True)
@@ -110,14 +119,13 @@ def run_variants(script: str, base: str, cases, rounds: int, prefix: str, worker
 
     root = Path(__file__).resolve().parents[1]
     tmp = Path(tempfile.mkdtemp(prefix=prefix))
-    paths = {"before": _package(base, tmp / "before"), "after": root}
+    paths = {"before": package_at(base, tmp / "before"), "after": root}
     runs: dict = {v: [] for v in VARIANTS}
     identical: dict = {}
     loads = [os.getloadavg()[0]]
     for k in range(rounds):
         for v in VARIANTS:
-            env = {key: val for key, val in os.environ.items() if key not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
-            env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(paths[v]))
+            env = worker_env(paths[v])
             dump = tmp / f"{v}{k}.npz"
             args = [x.format(variant=v) for x in worker_args]
             r = subprocess.run([sys.executable, script, *args, "--dump", str(dump)], env=env, cwd=paths[v],

@@ -46,7 +46,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from percall_jit import run_variants
+from percall_jit import run_variants, worker_env
 
 BASE = "7dc992e"
 CASES = ("greedy", "lm_fit", "fit_sensor")
@@ -274,9 +274,7 @@ def main(argv=None) -> int:
 
     check_output(a.out, overwrite=True)
     runs, identical, loads = run_variants(__file__, BASE, CASES, a.rounds, "percall_jit_tidy_", ["--worker"])
-    env = {key: val for key, val in os.environ.items() if key not in ("JAX_COMPILATION_CACHE_DIR", "PYTHONPATH")}
-    env.update(TOFJAX_PROGRAM_STORE="0", PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, __file__, "--ab"], env=env, cwd=ROOT, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, __file__, "--ab"], env=worker_env(ROOT), cwd=ROOT, capture_output=True, text=True)
     if r.returncode:
         raise SystemExit(f"A/B worker failed: {r.stderr.strip().splitlines()[-3:]}")
     ab = json.loads(r.stdout.strip().splitlines()[-1])
