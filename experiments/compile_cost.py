@@ -109,23 +109,9 @@ def worker(part: str, out: str, variant: str = "as_is") -> None:
         r = Calibrator(sc).fit(cap)
         res = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c, "steps": int(r.steps)}
     else:
-        m = build_model(sc, ModelOptions())
-        p = Params.from_scene(sc, jnp.float64).replace(near_field_shape=3.0)
-        if part == "correction":
-            import tofjax.model.components as C
+        from near_field_cost import cost_probe
 
-            nodes = C.make_nodes(p, m.bin_width_s, m.n_bins, m.options.quadrature)
-
-            def loss(q):
-                mass, spread = C.node_falloff_after_emission(nodes, q[0], q[1])
-                return jnp.sum(mass) + jnp.sum(spread.offset) + jnp.sum(spread.variance)
-
-            arg = jnp.asarray([float(p.near_field_m), 3.0])
-        else:
-            def loss(q):
-                return jnp.sum(m(q) ** 2)
-
-            arg = p
+        loss, arg = cost_probe(sc, part == "correction")
         t, c = time.perf_counter(), time.process_time()
         fn = jax.jit(jax.value_and_grad(loss)).lower(arg).compile()
         res = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c}

@@ -81,6 +81,29 @@ def _patched(variant: str):
     return undo
 
 
+def cost_probe(scene, part: bool):
+    """``(loss, argument)``: a scalar of the whole model's counts (``sum(model(p)^2)`` at the scene's parameters
+    with the near field's shape 3), or, with ``part``, of the node integrals alone in (near field, shape) on the
+    scene's node grid (mass, offset and variance summed). What this script and ``compile_cost.py`` time."""
+    import jax.numpy as jnp
+
+    from tofjax.model import ModelOptions, Params, build_model
+
+    m = build_model(scene, ModelOptions())
+    p = Params.from_scene(scene, jnp.float64).replace(near_field_shape=3.0)
+    if not part:
+        return (lambda q: jnp.sum(m(q) ** 2)), p
+    import tofjax.model.components as C
+
+    nodes = C.make_nodes(p, m.bin_width_s, m.n_bins, m.options.quadrature)
+
+    def loss(q):
+        mass, spread = C.node_falloff_after_emission(nodes, q[0], q[1])
+        return jnp.sum(mass) + jnp.sum(spread.offset) + jnp.sum(spread.variance)
+
+    return loss, jnp.asarray([float(p.near_field_m), 3.0])
+
+
 def interleaved(variants, rounds: int, calls: int, part: bool = False) -> dict:
     """Compile every variant in this process (each traced under its patch), then time them in
     turn, ``calls`` calls per variant per round, ``rounds`` rounds: a loaded machine's swings fall
@@ -88,28 +111,11 @@ def interleaved(variants, rounds: int, calls: int, part: bool = False) -> dict:
     import time
 
     import jax
-    import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
-    from tofjax.model import ModelOptions, Params, build_model
     from tofjax.scene import load_scene
 
-    sc = load_scene("optoskin")
-    m = build_model(sc, ModelOptions())
-    p = Params.from_scene(sc, jnp.float64).replace(near_field_shape=3.0)
-    if part:  # the node integrals alone, in (near field, shape), on the scene's node grid
-        import tofjax.model.components as C
-
-        nodes = C.make_nodes(p, m.bin_width_s, m.n_bins, m.options.quadrature)
-
-        def loss(q):
-            mass, spread = C.node_falloff_after_emission(nodes, q[0], q[1])
-            return jnp.sum(mass) + jnp.sum(spread.offset) + jnp.sum(spread.variance)
-
-        p = jnp.asarray([float(p.near_field_m), 3.0])
-    else:
-        def loss(p):
-            return jnp.sum(m(p) ** 2)
+    loss, p = cost_probe(load_scene("optoskin"), part)
     fns, compile_s = {}, {}
     for v in variants:
         jax.clear_caches()  # the model's own jit (eqx.filter_jit) would hand back the last variant's trace
