@@ -381,17 +381,36 @@ def test_detect_refuses_a_refused_calibration(tmp_path, small, fitted, capsys):
     assert main(args + ["--allow-unconverged-calibration"]) == 0
 
 
-@pytest.mark.slow
-def test_many_fits_in_one_compiled_call_agree_with_single_fits(small, fitted):
-    from tofjax.fit import calibrate_many
+def test_many_fits_on_a_cpu_run_one_after_the_other_and_agree_with_single_fits(small, fitted):
+    """calibrate_many's default on a CPU is the loop of the program calibrate runs (already compiled
+    by the fixture here): each capture's estimate agrees with its own calibrate."""
+    import jax
 
+    from tofjax.fit import calibrate_many, default_fit_batch, fit_problem_loop
+
+    assert jax.default_backend() != "cpu" or default_fit_batch() is fit_problem_loop
     cal, _, _ = fitted
-    caps = [simulate(small, 30, seed=s) for s in (21, 22, 23)]
+    caps = [simulate(small, 30, seed=s) for s in (21, 22)]
     many = calibrate_many(caps, restart_failures=False)
     for c, r in zip(caps, many):
         one = cal.fit(c)
         assert r.result == one.result == "successful"
         assert float(r.values["n1"]) == pytest.approx(float(one.values["n1"]), abs=0.2 * float(one.stderr["n1"]))
+        assert r.stderr["n1"] == pytest.approx(one.stderr["n1"], rel=0.05)
+
+
+@pytest.mark.slow  # compiles the vmapped fit (60-90 s here)
+def test_many_fits_in_one_compiled_call_equal_the_loop(small, fitted):
+    from tofjax.fit import calibrate_many, fit_problem_batch, fit_problem_loop
+
+    caps = [simulate(small, 30, seed=s) for s in (21, 22, 23)]
+    batch = calibrate_many(caps, restart_failures=False, fit_batch=fit_problem_batch)
+    loop = calibrate_many(caps, restart_failures=False, fit_batch=fit_problem_loop)
+    for b, o in zip(batch, loop):
+        assert b.result == o.result == "successful"
+        for k in ("n1", "mu_s_per_m", "mu_a_per_m"):
+            assert float(b.values[k]) == pytest.approx(float(o.values[k]), rel=1e-6)
+            assert float(b.stderr[k]) == pytest.approx(float(o.stderr[k]), rel=1e-4)
 
 
 def test_objective_and_solver_must_match(small):

@@ -16,7 +16,8 @@ calls :func:`initialize` first, then the same study code. What this module gives
   runs the vmapped fits in fixed-size chunks over the local devices, each chunk on one device,
   dispatched asynchronously so that all devices work at once (each stops when its own fits are
   done). The chunk is the same whatever the number of devices and processes, so the results do
-  not depend on how the work was split. Not SPMD: ``jax.shard_map`` fails inside lineax's
+  not depend on how the work was split; on CPU devices the fits run one after the other instead
+  (faster there). Not SPMD: ``jax.shard_map`` fails inside lineax's
   linear solves (its traced shapes carry the manual mesh axis and lineax's structure check
   refuses them), and a batch axis sharded with ``NamedSharding`` had not finished compiling
   after 8 minutes here (loaded machine), against 1.5 minutes for the one-device program.
@@ -231,18 +232,23 @@ def sharded_fit_batch(mesh=None, chunk: int = DEFAULT_CHUNK) -> Callable:
     done (XLA's forced host devices in one CPU process run one after the other: the same results,
     no speed; on a CPU host use processes, ``experiments/host_devices_parallel.py``). A
     short last chunk is padded with copies of its first fit. Every fit thus runs in a program of
-    the same shape: the results do not depend on the number of devices or processes. Returns
-    host (numpy) arrays."""
+    the same shape: the results do not depend on the number of devices or processes. Where every
+    device of the mesh is a CPU the fits run one after the other instead
+    (:func:`~tofjax.fit.calibrate.fit_problem_loop`, ``chunk`` unused): on a CPU that is faster
+    than the vmapped chunks (``experiments/bench_fit_many.py``) and forced host devices add
+    nothing. Returns host (numpy) arrays."""
     if chunk < 1:
         raise DistributedError(f"chunk: must be >= 1, got {chunk}")
 
     def fit_batch(problem, objective, solver, starts, data, sigma, prior_params, anchors, **kw):
         import jax
 
-        from .fit.calibrate import fit_problem_batch
+        from .fit.calibrate import fit_problem_batch, fit_problem_loop
 
         m = local_mesh() if mesh is None else mesh
         devs = list(m.devices.flat)
+        if all(d.platform == "cpu" for d in devs):
+            return fit_problem_loop(problem, objective, solver, starts, data, sigma, prior_params, anchors, **kw)
         n = int(data.shape[0])
         host = jax.tree_util.tree_map(np.asarray, (starts, data, sigma, anchors))
         pending = []

@@ -20,4 +20,6 @@ from .calibrate import build_problem as build_problem
 from .calibrate import calibrate as calibrate
 from .calibrate import calibrate_many as calibrate_many
 from .calibrate import fit_problem as fit_problem
+from .calibrate import default_fit_batch as default_fit_batch
 from .calibrate import fit_problem_batch as fit_problem_batch
+from .calibrate import fit_problem_loop as fit_problem_loop

@@ -7,7 +7,8 @@ One pure entry, :func:`calibrate`, returns a :class:`CalibrationResult` with a r
   residuals; the data are arguments, never state.
 - :mod:`~tofjax.fit._start`: timing, then envelope, then the joint fit.
 - :func:`fit_problem`: one compiled solve from one start (:func:`fit_problem_batch`: many
-  starts and data sets in one compiled, vmapped call).
+  starts and data sets in one compiled, vmapped call; :func:`fit_problem_loop`: the same
+  arguments, one fit after the other, faster on a CPU).
 - :mod:`~tofjax.fit._laplace` and :mod:`~tofjax.fit._result`: covariance and the result.
 
 The solver is an optimistix solver object and the objective an :class:`AbstractObjective`
@@ -70,7 +71,9 @@ __all__ = [
     "calibrate_many",
     "check_baseline",
     "fit_problem",
+    "default_fit_batch",
     "fit_problem_batch",
+    "fit_problem_loop",
     "fit_report",
     "load_calibration",
     "load_fit_config",
@@ -505,6 +508,33 @@ def fit_problem_batch(
     return jax.vmap(one)(starts, data, sigma, anchors)
 
 
+def fit_problem_loop(
+    problem, objective, solver, starts: Params, data, sigma, prior_params, anchors, *, max_steps=200, loss_tol=1e-3, gn_first=10, with_cov=True
+) -> FitSolution:
+    """:func:`fit_problem_batch`'s arguments and result, the fits run one after the other through
+    :func:`run_fit` (the program :func:`calibrate` runs, compiled once per problem structure,
+    read from the program store where it is on). Each fit stops at its own step count; a vmapped
+    batch runs every fit for as many steps as its slowest, and on a CPU its batched Jacobian
+    costs more per fit than a single one, so on a CPU this is faster
+    (``experiments/bench_fit_many.py``). Returns host (numpy) arrays."""
+    n = int(np.shape(data)[0])
+    outs = []
+    for i in range(n):
+        start = jax.tree_util.tree_map(lambda x, i=i: x[i], starts)
+        sol = run_fit(problem, objective, solver, start, data[i], sigma[i], prior_params, anchors[i],
+                      max_steps=max_steps, loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
+        outs.append(jax.device_get(sol))
+    return jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *outs)
+
+
+def default_fit_batch():
+    """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_batch`
+    (one vmapped call) where the default backend is an accelerator, :func:`fit_problem_loop`
+    (one fit after the other) on a CPU, where the vmapped call is the slower of the two
+    (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call")."""
+    return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_batch
+
+
 def _fit_positional(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
     return fit_problem(problem, objective, solver, start, data, sigma, prior_params, anchor,
                        max_steps=max_steps, loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
@@ -791,10 +821,12 @@ def calibrate_many(
     restart_failures: bool = True,
     fit_batch=None,
 ) -> list[CalibrationResult]:
-    """:func:`calibrate` for many captures of one scene: the starts and the fits each run as
-    one compiled, vmapped call over the batch (the failures are then refitted one by one with
-    restarts unless ``restart_failures`` is False). ``fit_batch``: a replacement for
-    :func:`fit_problem_batch` (same signature), e.g. :func:`tofjax.parallel.sharded_fit_batch`."""
+    """:func:`calibrate` for many captures of one scene, from the same kind of start (timing, then
+    the best envelope point), the failures then refitted one by one with restarts unless
+    ``restart_failures`` is False. ``fit_batch`` runs the fits (:func:`fit_problem_batch`'s
+    signature): by default :func:`default_fit_batch` (one vmapped call on an accelerator, one fit
+    after the other on a CPU); :func:`fit_problem_batch` forces the vmapped call,
+    :func:`tofjax.parallel.sharded_fit_batch` spreads it over devices."""
     scene = (scene or captures[0].scene).without_touches()
     for c in captures:
         check_baseline(c, scene)
@@ -813,7 +845,7 @@ def calibrate_many(
     data = jnp.stack([d for d, _ in pairs])
     sigma = jnp.stack([g for _, g in pairs])
     sols = jax.device_get(
-        (fit_problem_batch if fit_batch is None else fit_batch)(
+        (default_fit_batch() if fit_batch is None else fit_batch)(
             problem, objective, solver, stack, data, sigma, base, anchors,
             max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
         )
