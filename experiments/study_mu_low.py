@@ -218,6 +218,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                         "n1_rel_error": float(res.params.n1) / n1 - 1,
                         "mu_t_rel_error": f_mu / cfg.mu_t - 1,
                         "mu_t_stderr_rel": None if se is None else se / cfg.mu_t,
+                        "n1_stderr": float(np.ravel(res.stderr["n1"])[0]) if "n1" in res.stderr else None,
                         "mu_s_per_m": float(res.params.mu_s_per_m),
                         "mu_a_per_m": float(res.params.mu_a_per_m),
                         "reduced_chi2": float(res.reduced_chi2),
