@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import platform
 import sys
@@ -46,6 +47,7 @@ import numpy as np
 
 import tofjax
 from tofjax.fit import Calibrator, FitConfig
+from tofjax.fit._precision import frames_needed
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
@@ -180,6 +182,68 @@ def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
     return out
 
 
+def _within(target: float, sd: float) -> float:
+    """P(|error| <= target) for an unbiased normal error of this sd."""
+    return math.erf(target / (sd * math.sqrt(2))) if sd > 0 else 1.0
+
+
+def planner_check(fits: dict, mu_t: float = MU_T, target: float = 0.25, n1_target: float = 0.01) -> dict:
+    """Does the precision plan (``tofjax.fit._precision``, what ``CalibrationResult.precision``
+    holds) made on the fewest-frame fits predict the spread at more frames? Per (column, n1):
+    the frames each such fit plans for mu_t within ``target`` at 95% (its own standard error
+    relative to its own estimate, as the library computes it), and, for every larger frame
+    count, the sd those fits predict (median Laplace sd x sqrt(F0 / F)) and the share within
+    ``target`` they predict (unbiased normal) against what the replicates at F show."""
+    out = {}
+    for col, by_n1 in fits.items():
+        for n1, by_fr in by_n1.items():
+            frs = sorted(int(f) for f in by_fr)
+            if not frs:
+                continue
+            f0 = frs[0]
+            rows = [r for r in by_fr[str(f0)] if r["mu_t_stderr_rel"] is not None]
+            if not rows:
+                continue
+            est = np.array([r["mu_s_per_m"] + r["mu_a_per_m"] for r in rows])
+            se = np.array([r["mu_t_stderr_rel"] * mu_t for r in rows])  # absolute
+            plan = [frames_needed(f0, float(s / e), target) if e > 0 else None for s, e in zip(se, est)]
+            plan_f = np.array([np.nan if p is None else p for p in plan], float)
+            sd0 = float(np.median(se / mu_t))  # relative to the truth, as the replicates' spread is
+            row = {
+                "from_frames": f0,
+                "fits": len(rows),
+                "planned_frames_median": float(np.nanmedian(plan_f)),
+                "planned_frames_quartiles": [float(np.nanpercentile(plan_f, 25)), float(np.nanpercentile(plan_f, 75))],
+                "planned_frames_from_median_sd": frames_needed(f0, sd0, target),
+                "laplace_sd_rel_median": sd0,
+                "observed_sd_rel": float(np.std([r["mu_t_rel_error"] for r in by_fr[str(f0)]], ddof=1)),
+            }
+            n1_se = [r.get("n1_stderr") for r in rows]
+            if all(x is not None for x in n1_se):
+                n1_plan = [frames_needed(f0, x / (float(n1) * (1 + r["n1_rel_error"])), n1_target) for x, r in zip(n1_se, rows)]
+                row["n1_planned_frames_max"] = int(max(n1_plan))
+            pred = {}
+            for f in frs[1:]:
+                e = np.array([r["mu_t_rel_error"] for r in by_fr[str(f)]])
+                sd_pred = sd0 * math.sqrt(f0 / f)
+                pred[str(f)] = {
+                    "predicted_sd": sd_pred,
+                    "observed_sd": float(e.std(ddof=1)),
+                    "observed_over_predicted": float(e.std(ddof=1) / sd_pred),
+                    "observed_bias": float(e.mean()),
+                    "predicted_within": _within(target, sd_pred),
+                    "observed_within": float(np.mean(np.abs(e) <= target)),
+                    "replicates": int(e.size),
+                }
+            row["at_more_frames"] = pred
+            out[f"{col} n1={n1}"] = row
+    return {"target": target, "n1_target": n1_target, "confidence": 0.95,
+            "note": "plan = frames x (1.96 sd / target)^2 with sd relative to the fit's own estimate (the library's "
+                    "rule); predicted sd at F = median Laplace sd of the fewest-frame fits x sqrt(F0 / F); "
+                    "predicted within = P(|N(0, sd)| <= target): photon noise only, no bias",
+            "by_point": out}
+
+
 def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConfig(), progress: bool = True,
         overwrite: bool = False) -> dict:
     path = check_output(out / "mu_low.json", overwrite=overwrite)
@@ -237,6 +301,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                           flush=True)
                 atomic_write_text(path, json.dumps(_result(cfg, config, groups, fits, None, t0, finished=False), indent=2))
     result = _result(cfg, config, groups, fits, _scaling(groups, cfg), t0, finished=True)
+    result["planner"] = planner_check(fits, cfg.mu_t)
     atomic_write_text(path, json.dumps(result, indent=2))
     return result
 
@@ -756,6 +821,7 @@ def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
         "pooled": _pooled(groups, cfg),
         "groups": groups,
         "scaling": _scaling(groups, cfg) if complete else None,
+        "planner": planner_check(fits, cfg.mu_t),
         "fits": fits,
     })
     atomic_write_text(path, json.dumps(result, indent=2))

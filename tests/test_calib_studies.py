@@ -196,6 +196,32 @@ def test_mu_low_summaries_fast():
         study.MuLowConfig(columns=("mine",))
 
 
+def test_mu_low_planner_check_fast():
+    """The planner check of experiments/study_mu_low.py on made-up fits: honest 1/sqrt(frames)
+    errors are predicted (observed / predicted sd ~ 1, share within 25% as predicted); a bias
+    leaves the sd predicted but the share below the prediction."""
+    study = load("study_mu_low")
+    rng = np.random.default_rng(1)
+    mu = study.MU_T
+
+    def rows(frames, bias, n=4000):
+        sd = 0.27 * (60 / frames) ** 0.5
+        e = bias + sd * rng.standard_normal(n)
+        return [{"mu_t_rel_error": x, "mu_t_stderr_rel": sd, "mu_s_per_m": 0.8 * mu * (1 + x), "mu_a_per_m": 0.2 * mu * (1 + x),
+                 "n1_stderr": 0.001, "n1_rel_error": 0.0} for x in e]
+
+    fits = {"own": {"1.45": {str(f): rows(f, 0.0) for f in (60, 960)}},
+            "independent": {"1.45": {"60": rows(60, 0.2), "960": rows(960, 0.2)}}}
+    p = study.planner_check(fits)["by_point"]
+    honest, biased = p["own n1=1.45"], p["independent n1=1.45"]
+    assert honest["planned_frames_from_median_sd"] == int(np.ceil(60 * (1.959963984540054 * 0.27 / 0.25) ** 2))
+    assert honest["at_more_frames"]["960"]["observed_over_predicted"] == pytest.approx(1.0, abs=0.05)
+    assert honest["at_more_frames"]["960"]["observed_within"] == pytest.approx(honest["at_more_frames"]["960"]["predicted_within"], abs=0.02)
+    b = biased["at_more_frames"]["960"]
+    assert b["observed_over_predicted"] == pytest.approx(1.0, abs=0.05) and b["observed_within"] < b["predicted_within"] - 0.15  # 0.77 against 1.00
+    assert honest["n1_planned_frames_max"] == 1  # 0.07% of n1: 1% needs almost nothing
+
+
 @pytest.mark.slow  # a fit compilation (~15 s idle, minutes on the loaded VM): over the suite's budget
 def test_mu_low_study_quick(tmp_path):
     study = load("study_mu_low")
