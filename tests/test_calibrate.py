@@ -585,7 +585,7 @@ def test_structured_jacobian_of_the_linear_parts_equals_autodiff(small, zone_end
 def test_precision_plan_predicts_the_refit_at_the_planned_frames(fitted, small):
     """The plan from a 60-frame fit, for targets 2x tighter than that fit reaches, asks for about
     4x the frames; a fit of a new capture with the planned frames then has the standard error
-    the plan promised (target / 1.96), within 15%. Would fail if the covariance did not scale
+    the plan promised (target / 1.96), within 8%. Would fail if the covariance did not scale
     with the frames, or the plan used the wrong quantile or dropped the mu_s/mu_a covariance."""
     from tofjax.fit import precision_plan
 
@@ -607,7 +607,7 @@ def test_precision_plan_predicts_the_refit_at_the_planned_frames(fitted, small):
     again = precision_plan(refit.values, refit.covariance, refit.labels, refit.frames, n1=targets["n1"],
                            mu_t=targets["mu_s + mu_a"])
     for q, r in targets.items():
-        assert again[q].rel_stderr == pytest.approx(r / 1.96, rel=0.15), q
+        assert again[q].rel_stderr == pytest.approx(r / 1.96, rel=0.08), q  # seeds 11-14: within 2%
         assert again[q].frames_needed <= 1.4 * need
 
 
