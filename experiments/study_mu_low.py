@@ -72,6 +72,7 @@ class MuLowConfig:
     mu_t: float = MU_T
     frames: tuple[int, ...] = (60, 240, 960)
     replicates: int = 16
+    first_replicate: int = 0  # replicate r has seed ... + first_replicate + r: a later part adds new seeds
     columns: tuple[str, ...] = ("own", "independent")
     sensors: int = FULL["sensors"]
     zones: int = FULL["zones"]
@@ -80,6 +81,8 @@ class MuLowConfig:
     def __post_init__(self):
         if self.replicates < 2:
             raise ValueError(f"replicates: at least 2 (a spread needs two), got {self.replicates}")
+        if not 0 <= self.first_replicate or self.first_replicate + self.replicates > 100:
+            raise ValueError(f"first_replicate: replicates {self.first_replicate}.. must stay below 100 (seeds of the next frame count)")
         bad = [c for c in self.columns if c not in COLUMNS]
         if bad:
             raise ValueError(f"columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
@@ -264,7 +267,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
             fits[col][str(n1)], groups[col][str(n1)] = {}, {}
             for fr in cfg.frames:
                 rows, resid = [], []
-                for r in range(cfg.replicates):
+                for r in range(cfg.first_replicate, cfg.first_replicate + cfg.replicates):
                     seed = 10_000 + 1000 * k + 100 * cfg.frames.index(fr) + r
                     if col == "own":
                         cap = simulate(truth, fr, seed=seed)
@@ -790,6 +793,59 @@ def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dic
     return result
 
 
+def merge_replicates(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """One result from parts that fitted the same points with other seeds (``--first-replicate``):
+    the fits of each (column, n1, frames) concatenated (a seed fitted twice is refused) and every
+    figure recomputed from them. The shared-misfit maps need the residuals, which the JSON does not
+    keep: each part's is kept as it was (``shared_misfit_by_part``)."""
+    path = check_output(out / "mu_low.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    fits: dict = {}
+    misfit: dict = {}
+    for d in loaded:
+        for col, by_n1 in d["fits"].items():
+            for n1, by_fr in by_n1.items():
+                for fr, rows in by_fr.items():
+                    fits.setdefault(col, {}).setdefault(n1, {}).setdefault(fr, []).extend(rows)
+                    m = d["groups"][col][n1][fr].get("shared_misfit")
+                    misfit.setdefault(col, {}).setdefault(n1, {}).setdefault(fr, []).append(
+                        None if m is None else {k: m[k] for k in ("mean_square", "by_bin_mean_square", "by_bin_abs_max")})
+    groups: dict = {}
+    for col, by_n1 in fits.items():
+        for n1, by_fr in by_n1.items():
+            for fr, rows in by_fr.items():
+                seeds = [r["seed"] for r in rows]
+                if len(set(seeds)) != len(seeds):
+                    raise ValueError(f"{col} n1={n1} frames={fr}: a seed fitted twice (parts with the same --first-replicate?)")
+                g = _group(rows, None)
+                g["shared_misfit_by_part"] = misfit[col][n1][fr]
+                groups.setdefault(col, {}).setdefault(n1, {})[fr] = g
+    c0 = loaded[0]["config"]
+    n1s = tuple(sorted({float(n1) for by_n1 in groups.values() for n1 in by_n1}))
+    frames = tuple(sorted({int(fr) for by_n1 in groups.values() for by_fr in by_n1.values() for fr in by_fr}))
+    cols = tuple(c for c in COLUMNS if c in groups)
+    n_rep = min(len(rows) for by_n1 in fits.values() for by_fr in by_n1.values() for rows in by_fr.values())
+    cfg = MuLowConfig(n1=n1s, mu_t=c0["mu_t"], frames=frames, replicates=n_rep, columns=cols,
+                      sensors=c0["sensors"], zones=c0["zones"], bins=c0["bins"])
+    result = {k: loaded[0][k] for k in ("study", "data", "machine", "target")}
+    result.update({
+        "load_average": [d["load_average"] for d in loaded],
+        "finished": all(d["finished"] for d in loaded),
+        "seconds": sum(d["seconds"] for d in loaded),
+        "parts": [str(q) for q in parts],
+        "config": dataclasses.asdict(cfg) | {"base": c0["base"], "albedo": c0["albedo"],
+                                            "replicates_by_part": [d["config"]["replicates"] for d in loaded]},
+        "fit_config": loaded[0]["fit_config"],
+        "pooled": _pooled(groups, cfg),
+        "groups": groups,
+        "scaling": _scaling(groups, cfg),
+        "planner": planner_check(fits, cfg.mu_t),
+        "fits": fits,
+    })
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
 def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     """One result from the JSONs of parts run separately (``--columns``, ``--n1``): groups and
     fits joined (a later part wins), pooled figures and the frame scaling recomputed."""
@@ -832,6 +888,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/mu_low")
     ap.add_argument("--replicates", type=int, default=MuLowConfig.replicates)
+    ap.add_argument("--first-replicate", type=int, default=0,
+                    help="replicate index of the first seed (a second part with new seeds; join with --merge-replicates)")
+    ap.add_argument("--merge-replicates", nargs="+", type=Path,
+                    help="join these parts' mu_low.json (same points, other seeds) into --out: fits concatenated, figures recomputed")
     ap.add_argument("--frames", type=int, nargs="+", default=list(MuLowConfig.frames))
     ap.add_argument("--n1", type=float, nargs="+", default=list(MuLowConfig.n1))
     ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
@@ -888,6 +948,11 @@ def main(argv=None):
                  overwrite=args.overwrite)
         print(f"wrote {args.out}/mu_low_diagnose.json")
         return
+    if args.merge_replicates:
+        r = merge_replicates(args.merge_replicates, Path(args.out), overwrite=args.overwrite)
+        print(json.dumps(r["pooled"], indent=1))
+        print(f"wrote {args.out}/mu_low.json")
+        return
     if args.merge and args.diagnose:
         r = merge_diagnose(args.merge, Path(args.out), overwrite=args.overwrite)
         print(json.dumps(r["bias_by_variant"], indent=1))
@@ -899,7 +964,7 @@ def main(argv=None):
         return
     try:
         cfg = QUICK if args.quick else MuLowConfig(
-            n1=tuple(args.n1), frames=tuple(args.frames), replicates=args.replicates,
+            n1=tuple(args.n1), frames=tuple(args.frames), replicates=args.replicates, first_replicate=args.first_replicate,
             columns=tuple(c for c in args.columns.split(",") if c))
     except ValueError as e:
         raise SystemExit(str(e)) from None

@@ -222,6 +222,36 @@ def test_mu_low_planner_check_fast():
     assert honest["n1_planned_frames_max"] == 2  # 60 (1.96 x 0.069% / 1%)^2 = 1.1: 1% needs almost nothing
 
 
+def test_mu_low_merge_replicates_fast(tmp_path):
+    """Parts with other seeds join into one set of fits per point, figures recomputed; a seed twice is refused."""
+    study = load("study_mu_low")
+    rng = np.random.default_rng(2)
+
+    def part(name, seeds, frames=(60, 960)):
+        fits = {"own": {"1.45": {}}}
+        for f in frames:
+            rows = _mu_low_rows(0.27 * (60 / f) ** 0.5 * rng.standard_normal(len(seeds)), 0.27 * (60 / f) ** 0.5)
+            for r, sd in zip(rows, seeds):
+                r.update(seed=sd, mu_s_per_m=0.04, mu_a_per_m=0.01, n1_stderr=0.001)
+            fits["own"]["1.45"][str(f)] = rows
+        groups = {"own": {"1.45": {f: study._group(rows, None) for f, rows in fits["own"]["1.45"].items()}}}
+        cfg = study.MuLowConfig(n1=(1.45,), frames=frames, replicates=len(seeds), columns=("own",))
+        d = study._result(cfg, study.FitConfig(), groups, fits, None, 0.0, finished=True)
+        (tmp_path / name).write_text(json.dumps(d))
+        return tmp_path / name
+
+    a, b = part("a.json", range(0, 4)), part("b.json", range(4, 10))
+    m = study.merge_replicates([a, b], tmp_path / "m")
+    g = m["groups"]["own"]["1.45"]["960"]
+    assert g["replicates"] == 10 and m["config"]["replicates_by_part"] == [4, 6]
+    e = [r["mu_t_rel_error"] for r in m["fits"]["own"]["1.45"]["960"]]
+    assert g["mu_t_bias"] == pytest.approx(np.mean(e)) and m["planner"]["by_point"]["own n1=1.45"]["fits"] == 10
+    with pytest.raises(ValueError, match="seed fitted twice"):
+        study.merge_replicates([a, a], tmp_path / "m2")
+    with pytest.raises(ValueError, match="first_replicate"):
+        study.MuLowConfig(replicates=32, first_replicate=80)
+
+
 @pytest.mark.slow  # a fit compilation (~15 s idle, minutes on the loaded VM): over the suite's budget
 def test_mu_low_study_quick(tmp_path):
     study = load("study_mu_low")
