@@ -813,10 +813,12 @@ def merge_replicates(parts: list[Path], out: Path, overwrite: bool = False) -> d
     groups: dict = {}
     for col, by_n1 in fits.items():
         for n1, by_fr in by_n1.items():
+            # one seed per capture at a point, across frame counts too (a seed drawn at two frame
+            # counts shares its first frames' noise)
+            seeds = [r["seed"] for rows in by_fr.values() for r in rows]
+            if len(set(seeds)) != len(seeds):
+                raise ValueError(f"{col} n1={n1}: a seed fitted twice (parts with the same --first-replicate?)")
             for fr, rows in by_fr.items():
-                seeds = [r["seed"] for r in rows]
-                if len(set(seeds)) != len(seeds):
-                    raise ValueError(f"{col} n1={n1} frames={fr}: a seed fitted twice (parts with the same --first-replicate?)")
                 g = _group(rows, None)
                 g["shared_misfit_by_part"] = misfit[col][n1][fr]
                 groups.setdefault(col, {}).setdefault(n1, {})[fr] = g

@@ -229,10 +229,10 @@ def test_mu_low_merge_replicates_fast(tmp_path):
 
     def part(name, seeds, frames=(60, 960)):
         fits = {"own": {"1.45": {}}}
-        for f in frames:
+        for i, f in enumerate(frames):
             rows = _mu_low_rows(0.27 * (60 / f) ** 0.5 * rng.standard_normal(len(seeds)), 0.27 * (60 / f) ** 0.5)
             for r, sd in zip(rows, seeds):
-                r.update(seed=sd, mu_s_per_m=0.04, mu_a_per_m=0.01, n1_stderr=0.001)
+                r.update(seed=100 * i + sd, mu_s_per_m=0.04, mu_a_per_m=0.01, n1_stderr=0.001)
             fits["own"]["1.45"][str(f)] = rows
         groups = {"own": {"1.45": {f: study._group(rows, None) for f, rows in fits["own"]["1.45"].items()}}}
         cfg = study.MuLowConfig(n1=(1.45,), frames=frames, replicates=len(seeds), columns=("own",))
@@ -248,6 +248,8 @@ def test_mu_low_merge_replicates_fast(tmp_path):
     assert g["mu_t_bias"] == pytest.approx(np.mean(e)) and m["planner"]["by_point"]["own n1=1.45"]["fits"] == 10
     with pytest.raises(ValueError, match="seed fitted twice"):
         study.merge_replicates([a, a], tmp_path / "m2")
+    with pytest.raises(ValueError, match="seed fitted twice"):  # seed 100 at 960 frames, again at 60
+        study.merge_replicates([a, part("c.json", range(100, 102), frames=(60,))], tmp_path / "m3")
     with pytest.raises(ValueError, match="first_replicate"):
         study.MuLowConfig(replicates=32, first_replicate=80)
 
