@@ -28,6 +28,12 @@ Run it in parts (``--columns``, ``--n1``) on a loaded machine and ``--merge`` th
     python experiments/study_mu_low.py --out out/mu_low [--replicates 16] [--frames 60 240 960]
         [--n1 1.3 1.45 1.6] [--columns own,independent] [--quick] [--overwrite]
 
+More replicates later: ``--first-replicate 32`` fits new seeds (replicates 32..), any subset of
+points and frame counts; ``--merge-replicates A/mu_low.json B/mu_low.json --out C`` joins the
+fits per point and recomputes every figure, including ``planner`` (:func:`planner_check`: does the
+precision plan of the 60-frame fits, ``CalibrationResult.precision``, predict the spread at more
+frames?). Seeds must be unique per point across parts and frame counts (checked).
+
 Writes ``mu_low.json`` (copy it to ``docs/results/``). **Simulated** data.
 """
 
