@@ -127,7 +127,8 @@ class PrecisionPlan:
             if t.frames_needed is None:
                 out.append(f"{head}: no finite standard error, no plan")
             elif t.enough(self.frames):
-                out.append(f"{head}: enough (about {_about(t.frames_needed)} frames would do)")
+                n = _about(t.frames_needed)
+                out.append(f"{head}: enough (about {n} frame{'' if n == '1' else 's'} would do)")
             else:
                 out.append(f"{head} needs about {_about(t.frames_needed)} frames")
         if not self.enough:
