@@ -28,6 +28,12 @@ Run it in parts (``--columns``, ``--n1``) on a loaded machine and ``--merge`` th
     python experiments/study_mu_low.py --out out/mu_low [--replicates 16] [--frames 60 240 960]
         [--n1 1.3 1.45 1.6] [--columns own,independent] [--quick] [--overwrite]
 
+More replicates later: ``--first-replicate 32`` fits new seeds (replicates 32..), any subset of
+points and frame counts; ``--merge-replicates A/mu_low.json B/mu_low.json --out C`` joins the
+fits per point and recomputes every figure, including ``planner`` (:func:`planner_check`: does the
+precision plan of the 60-frame fits, ``CalibrationResult.precision``, predict the spread at more
+frames?). Seeds must be unique per point across parts and frame counts (checked).
+
 Writes ``mu_low.json`` (copy it to ``docs/results/``). **Simulated** data.
 """
 
@@ -36,6 +42,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import platform
 import sys
@@ -46,6 +53,7 @@ import numpy as np
 
 import tofjax
 from tofjax.fit import Calibrator, FitConfig
+from tofjax.fit._precision import frames_needed
 from tofjax.outputs import atomic_write_text, check_output
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
@@ -70,6 +78,7 @@ class MuLowConfig:
     mu_t: float = MU_T
     frames: tuple[int, ...] = (60, 240, 960)
     replicates: int = 16
+    first_replicate: int = 0  # replicate r has seed ... + first_replicate + r: a later part adds new seeds
     columns: tuple[str, ...] = ("own", "independent")
     sensors: int = FULL["sensors"]
     zones: int = FULL["zones"]
@@ -78,6 +87,8 @@ class MuLowConfig:
     def __post_init__(self):
         if self.replicates < 2:
             raise ValueError(f"replicates: at least 2 (a spread needs two), got {self.replicates}")
+        if not 0 <= self.first_replicate or self.first_replicate + self.replicates > 100:
+            raise ValueError(f"first_replicate: replicates {self.first_replicate}.. must stay below 100 (seeds of the next frame count)")
         bad = [c for c in self.columns if c not in COLUMNS]
         if bad:
             raise ValueError(f"columns: unknown column {bad[0]!r}; known: {', '.join(COLUMNS)}")
@@ -180,6 +191,68 @@ def _scaling(groups: dict, cfg: MuLowConfig) -> dict:
     return out
 
 
+def _within(target: float, sd: float) -> float:
+    """P(|error| <= target) for an unbiased normal error of this sd."""
+    return math.erf(target / (sd * math.sqrt(2))) if sd > 0 else 1.0
+
+
+def planner_check(fits: dict, mu_t: float = MU_T, target: float = 0.25, n1_target: float = 0.01) -> dict:
+    """Does the precision plan (``tofjax.fit._precision``, what ``CalibrationResult.precision``
+    holds) made on the fewest-frame fits predict the spread at more frames? Per (column, n1):
+    the frames each such fit plans for mu_t within ``target`` at 95% (its own standard error
+    relative to its own estimate, as the library computes it), and, for every larger frame
+    count, the sd those fits predict (median Laplace sd x sqrt(F0 / F)) and the share within
+    ``target`` they predict (unbiased normal) against what the replicates at F show."""
+    out = {}
+    for col, by_n1 in fits.items():
+        for n1, by_fr in by_n1.items():
+            frs = sorted(int(f) for f in by_fr)
+            if not frs:
+                continue
+            f0 = frs[0]
+            rows = [r for r in by_fr[str(f0)] if r["mu_t_stderr_rel"] is not None]
+            if not rows:
+                continue
+            est = np.array([r["mu_s_per_m"] + r["mu_a_per_m"] for r in rows])
+            se = np.array([r["mu_t_stderr_rel"] * mu_t for r in rows])  # absolute
+            plan = [frames_needed(f0, float(s / e), target) if e > 0 else None for s, e in zip(se, est)]
+            plan_f = np.array([np.nan if p is None else p for p in plan], float)
+            sd0 = float(np.median(se / mu_t))  # relative to the truth, as the replicates' spread is
+            row = {
+                "from_frames": f0,
+                "fits": len(rows),
+                "planned_frames_median": float(np.nanmedian(plan_f)),
+                "planned_frames_quartiles": [float(np.nanpercentile(plan_f, 25)), float(np.nanpercentile(plan_f, 75))],
+                "planned_frames_from_median_sd": frames_needed(f0, sd0, target),
+                "laplace_sd_rel_median": sd0,
+                "observed_sd_rel": float(np.std([r["mu_t_rel_error"] for r in by_fr[str(f0)]], ddof=1)),
+            }
+            n1_se = [r.get("n1_stderr") for r in rows]
+            if all(x is not None for x in n1_se):
+                n1_plan = [frames_needed(f0, x / (float(n1) * (1 + r["n1_rel_error"])), n1_target) for x, r in zip(n1_se, rows)]
+                row["n1_planned_frames_max"] = int(max(n1_plan))
+            pred = {}
+            for f in frs[1:]:
+                e = np.array([r["mu_t_rel_error"] for r in by_fr[str(f)]])
+                sd_pred = sd0 * math.sqrt(f0 / f)
+                pred[str(f)] = {
+                    "predicted_sd": sd_pred,
+                    "observed_sd": float(e.std(ddof=1)),
+                    "observed_over_predicted": float(e.std(ddof=1) / sd_pred),
+                    "observed_bias": float(e.mean()),
+                    "predicted_within": _within(target, sd_pred),
+                    "observed_within": float(np.mean(np.abs(e) <= target)),
+                    "replicates": int(e.size),
+                }
+            row["at_more_frames"] = pred
+            out[f"{col} n1={n1}"] = row
+    return {"target": target, "n1_target": n1_target, "confidence": 0.95,
+            "note": "plan = frames x (1.96 sd / target)^2 with sd relative to the fit's own estimate (the library's "
+                    "rule); predicted sd at F = median Laplace sd of the fewest-frame fits x sqrt(F0 / F); "
+                    "predicted within = P(|N(0, sd)| <= target): photon noise only, no bias",
+            "by_point": out}
+
+
 def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConfig(), progress: bool = True,
         overwrite: bool = False) -> dict:
     path = check_output(out / "mu_low.json", overwrite=overwrite)
@@ -200,7 +273,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
             fits[col][str(n1)], groups[col][str(n1)] = {}, {}
             for fr in cfg.frames:
                 rows, resid = [], []
-                for r in range(cfg.replicates):
+                for r in range(cfg.first_replicate, cfg.first_replicate + cfg.replicates):
                     seed = 10_000 + 1000 * k + 100 * cfg.frames.index(fr) + r
                     if col == "own":
                         cap = simulate(truth, fr, seed=seed)
@@ -218,6 +291,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                         "n1_rel_error": float(res.params.n1) / n1 - 1,
                         "mu_t_rel_error": f_mu / cfg.mu_t - 1,
                         "mu_t_stderr_rel": None if se is None else se / cfg.mu_t,
+                        "n1_stderr": float(np.ravel(res.stderr["n1"])[0]) if "n1" in res.stderr else None,
                         "mu_s_per_m": float(res.params.mu_s_per_m),
                         "mu_a_per_m": float(res.params.mu_a_per_m),
                         "reduced_chi2": float(res.reduced_chi2),
@@ -236,6 +310,7 @@ def run(out: Path, cfg: MuLowConfig = MuLowConfig(), config: FitConfig = FitConf
                           flush=True)
                 atomic_write_text(path, json.dumps(_result(cfg, config, groups, fits, None, t0, finished=False), indent=2))
     result = _result(cfg, config, groups, fits, _scaling(groups, cfg), t0, finished=True)
+    result["planner"] = planner_check(fits, cfg.mu_t)
     atomic_write_text(path, json.dumps(result, indent=2))
     return result
 
@@ -724,6 +799,63 @@ def merge_diagnose(parts: list[Path], out: Path, overwrite: bool = False) -> dic
     return result
 
 
+def merge_replicates(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
+    """One result from parts that fitted the same points with other seeds (``--first-replicate``):
+    the fits of each (column, n1, frames) concatenated (a seed fitted twice is refused) and every
+    figure recomputed from them. The shared-misfit maps need the residuals, which the JSON does not
+    keep: each part's is kept as it was (``shared_misfit_by_part``)."""
+    path = check_output(out / "mu_low.json", overwrite=overwrite)
+    loaded = [json.loads(Path(q).read_text()) for q in parts]
+    fits: dict = {}
+    misfit: dict = {}
+    for d in loaded:
+        for col, by_n1 in d["fits"].items():
+            for n1, by_fr in by_n1.items():
+                for fr, rows in by_fr.items():
+                    fits.setdefault(col, {}).setdefault(n1, {}).setdefault(fr, []).extend(rows)
+                    m = d["groups"][col][n1][fr].get("shared_misfit")
+                    misfit.setdefault(col, {}).setdefault(n1, {}).setdefault(fr, []).append(
+                        None if m is None else {k: m[k] for k in ("mean_square", "by_bin_mean_square", "by_bin_abs_max")})
+    groups: dict = {}
+    for col, by_n1 in fits.items():
+        for n1, by_fr in by_n1.items():
+            # one seed per capture at a point, across frame counts too (a seed drawn at two frame
+            # counts shares its first frames' noise)
+            seeds = [r["seed"] for rows in by_fr.values() for r in rows]
+            if len(set(seeds)) != len(seeds):
+                raise ValueError(f"{col} n1={n1}: a seed fitted twice (parts with the same --first-replicate?)")
+            for fr, rows in by_fr.items():
+                g = _group(rows, None)
+                g["shared_misfit_by_part"] = misfit[col][n1][fr]
+                groups.setdefault(col, {}).setdefault(n1, {})[fr] = g
+    c0 = loaded[0]["config"]
+    n1s = tuple(sorted({float(n1) for by_n1 in groups.values() for n1 in by_n1}))
+    frames = tuple(sorted({int(fr) for by_n1 in groups.values() for by_fr in by_n1.values() for fr in by_fr}))
+    cols = tuple(c for c in COLUMNS if c in groups)
+    n_rep = min(len(rows) for by_n1 in fits.values() for by_fr in by_n1.values() for rows in by_fr.values())
+    cfg = MuLowConfig(n1=n1s, mu_t=c0["mu_t"], frames=frames, replicates=n_rep, columns=cols,
+                      sensors=c0["sensors"], zones=c0["zones"], bins=c0["bins"])
+    result = {k: loaded[0][k] for k in ("study", "data", "machine", "target")}
+    result.update({
+        "load_average": [d["load_average"] for d in loaded],
+        # a part writes its JSON after each finished group: a part stopped early holds whole groups
+        "finished": True,
+        "parts_finished": [d["finished"] for d in loaded],
+        "seconds": sum(d["seconds"] for d in loaded),
+        "parts": [str(q) for q in parts],
+        "config": dataclasses.asdict(cfg) | {"base": c0["base"], "albedo": c0["albedo"],
+                                            "replicates_by_part": [d["config"]["replicates"] for d in loaded]},
+        "fit_config": loaded[0]["fit_config"],
+        "pooled": _pooled(groups, cfg),
+        "groups": groups,
+        "scaling": _scaling(groups, cfg),
+        "planner": planner_check(fits, cfg.mu_t),
+        "fits": fits,
+    })
+    atomic_write_text(path, json.dumps(result, indent=2))
+    return result
+
+
 def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
     """One result from the JSONs of parts run separately (``--columns``, ``--n1``): groups and
     fits joined (a later part wins), pooled figures and the frame scaling recomputed."""
@@ -755,6 +887,7 @@ def merge(parts: list[Path], out: Path, overwrite: bool = False) -> dict:
         "pooled": _pooled(groups, cfg),
         "groups": groups,
         "scaling": _scaling(groups, cfg) if complete else None,
+        "planner": planner_check(fits, cfg.mu_t),
         "fits": fits,
     })
     atomic_write_text(path, json.dumps(result, indent=2))
@@ -765,6 +898,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/mu_low")
     ap.add_argument("--replicates", type=int, default=MuLowConfig.replicates)
+    ap.add_argument("--first-replicate", type=int, default=0,
+                    help="replicate index of the first seed (a second part with new seeds; join with --merge-replicates)")
+    ap.add_argument("--merge-replicates", nargs="+", type=Path,
+                    help="join these parts' mu_low.json (same points, other seeds) into --out: fits concatenated, figures recomputed")
     ap.add_argument("--frames", type=int, nargs="+", default=list(MuLowConfig.frames))
     ap.add_argument("--n1", type=float, nargs="+", default=list(MuLowConfig.n1))
     ap.add_argument("--columns", default="own,independent", help=f"comma-separated subset of {', '.join(COLUMNS)}")
@@ -821,6 +958,11 @@ def main(argv=None):
                  overwrite=args.overwrite)
         print(f"wrote {args.out}/mu_low_diagnose.json")
         return
+    if args.merge_replicates:
+        r = merge_replicates(args.merge_replicates, Path(args.out), overwrite=args.overwrite)
+        print(json.dumps(r["pooled"], indent=1))
+        print(f"wrote {args.out}/mu_low.json")
+        return
     if args.merge and args.diagnose:
         r = merge_diagnose(args.merge, Path(args.out), overwrite=args.overwrite)
         print(json.dumps(r["bias_by_variant"], indent=1))
@@ -832,7 +974,7 @@ def main(argv=None):
         return
     try:
         cfg = QUICK if args.quick else MuLowConfig(
-            n1=tuple(args.n1), frames=tuple(args.frames), replicates=args.replicates,
+            n1=tuple(args.n1), frames=tuple(args.frames), replicates=args.replicates, first_replicate=args.first_replicate,
             columns=tuple(c for c in args.columns.split(",") if c))
     except ValueError as e:
         raise SystemExit(str(e)) from None

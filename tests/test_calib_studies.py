@@ -196,6 +196,64 @@ def test_mu_low_summaries_fast():
         study.MuLowConfig(columns=("mine",))
 
 
+def test_mu_low_planner_check_fast():
+    """The planner check of experiments/study_mu_low.py on made-up fits: honest 1/sqrt(frames)
+    errors are predicted (observed / predicted sd ~ 1, share within 25% as predicted); a bias
+    leaves the sd predicted but the share below the prediction."""
+    study = load("study_mu_low")
+    rng = np.random.default_rng(1)
+    mu = study.MU_T
+
+    def rows(frames, bias, n=4000):
+        sd = 0.27 * (60 / frames) ** 0.5
+        e = bias + sd * rng.standard_normal(n)
+        return [{"mu_t_rel_error": x, "mu_t_stderr_rel": sd, "mu_s_per_m": 0.8 * mu * (1 + x), "mu_a_per_m": 0.2 * mu * (1 + x),
+                 "n1_stderr": 0.001, "n1_rel_error": 0.0} for x in e]
+
+    fits = {"own": {"1.45": {str(f): rows(f, 0.0) for f in (60, 960)}},
+            "independent": {"1.45": {"60": rows(60, 0.2), "960": rows(960, 0.2)}}}
+    p = study.planner_check(fits)["by_point"]
+    honest, biased = p["own n1=1.45"], p["independent n1=1.45"]
+    assert honest["planned_frames_from_median_sd"] == int(np.ceil(60 * (1.959963984540054 * 0.27 / 0.25) ** 2))
+    assert honest["at_more_frames"]["960"]["observed_over_predicted"] == pytest.approx(1.0, abs=0.05)
+    assert honest["at_more_frames"]["960"]["observed_within"] == pytest.approx(honest["at_more_frames"]["960"]["predicted_within"], abs=0.02)
+    b = biased["at_more_frames"]["960"]
+    assert b["observed_over_predicted"] == pytest.approx(1.0, abs=0.05) and b["observed_within"] < b["predicted_within"] - 0.15  # 0.77 against 1.00
+    assert honest["n1_planned_frames_max"] == 2  # 60 (1.96 x 0.069% / 1%)^2 = 1.1: 1% needs almost nothing
+
+
+def test_mu_low_merge_replicates_fast(tmp_path):
+    """Parts with other seeds join into one set of fits per point, figures recomputed; a seed twice is refused."""
+    study = load("study_mu_low")
+    rng = np.random.default_rng(2)
+
+    def part(name, seeds, frames=(60, 960)):
+        fits = {"own": {"1.45": {}}}
+        for i, f in enumerate(frames):
+            rows = _mu_low_rows(0.27 * (60 / f) ** 0.5 * rng.standard_normal(len(seeds)), 0.27 * (60 / f) ** 0.5)
+            for r, sd in zip(rows, seeds):
+                r.update(seed=100 * i + sd, mu_s_per_m=0.04, mu_a_per_m=0.01, n1_stderr=0.001)
+            fits["own"]["1.45"][str(f)] = rows
+        groups = {"own": {"1.45": {f: study._group(rows, None) for f, rows in fits["own"]["1.45"].items()}}}
+        cfg = study.MuLowConfig(n1=(1.45,), frames=frames, replicates=len(seeds), columns=("own",))
+        d = study._result(cfg, study.FitConfig(), groups, fits, None, 0.0, finished=True)
+        (tmp_path / name).write_text(json.dumps(d))
+        return tmp_path / name
+
+    a, b = part("a.json", range(0, 4)), part("b.json", range(4, 10))
+    m = study.merge_replicates([a, b], tmp_path / "m")
+    g = m["groups"]["own"]["1.45"]["960"]
+    assert g["replicates"] == 10 and m["config"]["replicates_by_part"] == [4, 6]
+    e = [r["mu_t_rel_error"] for r in m["fits"]["own"]["1.45"]["960"]]
+    assert g["mu_t_bias"] == pytest.approx(np.mean(e)) and m["planner"]["by_point"]["own n1=1.45"]["fits"] == 10
+    with pytest.raises(ValueError, match="seed fitted twice"):
+        study.merge_replicates([a, a], tmp_path / "m2")
+    with pytest.raises(ValueError, match="seed fitted twice"):  # seed 100 at 960 frames, again at 60
+        study.merge_replicates([a, part("c.json", range(100, 102), frames=(60,))], tmp_path / "m3")
+    with pytest.raises(ValueError, match="first_replicate"):
+        study.MuLowConfig(replicates=32, first_replicate=80)
+
+
 @pytest.mark.slow  # a fit compilation (~15 s idle, minutes on the loaded VM): over the suite's budget
 def test_mu_low_study_quick(tmp_path):
     study = load("study_mu_low")

@@ -596,3 +596,91 @@ def test_structured_jacobian_of_the_linear_parts_equals_autodiff(small, zone_end
     a, b = np.asarray(jax.jit(jax.jacfwd(ours))(flat)), np.asarray(jax.jit(jax.jacfwd(plain))(flat))
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())
 
+
+
+# ---- precision plan: the frames a baseline needs ----------------------------------------------
+
+
+def test_precision_plan_predicts_the_refit_at_the_planned_frames(fitted, small):
+    """The plan from a 60-frame fit, for targets 2x tighter than that fit reaches, asks for about
+    4x the frames; a fit of a new capture with the planned frames then has the standard error
+    the plan promised (target / 1.96), within 8%. Would fail if the covariance did not scale
+    with the frames, or the plan used the wrong quantile or dropped the mu_s/mu_a covariance."""
+    from tofjax.fit import precision_plan
+
+    cal, res, cap = fitted
+    now = res.precision
+    assert now is not None and now.frames == cap.n_frames == res.frames
+    # the plan's mu_s + mu_a error is the report's sum (with the covariance), not the two alone
+    i, j = res.labels.index("mu_s_per_m"), res.labels.index("mu_a_per_m")
+    c = res.covariance
+    sum_sd = np.sqrt(c[i, i] + c[j, j] + 2 * c[i, j])
+    assert now["mu_s + mu_a"].stderr == pytest.approx(sum_sd, rel=1e-12)
+    assert sum_sd < 0.5 * np.hypot(c[i, i] ** 0.5, c[j, j] ** 0.5)  # anti-correlated: the sum is pinned
+    targets = {q: 1.96 * now[q].rel_stderr / 2 for q in ("n1", "mu_s + mu_a")}
+    plan = precision_plan(res.values, res.covariance, res.labels, res.frames, n1=targets["n1"], mu_t=targets["mu_s + mu_a"])
+    need = max(t.frames_needed for t in plan.targets)
+    assert all(abs(t.frames_needed - 4 * res.frames) <= 1 for t in plan.targets) and not plan.enough
+    refit = cal.fit(simulate(small, need, seed=11))
+    assert refit.converged and refit.frames == need
+    again = precision_plan(refit.values, refit.covariance, refit.labels, refit.frames, n1=targets["n1"],
+                           mu_t=targets["mu_s + mu_a"])
+    for q, r in targets.items():
+        assert again[q].rel_stderr == pytest.approx(r / 1.96, rel=0.08), q  # seeds 11-14: within 2%
+        assert again[q].frames_needed <= 1.4 * need
+
+
+def test_precision_plan_json_round_trip_and_report(fitted, tmp_path):
+    from tofjax.fit import load_precision_plan
+    from tofjax.fit.calibrate import fit_report
+
+    _, res, _ = fitted
+    path = tmp_path / "calib.json"
+    path.write_text(json.dumps(res.to_json()))
+    assert load_precision_plan(path) == res.precision
+    assert load_precision_plan({"parameters": {}}) is None  # a JSON from before the plan
+    text = fit_report(res)
+    assert "precision (photon noise, 95%):" in text and f"from {res.frames} frames" in text
+    with pytest.raises(ConfigError, match="not a precision plan"):
+        load_precision_plan({"parameters": {}, "precision": {"frames": 60}})
+
+
+def test_precision_plan_line_when_the_baseline_is_not_enough():
+    """The report's line: a 27% error from 60 frames needs 60 (1.96 x 27 / 25)^2 = 269.0 -> 270 frames."""
+    from tofjax.fit import precision_plan
+
+    cov = np.diag([1e-8, 0.0135**2 / 2, 0.0135**2 / 2])  # mu_t 0.05 +- 0.0135 (27%), uncorrelated here
+    plan = precision_plan({"n1": 1.45, "mu_s_per_m": 0.04, "mu_a_per_m": 0.01}, cov, ["n1", "mu_s_per_m", "mu_a_per_m"], 60)
+    t = plan["mu_s + mu_a"]
+    assert t.rel_stderr == pytest.approx(0.27) and t.frames_needed == int(np.ceil(60 * (1.959963984540054 * 0.27 / 0.25) ** 2))
+    lines = plan.lines()
+    assert "mu_s + mu_a: +-27% (1 sd) from 60 frames; within 25% at 95% needs about 270 frames" in lines
+    assert any("not model bias" in x for x in lines)
+    assert plan["n1"].enough(60) and not plan.enough
+
+
+@given(frames=st.integers(1, 10_000), k=st.integers(1, 64), rel=st.floats(1e-4, 2.0), target=st.floats(1e-3, 0.99))
+def test_precision_plan_is_invariant_to_where_it_is_made(frames, k, rel, target):
+    """Photon noise: a fit from k x the frames has 1/k the covariance and plans the same frames."""
+    from tofjax.fit import precision_plan
+
+    v = {"n1": 1.4}
+    a = precision_plan(v, np.array([[(rel * 1.4) ** 2]]), ["n1"], frames, n1=target)["n1"].frames_needed
+    b = precision_plan(v, np.array([[(rel * 1.4) ** 2 / k]]), ["n1"], frames * k, n1=target)["n1"].frames_needed
+    assert abs(a - b) <= 1 and a >= 1
+
+
+@pytest.mark.parametrize("key", ["precision_target_n1", "precision_target_mu_t"])
+@pytest.mark.parametrize("bad", [0, -0.1, 1, 1.5, float("nan"), "x"])
+def test_bad_precision_targets_are_one_line_errors(key, bad, tmp_path):
+    from tofjax.fit import precision_plan
+
+    with pytest.raises(ConfigError, match=f"{key}: must be a relative error in \\(0, 1\\)") as e:
+        FitConfig(**{key: bad})
+    assert "\n" not in str(e.value)
+    with pytest.raises(ConfigError, match=key):
+        precision_plan({"n1": 1.4}, np.eye(1), ["n1"], 60, **{"n1" if key.endswith("n1") else "mu_t": bad})
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text(f"{key} = nan\n")
+    with pytest.raises(ConfigError, match=f"fit.toml: {key}"):
+        load_fit_config(cfg)

@@ -519,6 +519,13 @@ def _cases() -> list[Case]:
                                                                 "--out", f"{o}/c.json"]))
     cases.append(Case("calibrate/config_non_utf8", lambda w, o: ["calibrate", G(w), "--config",
                                                                  str(w["scenes"]["non_utf8"]), "--out", f"{o}/c.json"]))
+    for name, text in {"precision_target_nan": "precision_target_mu_t = nan\n",
+                       "precision_target_zero": "precision_target_n1 = 0\n"}.items():
+        def fit_cfg(w, o, name=name, text=text):
+            p = d(w) / f"{name}.toml"
+            p.write_text(text)
+            return ["calibrate", G(w), "--config", str(p), "--out", f"{o}/c.json"]
+        cases.append(Case(f"calibrate/{name}", fit_cfg))
     cases.append(Case("calibrate/scene_bad", lambda w, o: ["calibrate", G(w), "--scene", str(w["scenes"]["n1_nan"]),
                                                            "--out", f"{o}/c.json"]))
     cases.append(Case("detect/calibration_missing", lambda w, o: ["detect", T(w), "--baseline", G(w), "--calibration",

@@ -8,7 +8,10 @@ from ._problem import CalibrationProblem as CalibrationProblem
 from ._result import CalibrationError as CalibrationError
 from ._result import CalibrationRefused as CalibrationRefused
 from ._result import CalibrationResult as CalibrationResult
+from ._precision import PrecisionPlan as PrecisionPlan
+from ._precision import precision_plan as precision_plan
 from ._result import load_calibration as load_calibration
+from ._result import load_precision_plan as load_precision_plan
 from ._result import scene_fingerprint as scene_fingerprint
 from .calibrate import AbstractObjective as AbstractObjective
 from .calibrate import Calibrator as Calibrator

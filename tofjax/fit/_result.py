@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import UserError
 from ..model import OPTICS, Params
 from ..scene import Scene
+from ._precision import PrecisionPlan
 from .transforms import FITTABLE
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "calibration_optics",
     "fit_report",
     "load_calibration",
+    "load_precision_plan",
     "scene_fingerprint",
 ]
 
@@ -105,6 +107,7 @@ class CalibrationResult:
     on_bound: list[str] = dataclasses.field(default_factory=list)
     residuals: np.ndarray | None = None  # (S, Z, B) Poisson-weighted, for plots
     optics: str = "default"  # the forward model's optics (FitConfig.optics); readers must use the same
+    precision: PrecisionPlan | None = None  # the frames a baseline needs (FitConfig.precision_target_*)
 
     def to_json(self) -> dict[str, Any]:
         def pack(k):
@@ -132,6 +135,7 @@ class CalibrationResult:
             "optics": self.optics,
             "frames": self.frames,
             "stages": self.stages,
+            "precision": None if self.precision is None else self.precision.to_json(),
             "fixed": {
                 f.name: np.asarray(getattr(self.params, f.name)).tolist()
                 for f in dataclasses.fields(self.params)
@@ -266,6 +270,14 @@ def load_calibration(
     return params
 
 
+def load_precision_plan(data: dict[str, Any] | str | Path) -> PrecisionPlan | None:
+    """The precision plan of a calibration JSON (a dict or a path; None where the JSON predates
+    it): n1 and mu_s + mu_a, their relative standard errors and the frames needed for the targets."""
+    data, _ = _read(data)
+    plan = data.get("precision")
+    return None if plan is None else PrecisionPlan.from_json(plan)
+
+
 def _x64() -> bool:
     import jax
 
@@ -299,6 +311,9 @@ def fit_report(result: CalibrationResult) -> str:
             f"correlation(mu_s, mu_a) = {corr:+.2f}"
             + ("  (strong: a baseline alone barely separates scattering from absorption)" if abs(corr) > 0.8 else "")
         )
+    if result.precision is not None and result.precision.targets:
+        lines.append("precision (photon noise, 95%):")
+        lines += ["  " + x for x in result.precision.lines()]
     if result.on_bound:
         lines.append(f"on a bound: {', '.join(result.on_bound)}")
     worst = result.discrepancy.get("worst_zones", [])[:3]
