@@ -312,16 +312,21 @@ class Reconstructor:
             s = 9.0 * ndimage.uniform_filter(s, size=(1, 3, 3), mode="constant")
         return s, ok
 
-    def noise_map(self) -> np.ndarray:
-        """Noise (std) of what :meth:`maps` returns, per cell: ``1/sqrt(G_kk)`` for one cell's
-        strength (the matched filter's noise, in strength units), nine added in quadrature
-        for the 3 x 3 sums. Cells left out (near the edge) get +inf (never detected)."""
+    def cell_noise_map(self) -> np.ndarray:
+        """Noise (std) of one cell's strength, per cell: ``1/sqrt(G_kk)``, the matched filter's noise in
+        strength units (a contact of strength ``s`` alone at a known cell has matched-filter SNR
+        ``s sqrt(G_kk)``). Cells left out (near the edge) or that no sensor sees get +inf."""
         var = np.full(self.grid.ny * self.grid.nx, np.inf)
         g = self._g_diag[: self.n_cells]
         # a cell no sensor sees (no response: a million times weaker than the best seen) is never
         # detected: infinite noise, kept out of the sums
         var[self.cells] = np.where(g > 1e-12 * max(float(g.max()), 1e-300), 1.0 / np.maximum(g, 1e-300), np.inf)
-        var = var.reshape(self.grid.ny, self.grid.nx)
+        return np.sqrt(var.reshape(self.grid.ny, self.grid.nx))
+
+    def noise_map(self) -> np.ndarray:
+        """Noise (std) of what :meth:`maps` returns, per cell: :meth:`cell_noise_map` for one cell's
+        strength, nine added in quadrature for the 3 x 3 sums. Cells left out get +inf (never detected)."""
+        var = self.cell_noise_map() ** 2
         if self.options.sum_cells:
             from scipy import ndimage
 
