@@ -130,7 +130,9 @@ def test_a_more_attenuating_guide_needs_stronger_contacts_far_away(small, sens):
     assert far_m / far > near_m / near  # the farther from the sensors, the more the guide costs
 
 
-def test_options_are_validated():
+def test_options_are_validated(inverter):
+    with pytest.raises(ConfigError, match="response"):
+        sensitivity_of(inverter.reconstructor, SensitivityOptions(response="signed"))  # built with "added"
     for bad in ({"strength": 0.0}, {"strength": float("nan")}, {"frames": 0}, {"frames": 1.5}, {"n_sigma": -1.0},
                 {"response": "both"}, {"border_m": -0.1}):
         with pytest.raises(ConfigError):

@@ -211,6 +211,9 @@ def sensitivity_of(reconstructor: Reconstructor, options: SensitivityOptions = S
     the one place the threshold formula lives (see the module docstring). ``options``' ``n_sigma``
     (if given) replaces the reconstructor's; the other reconstruct options are the reconstructor's."""
     ro = reconstructor.options
+    if options.response not in ("auto", reconstructor.response):
+        raise ConfigError(f"response: the reconstructor's contact response is {reconstructor.response!r}, the options "
+                          f"ask for {options.response!r} (build it with that response, or use sensitivity())")
     n_sigma = ro.n_sigma if options.n_sigma is None else float(options.n_sigma)
     sig = reconstructor.cell_noise_map()
     N = reconstructor.noise_map()
