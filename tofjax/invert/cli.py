@@ -254,6 +254,53 @@ def _common(s):
     )
 
 
+def _cmd_sensitivity(a) -> int:
+    """``tofjax sensitivity``: where a contact of ``--strength`` is detectable (model method), JSON and PNG."""
+    from ..capture import read_capture
+    from ..outputs import atomic_write_text
+    from ..scene import load_scene
+    from .correction import check_compatible
+    from .pipeline import load_optics
+    from .plots import plot_sensitivity
+    from .sensitivity import SensitivityOptions, sensitivity
+
+    changes = {"n_sigma": a.n_sigma, "response": a.contact_response}
+    options = SensitivityOptions(strength=a.strength, frames=a.frames, **{k: v for k, v in changes.items() if v is not None})
+    scene = load_scene(a.scene).without_touches()
+    base = read_capture(a.baseline)
+    check_compatible(scene, base.scene, what="baseline", other="scene")
+    if a.sensor is not None:
+        scene = scene.with_sensor_model(a.sensor)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        optical = load_optics(scene, a.calibration, allow_unconverged=a.allow_unconverged_calibration,
+                              allow_other_scene=a.allow_other_scene_calibration)
+    for w in caught:
+        print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
+    print(f"tofjax {a.command}: building the model-based reconstruction's noise (the forward model's response at "
+          "every cell; tens of seconds) ...", file=sys.stderr, flush=True)
+    res = sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
+    out = Path(a.out)
+    data = res.to_json()
+    data["inputs"] = {"scene": str(a.scene), "baseline": str(a.baseline), "baseline_frames": base.n_frames,
+                      "optics_source": optical.source}
+    atomic_write_text(out / "sensitivity.json", json.dumps(data, indent=1))
+    plot_sensitivity(res, out / "sensitivity.png")
+    s = data["summary"]
+    one, many, sure = s["detectable_one_frame"], s["detectable_with_frames"], s["detectable_one_frame_with_margin_2"]
+
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.0f}%"
+
+    print(f"wrote {out}/sensitivity.json and sensitivity.png: strength {a.strength:g} detectable on "
+          f"{pct(one['all'])} of the sensed area in one frame (border {pct(one['border'])}, interior "
+          f"{pct(one['interior'])}), with a 2x margin on {pct(sure['all'])}"
+          + (f", {pct(many['all'])} with {a.frames} frames summed" if a.frames > 1 else "")
+          + f"; frames needed, median {s['frames_needed_quantiles_10_50_90'][1]:.0f}, most "
+            f"{s['frames_needed_max']:.0f}")
+    return 0
+
+
 def register(sub) -> None:
     s = sub.add_parser("process", help="correct touch histograms and write tactile maps (seed 000 Alg. 1, Eq. 8)")
     _common(s)
@@ -265,3 +312,37 @@ def register(sub) -> None:
     _common(s)
     s.add_argument("--json", required=True, help="output JSON: {frames: [{index, touches: [{x_m, y_m, strength}]}]}")
     s.set_defaults(func=_cmd_detect)
+
+    s = sub.add_parser(
+        "sensitivity",
+        help="where on the skin a contact is detectable (model method): minimum strength per cell, SNR, frames needed",
+        description="Sensitivity map of the model-based detection (`detect --method model`): per grid cell the "
+        "smallest strength of a lone contact detected in one frame half the time (the lasso's shrinkage plus "
+        "--n-sigma times the noise of the summed strength, from the baseline's photon noise), the matched-filter "
+        "SNR of a contact of --strength, and the frames to sum for it to be detected. Among several contacts "
+        "nearly all are found only with a 2x margin (simulated study). Writes OUT/sensitivity.json and "
+        "OUT/sensitivity.png. See docs/inversion.md, 'Sensitivity map'.",
+    )
+    s.add_argument("scene", help="scene TOML file, or a built-in name (its contacts are ignored)")
+    s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5): the noise")
+    s.add_argument(
+        "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
+    )
+    s.add_argument("--allow-unconverged-calibration", action="store_true",
+                   help="use a calibration that did not converge or was refused (at your own risk)")
+    s.add_argument("--allow-other-scene-calibration", action="store_true",
+                   help="use a calibration whose scene fingerprint differs from the scene's")
+    s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (as for detect)")
+    s.add_argument("--strength", type=float, default=1.0,
+                   help="contact strength of interest, in the units detect reports (default 1.0)")
+    s.add_argument("--n-sigma", type=float,
+                   help="model method's threshold on the summed strength in its noise (default: detect's, 1)")
+    s.add_argument("--frames", type=int, default=1,
+                   help="frames summed, the baseline on the same exposure (default 1); the JSON also gives the "
+                   "frames needed per cell")
+    from .reconstruct import RESPONSES
+
+    s.add_argument("--contact-response", choices=RESPONSES,
+                   help="the contact response, as for detect --method model (default auto)")
+    s.add_argument("--out", required=True, help="output folder: sensitivity.json, sensitivity.png")
+    s.set_defaults(func=_cmd_sensitivity)

@@ -363,21 +363,21 @@ def build_corrector(
     )
 
 
-def check_compatible(touch_scene: Scene, baseline_scene: Scene, what: str = "baseline") -> None:
+def check_compatible(touch_scene: Scene, baseline_scene: Scene, what: str = "baseline", other: str = "touch capture") -> None:
     """Raise :class:`InversionError` (one line) unless both captures come from the same setup.
 
     Contacts may differ (that is the point); waveguide, sensor model and placement may not.
     """
     if touch_scene.shape != baseline_scene.shape:
         raise InversionError(
-            f"{what} histograms have shape {baseline_scene.shape} (sensors, zones, bins), the touch capture "
+            f"{what} histograms have shape {baseline_scene.shape} (sensors, zones, bins), the {other} "
             f"{touch_scene.shape}: not the same setup"
         )
     a, b = touch_scene.without_touches(), baseline_scene.without_touches()
     for name in ("waveguide", "sensor", "sensors"):
         if getattr(a, name) != getattr(b, name):
             raise InversionError(
-                f"{what} and touch captures come from different scenes ('{baseline_scene.name}' vs "
+                f"{what} and {other} come from different scenes ('{baseline_scene.name}' vs "
                 f"'{touch_scene.name}': their {name} differ)"
             )
 

@@ -353,14 +353,23 @@ def load_inputs(
     if sensor_path is not None:
         touch = dataclasses.replace(touch, scene=touch.scene.with_sensor_model(sensor_path))
         base = dataclasses.replace(base, scene=base.scene.with_sensor_model(sensor_path))
-    if calibration_path is None:
-        warn_no_calibration(base.scene)
-        optical = OpticalParams.from_scene(base.scene)
-    else:
-        optical = OpticalParams.from_calibration(
-            calibration_path, base.scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene
-        )
+    optical = load_optics(base.scene, calibration_path, allow_unconverged=allow_unconverged,
+                          allow_other_scene=allow_other_scene)
     return touch, base, optical
+
+
+def load_optics(
+    scene: Scene, calibration_path=None, *, allow_unconverged: bool = False, allow_other_scene: bool = False
+) -> OpticalParams:
+    """The optics the commands use for ``scene``: a calibration JSON's (refused, one line, if it did not
+    converge, was refused, or is of another scene, unless allowed), else the scene's stated optics with a
+    warning. ``detect``, ``process`` and ``sensitivity`` read a calibration through this."""
+    if calibration_path is None:
+        warn_no_calibration(scene)
+        return OpticalParams.from_scene(scene)
+    return OpticalParams.from_calibration(
+        calibration_path, scene, allow_unconverged=allow_unconverged, allow_other_scene=allow_other_scene
+    )
 
 
 def process_captures(

@@ -15,7 +15,7 @@ from .detect import Detection  # noqa: E402
 from .maps import Grid  # noqa: E402
 from ..outputs import save_figure  # noqa: E402
 
-__all__ = ["draw_map", "plot_map", "plot_map_grid"]
+__all__ = ["draw_map", "plot_map", "plot_map_grid", "plot_sensitivity"]
 
 
 def draw_map(
@@ -68,6 +68,51 @@ def plot_map_grid(
         if row_titles:
             axs[i, 0].set_ylabel(row_titles[i], fontsize=8)
     fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_sensitivity(result, path, *, title=None) -> Path:
+    """A sensitivity map (:class:`tofjax.invert.sensitivity.SensitivityResult`): the smallest strength
+    detected in one frame per cell (log colour scale; grey: never detected), the sensors, and the
+    contours where a contact of ``options.strength`` becomes detectable in one frame (solid: half the
+    time, alone), with twice that margin (dotted: where the study found nearly all contacts) and with
+    ``options.frames`` summed (dashed)."""
+    from matplotlib.colors import LogNorm
+
+    g, o = result.grid, result.options
+    m = np.where(result.sensed, result.min_strength, np.nan)
+    fin = m[np.isfinite(m)]
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    ax.set_facecolor("0.8")
+    if fin.size:
+        im = ax.imshow(m, origin="lower", extent=g.extent, cmap="viridis", interpolation="nearest",
+                       norm=LogNorm(vmin=float(fin.min()), vmax=float(fin.max())))
+        fig.colorbar(im, ax=ax, shrink=0.85, label="min detectable strength, one frame")
+        filled = np.where(np.isfinite(m), m, float(fin.max()) * 10)
+        from .sensitivity import RELIABLE_MARGIN
+
+        levels = [(o.strength, "-", "1 frame"), (o.strength / RELIABLE_MARGIN, ":", f"1 frame, x{RELIABLE_MARGIN:g} margin")]
+        if o.frames > 1:
+            levels.append((o.strength * np.sqrt(o.frames), "--", f"{o.frames} frames"))
+        handles = []
+        for lev, ls, lab in levels:
+            if fin.min() < lev < filled.max():
+                ax.contour(g.x, g.y, filled, levels=[lev], colors="w", linestyles=ls, linewidths=1.2)
+                handles.append(plt.Line2D([], [], color="k", ls=ls, lw=1.2, label=f"strength {o.strength:g}: {lab}"))
+        if handles:
+            ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1,
+                      frameon=False)
+    for s in result.scene.sensors:
+        ax.plot(*s.position_m, "s", color="#4fc3f7", ms=6, mec="k", clip_on=False)
+    ax.set_xlim(0, g.nx * g.dx)
+    ax.set_ylim(0, g.ny * g.dy)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    share = result.summary()["detectable_one_frame"]["all"]
+    ax.set_title(title or f"{result.scene.name}: strength {o.strength:g} detectable on "
+                 f"{'-' if share is None else f'{100 * share:.0f}%'} (1 frame)", fontsize=9)
+    fig.subplots_adjust(bottom=0.24)
     return _save(fig, path)
 
 

@@ -284,6 +284,9 @@ class Reconstructor:
         Aw = A[rows] / sigma[:, None]
         G = Aw.T @ Aw
         self._g_diag = np.diag(G).copy()
+        # strength x occupancy of the same cell (shadow columns only): what the lasso's shrinkage of a
+        # contact's strength depends on besides its own penalty (shrinkage_map)
+        self._g_pair = np.diagonal(G, offset=K).copy() if G.shape[0] == 2 * K else None
         self.lam = options.tau * np.sqrt(np.maximum(self._g_diag, 1e-30))
         L = _largest_eigenvalue(G)
         dt = jnp.float64 if options.dtype == "float64" and jax.config.jax_enable_x64 else jnp.float32
@@ -312,16 +315,47 @@ class Reconstructor:
             s = 9.0 * ndimage.uniform_filter(s, size=(1, 3, 3), mode="constant")
         return s, ok
 
-    def noise_map(self) -> np.ndarray:
-        """Noise (std) of what :meth:`maps` returns, per cell: ``1/sqrt(G_kk)`` for one cell's
-        strength (the matched filter's noise, in strength units), nine added in quadrature
-        for the 3 x 3 sums. Cells left out (near the edge) get +inf (never detected)."""
+    def cell_noise_map(self) -> np.ndarray:
+        """Noise (std) of one cell's strength, per cell: ``1/sqrt(G_kk)``, the matched filter's noise in
+        strength units (a contact of strength ``s`` alone at a known cell has matched-filter SNR
+        ``s sqrt(G_kk)``). Cells left out (near the edge) or that no sensor sees get +inf."""
         var = np.full(self.grid.ny * self.grid.nx, np.inf)
         g = self._g_diag[: self.n_cells]
         # a cell no sensor sees (no response: a million times weaker than the best seen) is never
         # detected: infinite noise, kept out of the sums
         var[self.cells] = np.where(g > 1e-12 * max(float(g.max()), 1e-300), 1.0 / np.maximum(g, 1e-300), np.inf)
-        var = var.reshape(self.grid.ny, self.grid.nx)
+        return np.sqrt(var.reshape(self.grid.ny, self.grid.nx))
+
+    def shrinkage_map(self) -> np.ndarray:
+        """Strength the lasso takes off a contact alone at each cell, without noise: ``lambda_k / G_kk``
+        (``tau`` times :meth:`cell_noise_map`) when the cell's strength column is the only one on. With
+        the shadow occupancies (``added`` response, ``shadow``), a contact's own shadow switches its cell's
+        occupancy on too, and both penalties come off jointly: ``(G2^-1 lambda2)_0`` with ``G2`` the 2 x 2
+        Gram block of the cell's strength and occupancy columns (their correlation is negative: the touch
+        return's tail falls where the shadow begins, so the shrinkage is larger). +inf where not sensed."""
+        sig = self.cell_noise_map().ravel()
+        out = np.full(sig.shape, np.inf)
+        K = self.n_cells
+        g = self._g_diag[:K]
+        la = self.lam[:K]
+        shrink = la / np.maximum(g, 1e-300)
+        if self._g_pair is not None:
+            gd, gad, ld = self._g_diag[K:], self._g_pair, self.lam[K:]
+            det = g * gd - gad**2
+            both = (gd > 1e-12 * max(float(gd.max()), 1e-300)) & (det > 1e-9 * g * np.maximum(gd, 1e-300))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s_pair = (gd * la - gad * ld) / det
+                o_pair = (g * ld - gad * la) / det  # what the occupancy (1 for a contact's shadow) loses
+            both &= o_pair < 1.0  # the shadow survives its own penalty: both columns on
+            shrink = np.where(both, s_pair, shrink)
+        out[self.cells] = shrink
+        out[~np.isfinite(sig)] = np.inf
+        return out.reshape(self.grid.ny, self.grid.nx)
+
+    def noise_map(self) -> np.ndarray:
+        """Noise (std) of what :meth:`maps` returns, per cell: :meth:`cell_noise_map` for one cell's
+        strength, nine added in quadrature for the 3 x 3 sums. Cells left out get +inf (never detected)."""
+        var = self.cell_noise_map() ** 2
         if self.options.sum_cells:
             from scipy import ndimage
 
