@@ -93,6 +93,7 @@ class EvalConfig:
     cfar: bool = True
     no_touch_frames: int = 40  # no-touch frames: false touches per frame  # detection on the map divided by its noise (see DetectOptions)
     model_n_sigma: float | None = None  # model method's threshold in noise sigma (None: its default)
+    model_relative: float | None = None  # model method's threshold relative to the frame's strongest (None: its default)
     # Six-contact runs on other guides: [mu_s_per_m, mu_a_per_m] pairs.
     attenuations: tuple[tuple[float, float], ...] = ()
     shapes: tuple[str, ...] = ("configs/touch-stick.toml", "configs/touch-ring.toml")
@@ -240,6 +241,8 @@ def _options(config: EvalConfig) -> dict:
         rec = ReconstructOptions()
         if m == "model" and config.model_n_sigma is not None:
             rec = dataclasses.replace(rec, n_sigma=config.model_n_sigma)
+        if m == "model" and config.model_relative is not None:
+            rec = dataclasses.replace(rec, relative=config.model_relative)
         out[m] = InvertOptions(method=m, maps=MapOptions(resolution_m=config.resolution_m), detect=det, reconstruct=rec)
     return out
 

@@ -113,6 +113,58 @@ def evaluate(config, scene, contacts, no_touch: int, progress: bool) -> dict:
     return out
 
 
+def diagnose(config, scene, contacts, progress: bool) -> dict:
+    """Where the errors are, per column and method at ``config.frames_summed``: each false detection's
+    distance to the nearest true contact and its strength against the frame's strongest detection;
+    each missed contact's distance to the edge and whether a detection lies within 4 cm of it."""
+    et = _eval_touch()
+    from scipy.optimize import linear_sum_assignment
+
+    from tofjax.invert.pipeline import build_inverter
+
+    opts = et._options(config)
+    out = {}
+    for kind in config.sources:
+        src = et._Source(kind, scene, config)
+        H = src.frames(contacts, seed=config.seed + 100)
+        out[kind] = {}
+        for meth in config.methods:
+            inv = build_inverter(scene, src.baseline, opts[meth], None, n_baseline=config.baseline_frames,
+                                 baseline_frames=src.baseline_frames)
+            res = inv.process(H)
+            fd, fr, md, mnear = [], [], [], []
+            for det, c in zip(res.detections, contacts):
+                pos = det.positions()
+                st = np.array([t["strength"] for t in det.touches], float)
+                d = np.hypot(*(pos[:, None, :] - c[None, :, :2]).transpose(2, 0, 1)) if len(pos) else np.zeros((0, len(c)))
+                r, cc = linear_sum_assignment(np.where(d <= config.match_radius_m, d, 1e6)) if len(pos) else ([], [])
+                ok = [(i, j) for i, j in zip(r, cc) if d[i, j] <= config.match_radius_m]
+                det_ok, tru_ok = {i for i, _ in ok}, {j for _, j in ok}
+                for i in range(len(pos)):
+                    if i not in det_ok:
+                        fd.append(float(d[i].min()))
+                        fr.append(float(st[i] / st.max()) if st.max() > 0 else float("nan"))
+                for j in range(len(c)):
+                    if j not in tru_ok:
+                        md.append(float(et._edge_distance(scene, c[j, :2])))
+                        mnear.append(bool(len(pos) and d[:, j].min() <= 0.04))
+            fd, fr, md = np.array(fd), np.array(fr), np.array(md)
+            q = lambda a: np.quantile(a, [0.1, 0.5, 0.9]).tolist() if len(a) else None  # noqa: E731
+            out[kind][meth] = {
+                "false_detections": int(len(fd)),
+                "false_within_4cm_of_a_contact": int((fd <= 0.04).sum()),
+                "false_distance_to_nearest_contact_cm_quantiles_10_50_90": q(100 * fd),
+                "false_strength_over_frame_max_quantiles_10_50_90": q(fr),
+                "missed_contacts": int(len(md)),
+                "missed_within_5cm_of_edge": int((md < config.border_m).sum()),
+                "missed_edge_distance_cm_quantiles_10_50_90": q(100 * md),
+                "missed_with_a_detection_within_4cm": int(np.sum(mnear)),
+            }
+            if progress:
+                print(kind, meth, out[kind][meth], flush=True)
+    return out
+
+
 def targets(row: dict) -> dict:
     """Issue 13's six-contact targets on one column's results."""
     f, m = row["six"]["methods"]["full"], row["six"]["methods"]["model"]
@@ -139,6 +191,11 @@ def main(argv=None):
     ap.add_argument("--also", default="", help="other N, comma-separated: numbers or rules (e.g. worst,2)")
     ap.add_argument("--json", default="docs/results/eval_touch_six_4m_frames.json")
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--diagnose", action="store_true", help="also where the errors are, at the first N")
+    ap.add_argument("--relative-full", type=float, default=None,
+                    help="the full method's relative threshold (default: the study config's, 0.2)")
+    ap.add_argument("--relative-model", type=float, default=None,
+                    help="the model method's relative threshold (default: its own, 0.1)")
     a = ap.parse_args(argv)
     import tofjax
     from tofjax.config import ConfigError, from_dict, load_toml
@@ -149,6 +206,10 @@ def main(argv=None):
     t0, load0 = time.perf_counter(), list(os.getloadavg())
     data = load_toml(a.config)
     data.update(methods=["full", "model"], single_grid=0, shapes=[], attenuations=[[a.mu_s, a.mu_a]])
+    if a.relative_full is not None:
+        data["relative"] = a.relative_full  # eval_touch's `relative` is the back-projection's (the model has its own)
+    if a.relative_model is not None:
+        data["model_relative"] = a.relative_model
     try:
         config = from_dict(et.EvalConfig, data)
         also = [x.strip() if x.strip() in RULES else int(x) for x in a.also.split(",") if x.strip()]
@@ -207,6 +268,8 @@ def main(argv=None):
         rows = evaluate(cfg, scene, contacts, a.no_touch, not a.quiet)
         run = {"frames_summed": k, "columns": rows, "targets": {c: targets(r) for c, r in rows.items()},
                "seconds": time.perf_counter() - t1, "load_after": list(os.getloadavg())}
+        if a.diagnose and k == n:
+            run["diagnosis"] = diagnose(cfg, scene, contacts, not a.quiet)
         result["runs"].append(run)
         for c, r in rows.items():
             for meth, s in r["six"]["methods"].items():
