@@ -20,7 +20,11 @@ sensitivity`` builds it) gives, at the study's weakest strength (0.7), per sense
 ``margin2`` (the second, the default: the prescription for "found reliably everywhere"), ``margin2_q90``
 (the second, at the 90th percentile of the sensed cells). ``--also`` adds other N (trend).
 
-    python experiments/eval_touch_frames.py --json docs/results/eval_touch_six_4m_frames.json
+    python experiments/eval_touch_frames.py --rule margin2 --also worst,2,1 --json docs/results/eval_touch_six_4m_frames.json
+    # where the errors are at N = 18, and the two methods' relative thresholds varied:
+    python experiments/eval_touch_frames.py --frames 18 --no-touch 0 --diagnose --json docs/results/eval_touch_six_4m_frames_diagnosis.json
+    python experiments/eval_touch_frames.py --frames 18 --also 5 --relative-full 0.1 --json docs/results/eval_touch_six_4m_frames_fullrel01.json
+    python experiments/eval_touch_frames.py --frames 18 --also 5 --relative-model 0.3 --json docs/results/eval_touch_six_4m_frames_modelrel03.json
 """
 
 from __future__ import annotations

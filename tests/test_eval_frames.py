@@ -79,6 +79,9 @@ def test_frames_summed_is_validated(et, tmp_path):
     with pytest.raises(ConfigError, match="frames_summed"):
         from_dict(et.EvalConfig, {"frames_summed": 0})
     assert from_dict(et.EvalConfig, {"frames_summed": 3}).frames_summed == 3
+    # the model method's relative threshold passes through (default: the method's own)
+    assert et._options(et.EvalConfig(methods=("model",), model_relative=0.3))["model"].reconstruct.relative == 0.3
+    assert et._options(et.EvalConfig(methods=("model",)))["model"].reconstruct.relative == 0.1
     cfg = tmp_path / "c.toml"
     cfg.write_text('scene = "optoskin"\n')
     with pytest.raises(SystemExit) as e:
