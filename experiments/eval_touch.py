@@ -28,6 +28,18 @@ Recall is also split by the contact's distance to the nearest edge (``border_m``
 band vs interior). ``attenuations`` repeats the six-contact scenario on guides with other
 ``(mu_s, mu_a)``.
 
+``frames_summed`` (``--frames-summed``; default 1) is a researcher holding a static touch and summing
+frames: every touch frame is the sum of ``frames_summed`` frames, each drawn with its own photon noise
+(and its own saturation) from the same expected counts, and the baseline is on the same exposure: each
+of its ``baseline_frames`` frames is a sum of as many (``n_baseline`` stays ``baseline_frames``: it is
+the number of summed frames averaged). The inversion is built on that baseline as from any other, so
+the Poisson variance it assumes (``B (1 + 1/n_baseline)``, ``B`` the summed baseline) and the CFAR floor
+measured on the baseline's (summed) frames are those of the summed data: every threshold in noise units
+sees the summed noise, and a contact's SNR grows by ``sqrt(frames_summed)``. Signals are in counts per
+summed frame, so the model method's strengths come out ``frames_summed`` times the forward model's (its
+thresholds are in noise units and relative to the frame: unaffected). With 1 the draws are today's,
+bit for bit. This is the convention of :mod:`tofjax.invert.sensitivity` (``frames``).
+
 Writes ``eval_touch.json``, ``eval_touch.md`` (the table) and figures
 ``fig5_single.png``, ``fig6_multi.png``, ``fig7_shapes.png``, ``metrics.png``.
 
@@ -38,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import platform
@@ -45,17 +58,19 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 from tqdm import tqdm
 
 import tofjax
-from tofjax.config import from_dict, load_toml
+from tofjax.config import ConfigError, from_dict, load_toml
 from tofjax.invert.correction import OpticalParams
 from tofjax.invert.detect import DetectOptions, match
 from tofjax.invert.maps import MapOptions
 from tofjax.invert.pipeline import InvertOptions, build_inverter
 from tofjax.invert.reconstruct import ReconstructOptions
 from tofjax.invert.synth import random_contacts, shadowed, simulate_contacts
+from tofjax.model import sample_counts
 from tofjax.scene import load_scene
 from tofjax.simulate import simulate
 
@@ -78,12 +93,21 @@ class EvalConfig:
     cfar: bool = True
     no_touch_frames: int = 40  # no-touch frames: false touches per frame  # detection on the map divided by its noise (see DetectOptions)
     model_n_sigma: float | None = None  # model method's threshold in noise sigma (None: its default)
+    model_relative: float | None = None  # model method's threshold relative to the frame's strongest (None: its default)
     # Six-contact runs on other guides: [mu_s_per_m, mu_a_per_m] pairs.
     attenuations: tuple[tuple[float, float], ...] = ()
     shapes: tuple[str, ...] = ("configs/touch-stick.toml", "configs/touch-ring.toml")
     calibration: str | None = None  # calibration JSON for the inversion (default: the scene's optics)
     rig_seed: int = 1  # the independent simulator's rig (per-zone gains, crosstalk, sampling)
     seed: int = 0
+    # Frames summed per touch frame (a static touch), the baseline on the same exposure (each of its
+    # baseline_frames frames a sum of as many); 1: single frames, today's draws bit for bit.
+    frames_summed: int = 1
+
+    def __post_init__(self):
+        n = self.frames_summed
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ConfigError(f"frames_summed: must be an integer >= 1, got {n!r}")
 
 
 def _edge_distance(scene, xy):
@@ -143,31 +167,71 @@ def _indep():
     return indep_sim
 
 
+@functools.partial(jax.jit, static_argnames=("n", "poisson", "saturation"))
+def _summed_draws(keys, expected, *, n: int, poisson: bool, saturation: float):
+    """Per configuration (``keys`` (C,), ``expected`` (C, S, Z, B)): the sum of ``n`` frames, each drawn
+    as :func:`tofjax.model.sample_counts` draws one (own photon noise, own saturation)."""
+
+    def one(key, lam):
+        return jax.vmap(lambda k: sample_counts(k, lam, poisson=poisson, saturation=saturation))(
+            jax.random.split(key, n)
+        ).sum(0)
+
+    return jax.vmap(one)(keys, expected)
+
+
+def _sum_groups(frames: np.ndarray, n: int) -> np.ndarray:
+    """Consecutive groups of ``n`` frames summed: (F * n, ...) -> (F, ...)."""
+    return frames.reshape(len(frames) // n, n, *frames.shape[1:]).sum(1)
+
+
 class _Source:
-    """Baseline and touch frames of one scene from one simulator."""
+    """Baseline and touch frames of one scene from one simulator; with ``config.frames_summed`` = N > 1
+    every frame (baseline and touch) is the sum of N frames drawn independently."""
 
     def __init__(self, kind: str, scene, config: EvalConfig):
         self.kind, self.scene, self.config = kind, scene, config
+        self.n = n = config.frames_summed
         if kind == "own":
-            self.baseline_frames = simulate(scene, config.baseline_frames, config.seed).histograms
+            self.baseline_frames = _sum_groups(simulate(scene, config.baseline_frames * n, config.seed).histograms, n)
         elif kind == "independent":
             sim = _indep()
             self.rig = sim.IndepRig.from_scene(scene, seed=config.rig_seed)
-            self.baseline_frames = sim.simulate(self.rig, np.zeros((0, 3)), config.baseline_frames, config.seed).histograms
+            self.baseline_frames = _sum_groups(
+                sim.simulate(self.rig, np.zeros((0, 3)), config.baseline_frames * n, config.seed).histograms, n
+            )
         else:
             raise ValueError(f"sources: unknown source {kind!r} (own, independent)")
         self.baseline = self.baseline_frames.mean(0)
 
     def frames(self, contacts, seed):
+        if self.n == 1:
+            if self.kind == "own":
+                return simulate_contacts(self.scene, contacts, seed=seed)
+            return self.rig.histograms(contacts, seed=seed)
         if self.kind == "own":
-            return simulate_contacts(self.scene, contacts, seed=seed)
-        return self.rig.histograms(contacts, seed=seed)
+            lam = simulate_contacts(self.scene, contacts, seed=seed, noise=False)
+            keys = jax.random.split(jax.random.key(seed), len(lam))
+            return np.asarray(
+                _summed_draws(keys, lam, n=self.n, poisson=bool(self.scene.noise.poisson),
+                              saturation=float(self.scene.sensor.saturation_counts)),
+                np.float64,
+            )
+        return self._indep_summed([self.rig.expected(c) for c in np.asarray(contacts, float)], seed)
+
+    def _indep_summed(self, expected, seed):
+        """The independent simulator's noise (``IndepRig._noisy``, then its saturation) per frame, summed."""
+        rng = np.random.default_rng(seed)
+        sat = self.scene.sensor.saturation_counts
+        return np.stack([sum(np.minimum(self.rig._noisy(lam, rng), sat) for _ in range(self.n)) for lam in expected])
 
     def shape_frame(self, shape_scene, seed):
         if self.kind == "own":
-            return simulate(shape_scene, 1, seed).histograms
+            return _sum_groups(simulate(shape_scene, self.n, seed).histograms, self.n)
         el = shape_scene.contact_elements()
-        return self.rig.histograms(el[None, :, [0, 1, 3]], seed=seed)
+        if self.n == 1:
+            return self.rig.histograms(el[None, :, [0, 1, 3]], seed=seed)
+        return self._indep_summed([self.rig.expected(el[:, [0, 1, 3]])], seed)
 
 
 def _options(config: EvalConfig) -> dict:
@@ -177,6 +241,8 @@ def _options(config: EvalConfig) -> dict:
         rec = ReconstructOptions()
         if m == "model" and config.model_n_sigma is not None:
             rec = dataclasses.replace(rec, n_sigma=config.model_n_sigma)
+        if m == "model" and config.model_relative is not None:
+            rec = dataclasses.replace(rec, relative=config.model_relative)
         out[m] = InvertOptions(method=m, maps=MapOptions(resolution_m=config.resolution_m), detect=det, reconstruct=rec)
     return out
 
@@ -419,9 +485,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="configs/studies/eval_touch.toml")
     ap.add_argument("--out", default="out/eval_touch")
+    ap.add_argument("--frames-summed", type=int, default=None,
+                    help="frames summed per touch frame, the baseline on the same exposure (overrides the config's)")
     args = ap.parse_args(argv)
     tofjax.enable_x64()
-    config = from_dict(EvalConfig, load_toml(args.config))
+    data = load_toml(args.config)
+    if args.frames_summed is not None:
+        data["frames_summed"] = args.frames_summed
+    try:
+        config = from_dict(EvalConfig, data)
+    except ConfigError as e:
+        ap.error(str(e))
     result = run(config, Path(args.out))
     print(table(result))
     print(f"wrote {args.out}/eval_touch.json, eval_touch.md and figures ({result['seconds']:.0f} s)")
