@@ -47,6 +47,8 @@ def main(argv=None) -> int:
     p.add_argument("--variants", nargs="*", default=["default", "trials"], choices=["default", "trials", "geodesic"])
     p.add_argument("--reference-steps", type=int, default=400)
     p.add_argument("--diagnose", type=int, default=2000, help="seed whose end point is diagnosed (-1: none)")
+    p.add_argument("--slow-tail", type=float, default=0.0,
+                   help="simulate with a slow pulse tail of this weight (time constant 4x the fast one); 0: the scene's one tail")
     p.add_argument("--out", default="docs/results/straggler_fits.json")
     a = p.parse_args(argv)
     os.environ.setdefault("TOFJAX_PROGRAM_STORE", "0")
@@ -84,8 +86,14 @@ def main(argv=None) -> int:
         return {k: np.asarray(sol.linear[k] if k in sol.linear else getattr(sol.params, k), np.float64) for k in pb.free}
 
     fits, ends = [], {}
+    sim_kw = {}
+    if a.slow_tail > 0:
+        from tofjax.model import ModelOptions, Params
+
+        truth = Params.from_scene(scene, dtype)
+        sim_kw = {"options": ModelOptions(pulse_tails=2), "params": truth.replace(pulse_slow_weight=np.asarray(a.slow_tail, dtype))}
     for s in a.seeds:
-        d, g = _data(simulate(scene, a.frames, seed=s), dtype)
+        d, g = _data(simulate(scene, a.frames, seed=s, **sim_kw), dtype)
         for name in a.variants:
             sv = variants[name]
             jax.block_until_ready(fit_problem(pb, objective, sv, start, d, g, base, anchor, with_cov=True, **kw).steps)
@@ -135,7 +143,8 @@ def main(argv=None) -> int:
         }
     out = {
         "what": "straggler calibration fits of the default optoskin scene: steps, accuracy against a tight reference, diagnosis",
-        "data": f"simulated: tofjax.simulate.simulate(load_scene('optoskin'), {a.frames}, seed=s), own model",
+        "data": f"simulated: tofjax.simulate.simulate(load_scene('optoskin'), {a.frames}, seed=s), own model"
+                + (f", with a slow pulse tail of weight {a.slow_tail} (4x the fast time constant)" if a.slow_tail > 0 else ""),
         "command": "TOFJAX_PROGRAM_STORE=0 python experiments/straggler_fits.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, shared); load average at the end {os.getloadavg()}",
         "start": "one fixed start for every seed: the envelope start of seed 1000's capture (as bench_fit.py --batch)",
