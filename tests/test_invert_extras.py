@@ -212,5 +212,7 @@ def test_simulated_contacts_compile_once_per_model_structure(scene, monkeypatch)
     draw = synth.sample_counts
     monkeypatch.setattr(synth, "sample_counts", lambda *a, **k: traced.append(1) or draw(*a, **k))
     a = simulate_contacts(scene, np.array([[[0.11, 0.07, 1.0]]]), seed=1)
+    # 1 trace, or 0 where an earlier test in this process (e.g. test_eval_frames.py) compiled the same structure
+    first = len(traced)
     b = simulate_contacts(scene, np.array([[[0.21, 0.17, 0.8]]]), seed=2)
-    assert len(traced) == 1 and a.shape == b.shape and not np.array_equal(a, b)
+    assert first <= 1 and len(traced) == first and a.shape == b.shape and not np.array_equal(a, b)
