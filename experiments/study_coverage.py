@@ -232,7 +232,8 @@ def run(config: CoverageConfig, out: Path, progress: bool = True) -> dict:
             "replicates_run": rows,
         }
 
-    # all the point fits first, in one compiled, vmapped call; then the posteriors (expensive) of the first ones
+    # all the point fits first (fit_many: one vmapped call on an accelerator, a loop on a CPU); then the posteriors
+    # (expensive) of the first ones
     caps = {}
     captures = [simulate(scene, config.frames, seed=config.seed + k) for k in range(config.replicates)]
     t = time.perf_counter()

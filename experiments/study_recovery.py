@@ -2,7 +2,8 @@
 
 For every (n1, mu_s, mu_a) of the config's grid and every replicate, a baseline is
 simulated with those true values and fitted with the nominal scene as start and prior
-centre, all baselines in one compiled, vmapped call (:meth:`Calibrator.fit_many`; a fit
+centre, all baselines through :meth:`Calibrator.fit_many` (one vmapped call on an accelerator, one fit
+after the other on a CPU; a fit
 that fails or ends on a bound is then refitted alone with restarts). Writes ``recovery.json`` (per grid point: bias and
 spread of n1, mu_s, mu_a and mu_t = mu_s + mu_a, convergence, reduced chi-square) and
 ``recovery.png`` (fitted against true).
