@@ -6,6 +6,7 @@ Without ``--calibration`` the scene's stated optics are used and a warning says 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import sys
@@ -13,6 +14,16 @@ import warnings
 from pathlib import Path
 
 __all__ = ["register"]
+
+
+@contextlib.contextmanager
+def _printed_warnings(command: str):
+    """Warnings raised inside (no calibration, scene notes) printed as one stderr line each, after the block."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        print(f"tofjax {command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
 
 
 def _options(a):
@@ -67,8 +78,7 @@ def _run(a, *, want_detect: bool):
     from .pipeline import build_inverter, load_inputs
 
     options = _options(a)  # option errors first, before any reading
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with _printed_warnings(a.command):
         touch, base, optical = load_inputs(
             a.touch,
             a.baseline,
@@ -77,8 +87,6 @@ def _run(a, *, want_detect: bool):
             allow_other_scene=a.allow_other_scene_calibration,
             sensor_path=a.sensor,
         )
-    for w in caught:
-        print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
     if a.method in ("model", "fit"):
         print(
             f"tofjax {a.command}: building the model-based {'reconstruction' if a.method == 'model' else 'contact fit'} "
@@ -183,12 +191,8 @@ def _with_frame_flags(data: dict, touch, res) -> dict:
     return data
 
 
-def _common(s):
-    from .pipeline import ALL_METHODS
-    from .reconstruct import RESPONSES
-
-    s.add_argument("touch", help="touch capture (.h5)")
-    s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
+def _optics_arguments(s):
+    """The calibration and sensor-model options every reader of a calibration takes (process, detect, sensitivity)."""
     s.add_argument(
         "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
     )
@@ -207,6 +211,15 @@ def _common(s):
         help="sensor model from `tofjax sensor fit` (its bin width replaces the nominal one; pass the same "
         "model as to `tofjax calibrate --sensor`)",
     )
+
+
+def _common(s):
+    from .pipeline import ALL_METHODS
+    from .reconstruct import RESPONSES
+
+    s.add_argument("touch", help="touch capture (.h5)")
+    s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5)")
+    _optics_arguments(s)
     s.add_argument(
         "--method",
         choices=(*ALL_METHODS, "fit"),
@@ -271,12 +284,9 @@ def _cmd_sensitivity(a) -> int:
     check_compatible(scene, base.scene, what="baseline", other="scene")
     if a.sensor is not None:
         scene = scene.with_sensor_model(a.sensor)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with _printed_warnings(a.command):
         optical = load_optics(scene, a.calibration, allow_unconverged=a.allow_unconverged_calibration,
                               allow_other_scene=a.allow_other_scene_calibration)
-    for w in caught:
-        print(f"tofjax {a.command}: warning: {type(w.message).__name__}: {w.message}", file=sys.stderr)
     print(f"tofjax {a.command}: building the model-based reconstruction's noise (the forward model's response at "
           "every cell; tens of seconds) ...", file=sys.stderr, flush=True)
     res = sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
@@ -325,14 +335,7 @@ def register(sub) -> None:
     )
     s.add_argument("scene", help="scene TOML file, or a built-in name (its contacts are ignored)")
     s.add_argument("--baseline", required=True, help="no-touch baseline capture of the same setup (.h5): the noise")
-    s.add_argument(
-        "--calibration", help="calibration JSON from `tofjax calibrate` (default: the scene's optics, with a warning)"
-    )
-    s.add_argument("--allow-unconverged-calibration", action="store_true",
-                   help="use a calibration that did not converge or was refused (at your own risk)")
-    s.add_argument("--allow-other-scene-calibration", action="store_true",
-                   help="use a calibration whose scene fingerprint differs from the scene's")
-    s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (as for detect)")
+    _optics_arguments(s)
     s.add_argument("--strength", type=float, default=1.0,
                    help="contact strength of interest, in the units detect reports (default 1.0)")
     s.add_argument("--n-sigma", type=float,
