@@ -1,0 +1,177 @@
+"""``FitConfig.pulse_tails = "auto"`` against 1 and 2 (issue 13, straggler fits), on **simulated** data.
+
+Runs the whole warm ``Calibrator(scene, FitConfig(pulse_tails=T)).fit`` on 100-frame baselines of
+the default OptoSkin scene, seeds 2000-2039 (``bench_fit.py``'s batch seeds), and records per fit:
+the steps of every fit stage and their sum, the wall time, the result, n1, mu_s + mu_a, the reduced
+chi-square, the tails fitted and (``"auto"``) the score test. ``--data``:
+
+* ``tailless``: the scene as it is (``pulse_slow_weight = 0``: no slow tail);
+* ``slow``: the same seeds simulated with a slow tail of share 0.1 at 4x the fast time constant
+  (``straggler_fits.py --slow-tail 0.1``);
+* ``independent``: baselines of the independent simulator (``tests/indep_sim.py``, its own pulse),
+  ``--indep`` rigs.
+
+A first fit of the first baseline (not recorded) compiles. One process per ``--data``:
+
+    TOFJAX_PROGRAM_STORE=0 python experiments/pulse_tail_choice.py --data tailless --out /tmp/ptc_tailless.json
+    TOFJAX_PROGRAM_STORE=0 python experiments/pulse_tail_choice.py --data slow --tails auto 2 --out /tmp/ptc_slow.json
+    python experiments/pulse_tail_choice.py --merge /tmp/ptc_*.json --out docs/results/pulse_tail_choice.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _tails(v: str):
+    return v if v == "auto" else int(v)
+
+
+def fit_steps(res) -> int:
+    """Steps of every fit the calibration ran (restarts and both tail models included)."""
+    return sum(int(s["steps"]) for s in res.stages if str(s.get("stage", "")).startswith("fit from start"))
+
+
+def captures(a, scene):
+    import numpy as np
+
+    from tofjax.simulate import simulate
+
+    if a.data == "independent":
+        sys.path.insert(0, str(ROOT / "tests"))
+        from indep_sim import IndepRig
+        from indep_sim import simulate as simulate_independent
+
+        from tofjax.capture import Capture
+
+        for i in range(a.indep):
+            rig = IndepRig.from_scene(scene, seed=200 + i)
+            c = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=a.frames, seed=300 + i)
+            yield 300 + i, (c if isinstance(c, Capture) else Capture(scene, np.asarray(c)))
+        return
+    kw = {}
+    if a.data == "slow":
+        from tofjax.model import ModelOptions, Params
+
+        truth = Params.from_scene(scene, np.float64)
+        kw = {"options": ModelOptions(pulse_tails=2),
+              "params": truth.replace(pulse_slow_weight=np.asarray(0.1), pulse_slow_tail_s=np.asarray(4.0 * float(truth.pulse_tail_s)))}
+    for s in a.seeds:
+        yield s, simulate(scene, a.frames, seed=s, **kw)
+
+
+def run(a, save=lambda runs: None) -> dict:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from tofjax.fit.calibrate import Calibrator, FitConfig
+    from tofjax.scene import load_scene
+
+    scene = load_scene("optoskin")
+    caps = list(captures(a, scene))
+    out = {}
+    for tails in a.tails:
+        cal = Calibrator(scene, FitConfig(pulse_tails=tails))
+        t = time.perf_counter()
+        cal.fit(caps[0][1])  # compiles what this data needs (auto: both tail models on slow-tail data)
+        first = time.perf_counter() - t
+        rows = []
+        for seed, cap in caps:
+            t = time.perf_counter()
+            r = cal.fit(cap)
+            dt = time.perf_counter() - t
+            p = r.params
+            rows.append({"seed": seed, "steps": fit_steps(r), "final_steps": int(r.steps), "fit_s": dt, "result": r.result,
+                         "pulse_tails": int(r.pulse_tails), "n1": float(p.n1), "n1_stderr": float(r.stderr["n1"]),
+                         "mu_t": float(p.mu_s_per_m + p.mu_a_per_m), "reduced_chi2": float(r.reduced_chi2),
+                         "z": None if r.pulse_tail_test is None else r.pulse_tail_test["z"],
+                         "z_per_ratio": None if r.pulse_tail_test is None else r.pulse_tail_test["z_per_ratio"],
+                         "slow_weight": float(p.pulse_slow_weight),
+                         "stages": [{k: v for k, v in s.items() if k in ("stage", "steps", "result", "z", "two_tails")}
+                                    for s in r.stages if "steps" in s or s.get("stage") == "pulse tails"]})
+            print(f"[pulse_tail_choice] {a.data} tails {tails} seed {seed}: {rows[-1]['steps']} steps, {dt:.2f} s, "
+                  f"{r.result}, chose {r.pulse_tails}, z {rows[-1]['z']}", file=sys.stderr, flush=True)
+        out[str(tails)] = {"first_fit_s": first, "fits": rows, "summary": summary(rows)}
+        save(out)  # a run stopped later keeps what it finished
+    return out
+
+
+def summary(rows) -> dict:
+    steps = [r["steps"] for r in rows]
+    times = [r["fit_s"] for r in rows]
+    zs = [r["z"] for r in rows if r["z"] is not None]
+    return {"n": len(rows), "steps_mean": statistics.mean(steps), "steps_median": statistics.median(steps),
+            "steps_min": min(steps), "steps_max": max(steps), "at_200_or_more": sum(s >= 200 for s in steps),
+            "fit_s_median": statistics.median(times), "fit_s_mean": statistics.mean(times),
+            "successful": sum(r["result"] == "successful" for r in rows),
+            "chose_two": sum(r["pulse_tails"] == 2 for r in rows),
+            "z_min": min(zs) if zs else None, "z_max": max(zs) if zs else None}
+
+
+def agreement(runs: dict) -> dict:
+    """Per data set: the largest n1 difference (in the reference's standard errors) and mu_t
+    difference (relative) of each config against the others, fit by fit."""
+    out = {}
+    for data, by in runs.items():
+        names = list(by)
+        for i, x in enumerate(names):
+            for y in names[i + 1:]:
+                fx, fy = by[x]["fits"], by[y]["fits"]
+                dn = [abs(p["n1"] - q["n1"]) / q["n1_stderr"] for p, q in zip(fx, fy)]
+                dm = [abs(p["mu_t"] / q["mu_t"] - 1) for p, q in zip(fx, fy)]
+                dc = [abs(p["reduced_chi2"] - q["reduced_chi2"]) for p, q in zip(fx, fy)]
+                out[f"{data}: {x} vs {y}"] = {"n1_max_in_stderr": max(dn), "n1_median_in_stderr": statistics.median(dn),
+                                              "mu_t_max_rel": max(dm), "reduced_chi2_max_abs_diff": max(dc)}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", choices=("tailless", "slow", "independent"), default="tailless")
+    p.add_argument("--tails", type=_tails, nargs="+", default=[2, "auto", 1])
+    p.add_argument("--seeds", type=int, nargs="*", default=list(range(2000, 2040)))
+    p.add_argument("--indep", type=int, default=3)
+    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--merge", nargs="+", help="part files of this script to merge into --out")
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+    path = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
+    if a.merge:
+        parts = [json.loads(Path(f).read_text()) for f in a.merge]
+        runs = {q["data"]: q["runs"] for q in parts}
+        merged = {"what": "FitConfig.pulse_tails = 'auto' against 1 and 2: warm Calibrator.fit per baseline (issue 13, straggler fits)",
+                  "simulated": True, "parts": [{k: v for k, v in q.items() if k != "runs"} for q in parts],
+                  "summary": {d: {t: r["summary"] for t, r in by.items()} for d, by in runs.items()},
+                  "agreement": agreement(runs), "runs": runs}
+        path.write_text(json.dumps(merged, indent=1) + "\n")
+        return 0
+    os.environ.setdefault("TOFJAX_PROGRAM_STORE", "0")
+    t0 = time.perf_counter()
+    runs = run(a, lambda r: write(a, argv, path, t0, r))
+    write(a, argv, path, t0, runs)
+    return 0
+
+
+def write(a, argv, path, t0, runs) -> None:
+    data_note = {"tailless": "tofjax.simulate.simulate(load_scene('optoskin'), frames, seed=s): own model, no slow tail",
+                 "slow": "the same with ModelOptions(pulse_tails=2), pulse_slow_weight 0.1, pulse_slow_tail_s 4x pulse_tail_s",
+                 "independent": "tests/indep_sim.py (IndepRig.from_scene(scene, seed=200+i), seed 300+i): its own pulse"}[a.data]
+    out = {"data": a.data, "simulated": True, "data_note": data_note, "frames": a.frames,
+           "seeds": a.seeds if a.data != "independent" else [300 + i for i in range(a.indep)],
+           "command": "TOFJAX_PROGRAM_STORE=0 nice -n 5 python experiments/pulse_tail_choice.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, shared with other sessions)",
+           "load_average_end": os.getloadavg(), "wall_s": time.perf_counter() - t0, "runs": runs}
+    path.write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
