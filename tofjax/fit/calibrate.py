@@ -983,7 +983,7 @@ class BatchFit(NamedTuple):
 
 
 def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Params, data, sigma, anchors, fit_batch, *,
-                    scene: Scene) -> list[BatchFit]:
+                    scene: Scene, with_cov: bool = True) -> list[BatchFit]:
     """Many fits with ``config.pulse_tails``'s rule, through ``fit_batch``
     (:func:`fit_problem_batch`'s signature; :func:`fit_problem_loop` on a CPU).
 
@@ -991,8 +991,9 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     :func:`build_problem`'s two-tail problem), the score test per fit at its end point (the same
     host-side call whatever ran the batch, so a loop and a vmapped batch choose alike), then one
     batch of two-tail fits for the fits that need them, each started from its one-tail end point.
-    Otherwise one batch of ``problem``. Returns one :class:`BatchFit` per fit, with covariance."""
-    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True)
+    Otherwise one batch of ``problem``. Returns one :class:`BatchFit` per fit (``with_cov``: with
+    the Laplace pieces; the test computes its own)."""
+    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=with_cov)
     dtype = problem.model.geometry.ray_length.dtype
     if config.pulse_tails != "auto":
         base = base_params(scene, config, dtype)
