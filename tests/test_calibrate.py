@@ -26,7 +26,7 @@ def small(optoskin):
 @pytest.fixture(scope="module")
 def fitted(small):
     cap = simulate(small, 60, seed=3)
-    cal = Calibrator(small)
+    cal = Calibrator(small, FitConfig(pulse_tails=2))  # the two-tail problem the tests below take apart
     return cal, cal.fit(cap), cap
 
 
@@ -252,7 +252,7 @@ def test_a_refused_fit_is_restarted_from_other_starts(fitted, small):
     """A chi-square refusal is a reason to try another basin: every start is tried, the best
     kept, and the result stays refused (never converged) when none is acceptable."""
     cal, _, cap = fitted
-    res = calibrate(cap, FitConfig(max_reduced_chi2=0.5), scene=small, problem=cal.problem)
+    res = calibrate(cap, FitConfig(max_reduced_chi2=0.5, pulse_tails=2), scene=small, problem=cal.problem)
     fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
     assert len(fits) == 1 + FitConfig().restarts
     assert res.result == "refused_reduced_chi2" and not res.converged
@@ -550,7 +550,7 @@ def test_basin_check_keeps_the_lowest_chi2_of_the_basins(fitted, small):
     of the envelope is fitted after a success, only basins (no neighbour of a fit's end), and
     the lowest chi-square among the successful fits is the result."""
     cal, ref, cap = fitted
-    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6), scene=small, problem=cal.problem)
+    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6, pulse_tails=2), scene=small, problem=cal.problem)
     fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
     assert res.converged and 1 <= len(fits) <= 1 + FitConfig().restarts
     ok = [f for f in fits if f["result"] == "successful"]

@@ -1033,6 +1033,9 @@ class Calibrator:
 
     Holds no data: :meth:`fit` is :func:`calibrate` with the prebuilt problem (the compiled
     fit is cached by ``eqx.filter_jit`` on the problem's structure, not on this object).
+    With ``pulse_tails = "auto"`` ``problem`` and :meth:`base_params` are the two-tail ones (every
+    parameter; the one-tail problem is derived from them); :meth:`for_result` gives the
+    calibrator of the model a fit chose.
     """
 
     def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
