@@ -153,6 +153,29 @@ def run(a, save=lambda runs: None) -> dict:
     return out
 
 
+def from_log(path: Path) -> dict:
+    """A part from a run's progress log (a run stopped at a deadline before writing its JSON): per
+    fit the seed, steps, wall time, result, tails chosen and z (no estimates)."""
+    import re
+
+    pat = re.compile(r"\] (\w+) tails (\w+) seed (\d+): (\d+) steps, ([\d.]+) s, (\w+), chose (\d), z (\S+)")
+    runs: dict = {}
+    data = None
+    for line in path.read_text().splitlines():
+        m = pat.search(line)
+        if not m:
+            continue
+        data, tails = m.group(1), m.group(2)
+        z = None if m.group(8) == "None" else float(m.group(8))
+        runs.setdefault(tails, {"fits": []})["fits"].append(
+            {"seed": int(m.group(3)), "steps": int(m.group(4)), "fit_s": float(m.group(5)), "result": m.group(6),
+             "pulse_tails": int(m.group(7)), "z": z})
+    for r in runs.values():
+        r["summary"] = summary(r["fits"])
+    return {"data": data, "simulated": True, "note": f"read from the progress log {path.name}: the run was stopped before it "
+            "wrote its JSON (no estimates)", "runs": runs}
+
+
 def summary(rows) -> dict:
     steps = [r["steps"] for r in rows]
     times = [r["fit_s"] for r in rows]
@@ -167,13 +190,15 @@ def summary(rows) -> dict:
 
 def agreement(runs: dict) -> dict:
     """Per data set: the largest n1 difference (in the reference's standard errors) and mu_t
-    difference (relative) of each config against the others, fit by fit."""
+    difference (relative) of each config against the others, fit by fit (same seeds only)."""
     out = {}
     for data, by in runs.items():
-        names = list(by)
+        names = [t for t in by if by[t]["fits"] and "n1" in by[t]["fits"][0]]
         for i, x in enumerate(names):
             for y in names[i + 1:]:
-                fx, fy = by[x]["fits"], by[y]["fits"]
+                seeds = {r["seed"] for r in by[x]["fits"]} & {r["seed"] for r in by[y]["fits"]}
+                fx = [r for r in by[x]["fits"] if r["seed"] in seeds]
+                fy = [r for r in by[y]["fits"] if r["seed"] in seeds]
                 dn = [abs(p["n1"] - q["n1"]) / q["n1_stderr"] for p, q in zip(fx, fy)]
                 dm = [abs(p["mu_t"] / q["mu_t"] - 1) for p, q in zip(fx, fy)]
                 dc = [abs(p["reduced_chi2"] - q["reduced_chi2"]) for p, q in zip(fx, fy)]
@@ -194,7 +219,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     path = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
     if a.merge:
-        parts = [json.loads(Path(f).read_text()) for f in a.merge]
+        parts = [json.loads(Path(f).read_text()) if f.endswith(".json") else from_log(Path(f)) for f in a.merge]
         runs = {q["data"]: q["runs"] for q in parts}
         merged = {"what": "FitConfig.pulse_tails = 'auto' against 1 and 2: warm Calibrator.fit per baseline (issue 13, straggler fits)",
                   "simulated": True, "parts": [{k: v for k, v in q.items() if k != "runs"} for q in parts],
