@@ -56,8 +56,10 @@ def worker(a) -> dict:
     from tofjax.scene import load_scene
     from tofjax.simulate import simulate
 
+    from tofjax.fit.calibrate import FitConfig
+
     scene = load_scene(a.scene)
-    cal = Calibrator(scene)
+    cal = Calibrator(scene, FitConfig(pulse_tails=a.pulse_tails if a.pulse_tails == "auto" else int(a.pulse_tails)))
     pb, cfg = cal.problem, cal.config
     solver, objective = cfg.make_solver(), cfg.make_objective()
     dtype = pb.model.geometry.ray_length.dtype
@@ -153,7 +155,9 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
             refs.append({"values": _flat(vals), "steps": int(sol.steps), "loss": float(0.5 * sol.chi2)})
         out["reference"] = refs
 
-    if a.batch:
+    if a.batch and cfg.pulse_tails == "auto":
+        out["batch"] = batch_auto(a, cal, scene, objective, solver, dtype)
+    elif a.batch:
         D, G = batch_data(a, scene, dtype)
         nocov = dict(kw, with_cov=False)
         jax.block_until_ready(fit_problem(pb, objective, solver, start, D[0], G[0], base, anchor, **nocov))
@@ -188,6 +192,71 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
             "max_n1_diff_batch_vs_separate": float(np.max(np.abs(np.asarray(sols.params.n1)[: len(n1_sep)] - n1_sep))),
         }
     return out
+
+
+def batch_auto(a, cal, scene, objective, solver, dtype) -> dict:
+    """The batch with ``pulse_tails = "auto"`` (:func:`tofjax.fit.calibrate.fit_batch_tails`): one
+    one-tail batch, the score test per fit, a two-tail batch for the fits it sends on; each from
+    the one-tail envelope start of the first capture. ``--separate`` fits through the same rule
+    one at a time (``fit_problem_loop``). Steps per stage: the one-tail fits', the two-tail fits'."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.fit._start import envelope_candidates, timing_start
+    from tofjax.fit._tails import one_tail_problem
+    from tofjax.fit.calibrate import _anchor, _data, base_params, fit_batch_tails, fit_problem_batch, fit_problem_loop, tail_configs
+
+    cfg = cal.config
+    cfg1 = tail_configs(cfg)[0]
+    one = one_tail_problem(cal.problem, cfg1.free)
+    base1 = base_params(scene, cfg1, dtype)
+    D, G = batch_data(a, scene, dtype)
+    d0, s0 = _data(simulate_first(a, scene), dtype)
+    st, found = timing_start(one, np.asarray(d0), a.frames, scene, base1)
+    start = envelope_candidates(one, st, d0, s0, 1)[0]
+    anchor = _anchor(st, found, cfg, dtype)
+
+    def rule(n, fit_batch, i0=0):
+        starts = jax.tree_util.tree_map(lambda x: jnp.stack([x] * n), start)
+        A = jnp.stack([anchor] * n)
+        return fit_batch_tails(cal.problem, cfg, objective, solver, starts, D[i0:i0 + n], G[i0:i0 + n], A, fit_batch,
+                               scene=scene, with_cov=False)
+
+    rule(1, fit_problem_loop)  # compiles the one-tail fit and the test
+    sep, sep_steps = [], []
+    for i in range(a.separate):
+        t = time.perf_counter()
+        f = rule(1, fit_problem_loop, i)[0]
+        sep.append(time.perf_counter() - t)
+        sep_steps.append([s["steps"] for s in f.stages if "steps" in s])
+        _progress(f"separate fit {i} (auto): {sep[-1]:.3f} s, steps per stage {sep_steps[-1]}")
+    t = time.perf_counter()
+    rule(a.batch, fit_problem_batch)
+    first = time.perf_counter() - t
+    _progress(f"batch of {a.batch} (auto), first call (compiles) {first:.1f} s")
+    t = time.perf_counter()
+    fits = rule(a.batch, fit_problem_batch)
+    batch_s = time.perf_counter() - t
+    _progress(f"batch of {a.batch} (auto): {batch_s:.3f} s; speed-up {a.batch * statistics.mean(sep) / batch_s:.2f}x")
+    s1 = [f.stages[0]["steps"] for f in fits]
+    s2 = [f.stages[-1]["steps"] for f in fits if f.config.pulse_tails == 2]
+    return {
+        "pulse_tails": "auto", "n": a.batch, "separate_n": a.separate, "separate_s": sep, "separate_mean_s": statistics.mean(sep),
+        "separate_steps_per_stage": sep_steps, "batch_s": batch_s, "batch_first_call_s": first,
+        "speedup": a.batch * statistics.mean(sep) / batch_s,
+        "one_tail_steps_max": max(s1), "one_tail_steps_mean": statistics.mean(s1),
+        "chose_two": len(s2), "two_tail_steps_max": max(s2) if s2 else None,
+        "two_tail_steps_mean": statistics.mean(s2) if s2 else None,
+        "z": [f.test["z"] for f in fits],
+        "successful": sum(int(np.asarray(jax.tree_util.tree_leaves(f.solution.result)[0])) == 0 for f in fits),
+    }
+
+
+def simulate_first(a, scene):
+    from tofjax.simulate import simulate
+
+    return simulate(scene, a.frames, seed=1000)
 
 
 def batch_data(a, scene, dtype):
@@ -366,6 +435,9 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=100)
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
     p.add_argument("--batch-data", help="an .npz of the batch's simulated data: read if it matches, else written")
+    p.add_argument("--pulse-tails", choices=("1", "2", "auto"), default="2",
+                   help="FitConfig.pulse_tails of the worker (default 2, what earlier runs measured); auto: the batch "
+                        "runs the auto rule (fit_batch_tails) and records steps per stage")
     p.add_argument("--simulate-batch-only", action="store_true",
                    help="with --batch-data: only simulate the batch's data and write the file (no fits)")
     p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
@@ -412,7 +484,7 @@ def main(argv=None) -> int:
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
                    *(["--batch-data", str(Path(a.batch_data).resolve())] if a.batch_data else []),
-                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
+                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep), "--pulse-tails", a.pulse_tails] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
                 + (["--no-stages"] if a.no_stages else []) \
                 + (["--lambda-trials", *map(str, a.lambda_trials)] if a.lambda_trials else [])

@@ -26,7 +26,7 @@ def small(optoskin):
 @pytest.fixture(scope="module")
 def fitted(small):
     cap = simulate(small, 60, seed=3)
-    cal = Calibrator(small)
+    cal = Calibrator(small, FitConfig(pulse_tails=2))  # the two-tail problem the tests below take apart
     return cal, cal.fit(cap), cap
 
 
@@ -252,7 +252,7 @@ def test_a_refused_fit_is_restarted_from_other_starts(fitted, small):
     """A chi-square refusal is a reason to try another basin: every start is tried, the best
     kept, and the result stays refused (never converged) when none is acceptable."""
     cal, _, cap = fitted
-    res = calibrate(cap, FitConfig(max_reduced_chi2=0.5), scene=small, problem=cal.problem)
+    res = calibrate(cap, FitConfig(max_reduced_chi2=0.5, pulse_tails=2), scene=small, problem=cal.problem)
     fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
     assert len(fits) == 1 + FitConfig().restarts
     assert res.result == "refused_reduced_chi2" and not res.converged
@@ -260,15 +260,18 @@ def test_a_refused_fit_is_restarted_from_other_starts(fitted, small):
 
 
 def test_two_tail_defaults_and_one_tail_config():
-    """Calibration fits two pulse tails and a per-zone edge by default; pulse_tails = 1 drops
-    the slow-tail parameters from the default free set and refuses them when listed."""
+    """Calibration chooses the pulse tails by default ("auto", tests/test_pulse_tails.py) and
+    lists the slow-tail parameters; pulse_tails = 2 fits them; pulse_tails = 1 drops them from
+    the default free set and refuses them when listed."""
     cfg = FitConfig()
-    assert cfg.pulse_tails == 2 and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(cfg.free)
+    assert cfg.pulse_tails == "auto" and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(cfg.free)
+    two = FitConfig(pulse_tails=2)
+    assert two.pulse_tails == 2 and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(two.free)
     one = FitConfig(pulse_tails=1)
     assert not {"pulse_slow_weight", "pulse_slow_tail_s"} & set(one.free)
     with pytest.raises(ConfigError, match="pulse_tails = 2"):
         FitConfig(pulse_tails=1, free=("n1", "pulse_slow_weight"))
-    with pytest.raises(ConfigError, match="pulse_tails: must be 1 or 2"):
+    with pytest.raises(ConfigError, match="pulse_tails: must be 1, 2 or"):
         FitConfig(pulse_tails=3)
 
 
@@ -547,7 +550,7 @@ def test_basin_check_keeps_the_lowest_chi2_of_the_basins(fitted, small):
     of the envelope is fitted after a success, only basins (no neighbour of a fit's end), and
     the lowest chi-square among the successful fits is the result."""
     cal, ref, cap = fitted
-    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6), scene=small, problem=cal.problem)
+    res = calibrate(cap, FitConfig(basin_check_chi2=1e-6, pulse_tails=2), scene=small, problem=cal.problem)
     fits = [s for s in res.stages if str(s.get("stage", "")).startswith("fit from start")]
     assert res.converged and 1 <= len(fits) <= 1 + FitConfig().restarts
     ok = [f for f in fits if f["result"] == "successful"]

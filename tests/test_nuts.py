@@ -8,7 +8,7 @@ import pytest
 
 from tofjax.cli import main
 from tofjax.errors import UserError
-from tofjax.fit.calibrate import Calibrator
+from tofjax.fit.calibrate import Calibrator, FitConfig
 from tofjax.fit.nuts import NutsOptions, diagnostics, plot_nuts, sample_nuts
 from tofjax.fit.posterior import HELD, NUISANCE, log_density
 from tofjax.scene import SensorModel
@@ -21,7 +21,7 @@ def fitted(optoskin):
     small = optoskin.replace(sensor=SensorModel(bin_width_s=1e-10, n_bins=96, zones=3, fov_deg=29.0),
                              sensors=optoskin.sensors[:3])
     cap = simulate(small, 60, seed=3)
-    cal = Calibrator(small)
+    cal = Calibrator(small, FitConfig(pulse_tails=2))  # the slow tail's coordinates are held (HELD)
     return small, cal, cal.fit(cap), cap
 
 

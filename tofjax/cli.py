@@ -97,10 +97,19 @@ def _cmd_calibrate(a) -> int:
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
         )
     config = load_fit_config(a.config) if a.config else FitConfig()
-    if a.optics is not None:  # the command line wins over the config file
+    if a.optics is not None or a.pulse_tails is not None:  # the command line wins over the config file
         import dataclasses
 
-        config = dataclasses.replace(config, optics=a.optics)
+        if a.optics is not None:
+            config = dataclasses.replace(config, optics=a.optics)
+        if a.pulse_tails is not None:
+            from .fit.calibrate import DEFAULT_FREE
+
+            # a config on the default free parameters gets the new tails' default ones
+            own = FitConfig(pulse_tails=config.pulse_tails, optics=config.optics).free
+            free = {"free": DEFAULT_FREE} if config.free == own else {}
+            tails = a.pulse_tails if a.pulse_tails == "auto" else int(a.pulse_tails)
+            config = dataclasses.replace(config, pulse_tails=tails, **free)
     if a.sensor:  # a sensor model fitted on real histograms (issue 12): its bin width, not the nominal one
         scene = (scene or cap.scene).with_sensor_model(a.sensor)
         print(f"sensor model {a.sensor}: bin width {scene.sensor.bin_width_s * 1e12:.2f} ps")
@@ -372,6 +381,9 @@ def build_parser(extensions: bool = True) -> argparse.ArgumentParser:
     s.add_argument("--optics", choices=OPTICS, default=None,
                    help="forward model optics (default: the config's, else 'default'); stored in the JSON, "
                         "and detect/process use the same")
+    s.add_argument("--pulse-tails", choices=("1", "2", "auto"), default=None,
+                   help="pulse tails to fit (default: the config's, else 'auto': a second, slow tail only where "
+                        "a score test at the one-tail fit supports it)")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")

@@ -108,6 +108,8 @@ class CalibrationResult:
     residuals: np.ndarray | None = None  # (S, Z, B) Poisson-weighted, for plots
     optics: str = "default"  # the forward model's optics (FitConfig.optics); readers must use the same
     precision: PrecisionPlan | None = None  # the frames a baseline needs (FitConfig.precision_target_*)
+    pulse_tails: int = 2  # the pulse model fitted (FitConfig.pulse_tails; "auto" chooses 1 or 2)
+    pulse_tail_test: dict[str, Any] | None = None  # with pulse_tails = "auto": the score test that chose it
 
     def to_json(self) -> dict[str, Any]:
         def pack(k):
@@ -133,6 +135,8 @@ class CalibrationResult:
             "loss_history": self.loss_history,
             "solver": self.solver,
             "optics": self.optics,
+            "pulse_tails": int(self.pulse_tails),
+            "pulse_tail_test": self.pulse_tail_test,
             "frames": self.frames,
             "stages": self.stages,
             "precision": None if self.precision is None else self.precision.to_json(),
@@ -314,6 +318,14 @@ def fit_report(result: CalibrationResult) -> str:
     if result.precision is not None and result.precision.targets:
         lines.append("precision (photon noise, 95%):")
         lines += ["  " + x for x in result.precision.lines()]
+    test = result.pulse_tail_test
+    if test is not None:
+        lines.append(
+            f"pulse tails: {result.pulse_tails} (auto: slow-tail score z = {test['z']:.3g} "
+            f"{'>' if test['two_tails'] else '<='} {test['threshold']:g})"
+        )
+    else:
+        lines.append(f"pulse tails: {result.pulse_tails}")
     if result.on_bound:
         lines.append(f"on a bound: {', '.join(result.on_bound)}")
     worst = result.discrepancy.get("worst_zones", [])[:3]

@@ -51,6 +51,7 @@ from ._result import (
     scene_fingerprint,
 )
 from ._start import envelope_candidates, timing_start
+from ._tails import one_tail_problem, tail_test, two_tail_problem
 from .solve import MarquardtLM, SolveResult, dense_jvp, solve_marquardt, solve_with_history
 from .transforms import FITTABLE, default_transforms
 
@@ -73,12 +74,14 @@ __all__ = [
     "check_baseline",
     "fit_problem",
     "default_fit_batch",
+    "fit_batch_tails",
     "fit_problem_batch",
     "fit_problem_loop",
     "fit_report",
     "load_calibration",
     "load_fit_config",
     "scene_fingerprint",
+    "tail_configs",
 ]
 
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "dogleg", "poisson-deviance")
@@ -106,6 +109,8 @@ SLOW_TAIL = ("pulse_slow_weight", "pulse_slow_tail_s")
 #: Parameters the guided optics do not use (their near field has no shape parameter): dropped
 #: from the default ``free`` with ``optics = "guided"``, refused where listed.
 NOT_GUIDED = ("near_field_shape",)
+#: ``FitConfig.pulse_tails``: one tail, two, or the data decide.
+PULSE_TAILS = (1, 2, "auto")
 #: Where a two-tail fit starts the slow tail when the scene states none (its share; its time
 #: constant starts at 4x the scene's tail, ``Params.from_scene``). Also the prior's centre.
 SLOW_WEIGHT_START = 0.1
@@ -190,11 +195,20 @@ class FitConfig:
       chi-squares around the timing estimate (default); False: the timing start alone.
     - ``restarts``: further starts (the envelope's other basins first, then its next best
       points) when the fit fails or ends on a bound.
-    - ``pulse_tails``: 2 (default): the pulse has a second, slower tail whose share and time
-      constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``): a real SPAD's
-      response is not one exponentially modified Gaussian, and on data tofjax did not make a
-      one-tail pulse leaves a reduced chi-square of 20-46. 1: one tail (the slow-tail
-      parameters drop out of the default ``free``).
+    - ``pulse_tails``: ``"auto"`` (default), 1 or 2. 2: the pulse has a second, slower tail
+      whose share and time constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``):
+      a real SPAD's response is not one exponentially modified Gaussian, and on data tofjax did
+      not make a one-tail pulse leaves a reduced chi-square of 20-46. 1: one tail (the slow-tail
+      parameters drop out of the default ``free``). ``"auto"``: one tail first, then a score
+      test of the slow tail's share at 0 (:mod:`tofjax.fit._tails`); two tails, started from
+      the one-tail end point, only where the data support them (above
+      ``pulse_tail_threshold``). Where they are absent the two-tail optimum is singular (share
+      0, or both tails equal) and fits crawl (docs/calibration.md, "Straggler fits"). The
+      result says which model was chosen and why (``pulse_tails``, ``pulse_tail_test``).
+    - ``pulse_tail_threshold``: ``"auto"``'s threshold on the one-sided score statistic z of
+      the slow tail's share (the largest over slow/fast time-constant ratios 2, 4 and 8);
+      default 4 (false alarms on tail-less data below 3 x 3.2e-5 by Bonferroni; a slow tail of
+      share 0.1 gives z in the tens to hundreds, docs/calibration.md).
     - ``restarts`` apply to refused fits too (reduced chi-square above ``max_reduced_chi2``):
       another basin may describe the capture; the best result is kept.
     - ``quadrature``: model fidelity (time nodes per bin).
@@ -260,7 +274,8 @@ class FitConfig:
     quadrature: int = 2
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
-    pulse_tails: int = 2
+    pulse_tails: int | str = "auto"
+    pulse_tail_threshold: float = 4.0
     basin_check_chi2: float = 1.5
     optics: str = "default"
     geodesic: bool = False
@@ -272,8 +287,10 @@ class FitConfig:
         check_target("precision_target_mu_t", self.precision_target_mu_t)
         if self.optics not in OPTICS:
             raise ConfigError(f"optics: must be one of {', '.join(OPTICS)}, got {self.optics!r}")
-        if self.pulse_tails not in (1, 2):
-            raise ConfigError(f"pulse_tails: must be 1 or 2, got {self.pulse_tails!r}")
+        if type(self.pulse_tails) not in (int, str) or self.pulse_tails not in PULSE_TAILS:
+            raise ConfigError(f"pulse_tails: must be 1, 2 or \"auto\", got {self.pulse_tails!r}")
+        if self.pulse_tail_threshold <= 0:
+            raise ConfigError(f"pulse_tail_threshold: must be > 0, got {self.pulse_tail_threshold!r}")
         if not isinstance(self.free, tuple):
             object.__setattr__(self, "free", tuple(self.free))
         if self.free == DEFAULT_FREE:
@@ -281,6 +298,9 @@ class FitConfig:
             object.__setattr__(self, "free", tuple(k for k in DEFAULT_FREE if k not in drop))
         elif self.pulse_tails == 1 and any(k in SLOW_TAIL for k in self.free):
             raise ConfigError("free: pulse_slow_weight and pulse_slow_tail_s need pulse_tails = 2")
+        elif self.pulse_tails == "auto" and not all(k in self.free for k in SLOW_TAIL):
+            raise ConfigError('free: pulse_tails = "auto" chooses whether to fit pulse_slow_weight and pulse_slow_tail_s: '
+                              "list both, or set pulse_tails = 1")
         elif self.optics == "guided" and any(k in NOT_GUIDED for k in self.free):
             raise ConfigError("free: near_field_shape is a parameter of the default optics only (optics = 'guided' has no near-field shape)")
         if self.solver not in SOLVERS:
@@ -393,7 +413,9 @@ class FitSolution(NamedTuple):
 
 def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationProblem:
     """The calibration problem of ``scene`` (touches dropped) with ``config``'s free parameters."""
-    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=config.pulse_tails,
+    # "auto" builds the two-tail problem (every parameter); its one-tail problem is derived from it
+    tails = 2 if config.pulse_tails == "auto" else config.pulse_tails
+    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=tails,
                            optics=config.optics)
     if scene.noise.pile_up:
         raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
@@ -410,7 +432,7 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
     parameters and (timing aside) the start. A two-tail fit starts its slow tail at
     :data:`SLOW_WEIGHT_START` when the scene states none (a zero share has no gradient)."""
     base = Params.from_scene(scene, dtype)
-    if config.pulse_tails == 2 and float(base.pulse_slow_weight) == 0.0:
+    if config.pulse_tails != 1 and float(base.pulse_slow_weight) == 0.0:
         base = base.replace(pulse_slow_weight=np.asarray(SLOW_WEIGHT_START, dtype))  # NumPy: no small program to compile
     return base
 
@@ -751,8 +773,25 @@ def calibrate(
     _check_pair(solver, objective)
     dtype = problem.model.geometry.ray_length.dtype
     data, sigma = _data(capture, dtype, config.model_error)
+    fingerprint = scene_fingerprint(scene)
+    if config.pulse_tails == "auto":
+        return _calibrate_auto(capture, config, scene, problem, solver, objective, data, sigma, fingerprint)
     base = base_params(scene, config, dtype)
     _prefetch_fit(problem, objective, solver, base, data, sigma, config)
+    start, found, anchor, candidates, n_basins, stages = _starts(problem, config, scene, capture, data, sigma, base)
+    best = _fit_starts(problem, config, scene, objective, solver, candidates, n_basins, data, sigma, base, anchor,
+                       capture.n_frames, stages, fingerprint)
+    held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
+    if held is not None:
+        best = held
+    best.stages = stages
+    best.pulse_tails = config.pulse_tails
+    return best
+
+
+def _starts(problem, config, scene, capture, data, sigma, base):
+    """Timing, then the envelope: ``(start, found, anchor, candidates, n_basins, stages)``."""
+    dtype = problem.model.geometry.ray_length.dtype
     start, found = timing_start(problem, np.asarray(data), capture.n_frames, scene, base)
     anchor = _anchor(start, found, config, dtype)
     stages: list[dict[str, Any]] = [{"stage": "timing", "n1": float(start.n1), "emission_time_s": float(start.emission_time_s)}]
@@ -763,26 +802,35 @@ def calibrate(
         )
     else:
         candidates, n_basins = [start], 1
-    fingerprint = scene_fingerprint(scene)
+    return start, found, anchor, candidates, n_basins, stages
+
+
+def _fit_starts(problem, config, scene, objective, solver, candidates, n_basins, data, sigma, base, anchor, frames, stages,
+                fingerprint, *, label: str = "", done=()):
+    """Fit from each start in turn until one is usable (the restarts and the basin check); the
+    best by :func:`_rank`. ``done``: results of the first starts, already fitted."""
     best = None
     ends: list[float] = []  # mu_t at the end of every fit so far
     for k, s in enumerate(candidates):
-        if best is not None and best.result == "successful":
-            # the basin check: only the other basins' starts, away from every fit's end so far
-            mt = _mu_t(s)
-            if k >= n_basins or any(abs(np.log(mt / max(e, 1e-12))) < np.log(2.0) for e in ends):
-                continue
-        sol = run_fit(
-            problem, objective, solver, s, data, sigma, base, anchor,
-            max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
-        )
-        sol = jax.device_get(sol)
-        res = _assemble(problem, scene, config, sol, capture.n_frames, stages, fingerprint)
-        stages.append(
-            {"stage": f"fit from start {k}", "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
-             "n1": float(res.params.n1), "mu_t_per_m": float(res.params.mu_s_per_m + res.params.mu_a_per_m),
-             "on_bound": res.on_bound}
-        )
+        if k < len(done):
+            res = done[k]
+        else:
+            if best is not None and best.result == "successful":
+                # the basin check: only the other basins' starts, away from every fit's end so far
+                mt = _mu_t(s)
+                if k >= n_basins or any(abs(np.log(mt / max(e, 1e-12))) < np.log(2.0) for e in ends):
+                    continue
+            sol = run_fit(
+                problem, objective, solver, s, data, sigma, base, anchor,
+                max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
+            )
+            sol = jax.device_get(sol)
+            res = _assemble(problem, scene, config, sol, frames, stages, fingerprint)
+            stages.append(
+                {"stage": f"fit from start {k}{label}", "steps": res.steps, "result": res.result, "reduced_chi2": res.reduced_chi2,
+                 "n1": float(res.params.n1), "mu_t_per_m": float(res.params.mu_s_per_m + res.params.mu_a_per_m),
+                 "on_bound": res.on_bound}
+            )
         ends.append(float(res.params.mu_s_per_m + res.params.mu_a_per_m))
         if best is None or _rank(res) < _rank(best):
             best = res
@@ -790,10 +838,56 @@ def calibrate(
             break
         # a failure, a bound, a refused chi-square or a chi-square above the basin check:
         # the next start is another basin
-    held = _hold_n1_at_timing(best, problem, scene, config, objective, solver, start, found, data, sigma, base, capture.n_frames, stages, fingerprint)
+    return best
+
+
+def tail_configs(config: FitConfig) -> tuple[FitConfig, FitConfig]:
+    """The one-tail and two-tail configs ``pulse_tails = "auto"`` chooses between."""
+    one = dataclasses.replace(config, pulse_tails=1, free=tuple(k for k in config.free if k not in SLOW_TAIL))
+    return one, dataclasses.replace(config, pulse_tails=2)
+
+
+def _tail_test(one, params, linear, data, sigma, base1, anchor, config) -> dict:
+    """:func:`~tofjax.fit._tails.tail_test` at a one-tail end point (``linear``: its profiled values)."""
+    return tail_test(one, two_tail_problem(one, one.free), params, linear, base1, data, sigma, anchor,
+                     config.pulse_tail_threshold)
+
+
+def _two_tail_start(p: Params, test: dict) -> Params:
+    return p.replace(pulse_slow_weight=np.asarray(test["slow_weight_start"]), pulse_slow_tail_s=np.asarray(test["slow_tail_start_s"]))
+
+
+def _calibrate_auto(capture, config, scene, two, solver, objective, data, sigma, fingerprint):
+    """``pulse_tails = "auto"``: one tail from the first start; the score test there; then either
+    the one-tail calibration's restarts, or the two-tail calibration with the one-tail end
+    point as its first start (the envelope's starts after it)."""
+    cfg1, cfg2 = tail_configs(config)
+    one = one_tail_problem(two, cfg1.free)
+    dtype = two.model.geometry.ray_length.dtype
+    base1, base2 = base_params(scene, cfg1, dtype), base_params(scene, cfg2, dtype)
+    frames = capture.n_frames
+    _prefetch_fit(one, objective, solver, base1, data, sigma, cfg1)
+    start, found, anchor, candidates, n_basins, stages = _starts(one, cfg1, scene, capture, data, sigma, base1)
+    first = _fit_starts(one, cfg1, scene, objective, solver, candidates[:1], 1, data, sigma, base1, anchor, frames, stages,
+                        fingerprint, label=" (1 tail)")
+    test = _tail_test(one, first.params, {k: first.values[k] for k in one.linear}, data, sigma, base1, anchor, config)
+    stages.append({"stage": "pulse tails", **test})
+    if not test["two_tails"]:
+        problem, cfg, base = one, cfg1, base1
+        best = _fit_starts(one, cfg1, scene, objective, solver, candidates, n_basins, data, sigma, base1, anchor, frames, stages,
+                           fingerprint, label=" (1 tail)", done=(first,))
+    else:
+        problem, cfg, base = two, cfg2, base2
+        slow = {k: getattr(base2, k) for k in SLOW_TAIL}
+        starts = [_two_tail_start(first.params, test)] + [c.replace(**slow) for c in candidates]
+        best = _fit_starts(two, cfg2, scene, objective, solver, starts, n_basins + 1, data, sigma, base2, anchor, frames, stages,
+                           fingerprint, label=" (2 tails)")
+    held = _hold_n1_at_timing(best, problem, scene, cfg, objective, solver, start, found, data, sigma, base, frames, stages, fingerprint)
     if held is not None:
         best = held
     best.stages = stages
+    best.pulse_tails = 2 if test["two_tails"] else 1
+    best.pulse_tail_test = test
     return best
 
 
@@ -846,28 +940,27 @@ def calibrate_many(
     problem = build_problem(scene, config)
     solver, objective = config.make_solver(), config.make_objective()
     _check_pair(solver, objective)
+    auto = config.pulse_tails == "auto"
+    cfg1 = tail_configs(config)[0] if auto else config
+    first = one_tail_problem(problem, cfg1.free) if auto else problem
     dtype = problem.model.geometry.ray_length.dtype
-    base = base_params(scene, config, dtype)
+    base = base_params(scene, cfg1, dtype)
     pairs = [_data(c, dtype, config.model_error) for c in captures]
-    timed = [timing_start(problem, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
+    timed = [timing_start(first, np.asarray(d), c.n_frames, scene, base) for (d, _), c in zip(pairs, captures)]
     starts = [s for s, _ in timed]
     anchors = jnp.stack([_anchor(s, f, config, dtype) for s, f in timed])
-    if config.envelope and any(k in problem.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
-        starts = [envelope_candidates(problem, s, d, g, 1)[0] for s, (d, g) in zip(starts, pairs)]
+    if config.envelope and any(k in first.nonlinear for k in ("n1", "mu_s_per_m", "mu_a_per_m")):
+        starts = [envelope_candidates(first, s, d, g, 1)[0] for s, (d, g) in zip(starts, pairs)]
     stack = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *starts)
     data = jnp.stack([d for d, _ in pairs])
     sigma = jnp.stack([g for _, g in pairs])
-    sols = jax.device_get(
-        (default_fit_batch() if fit_batch is None else fit_batch)(
-            problem, objective, solver, stack, data, sigma, base, anchors,
-            max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=True,
-        )
-    )
+    fits = fit_batch_tails(problem, config, objective, solver, stack, data, sigma, anchors,
+                           default_fit_batch() if fit_batch is None else fit_batch, scene=scene)
     fingerprint = scene_fingerprint(scene)
     out = []
-    for i, c in enumerate(captures):
-        sol = jax.tree_util.tree_map(lambda x: x[i], sols)
-        res = _assemble(problem, scene, config, sol, c.n_frames, [{"stage": "batch"}], fingerprint)
+    for c, f in zip(captures, fits):
+        res = _assemble(f.problem, scene, f.config, f.solution, c.n_frames, f.stages, fingerprint)
+        res.pulse_tails, res.pulse_tail_test = f.config.pulse_tails, f.test
         if restart_failures and (
             res.result not in ("successful", "refused_reduced_chi2")
             or (res.result == "successful" and res.reduced_chi2 > config.basin_check_chi2)
@@ -877,11 +970,72 @@ def calibrate_many(
     return out
 
 
+class BatchFit(NamedTuple):
+    """One fit of :func:`fit_batch_tails`: the problem and config of the model it ended with
+    (with ``"auto"``: the chosen one), its host :class:`FitSolution`, the tail test (None
+    without ``"auto"``) and its stages (steps of each)."""
+
+    problem: CalibrationProblem
+    config: FitConfig
+    solution: FitSolution
+    test: dict | None
+    stages: list
+
+
+def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Params, data, sigma, anchors, fit_batch, *,
+                    scene: Scene, with_cov: bool = True) -> list[BatchFit]:
+    """Many fits with ``config.pulse_tails``'s rule, through ``fit_batch``
+    (:func:`fit_problem_batch`'s signature; :func:`fit_problem_loop` on a CPU).
+
+    With ``"auto"``: one tail for every fit (``starts`` are one-tail starts; ``problem`` is
+    :func:`build_problem`'s two-tail problem), the score test per fit at its end point (the same
+    host-side call whatever ran the batch, so a loop and a vmapped batch choose alike), then one
+    batch of two-tail fits for the fits that need them, each started from its one-tail end point.
+    Otherwise one batch of ``problem``. Returns one :class:`BatchFit` per fit (``with_cov``: with
+    the Laplace pieces; the test computes its own)."""
+    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=with_cov)
+    dtype = problem.model.geometry.ray_length.dtype
+    if config.pulse_tails != "auto":
+        base = base_params(scene, config, dtype)
+        sols = jax.device_get(fit_batch(problem, objective, solver, starts, data, sigma, base, anchors, **kw))
+        return [BatchFit(problem, config, _row(sols, i), None, [{"stage": "batch", "steps": int(np.asarray(sols.steps)[i])}])
+                for i in range(int(np.shape(data)[0]))]
+    cfg1, cfg2 = tail_configs(config)
+    one = one_tail_problem(problem, cfg1.free)
+    base1, base2 = base_params(scene, cfg1, dtype), base_params(scene, cfg2, dtype)
+    sols1 = jax.device_get(fit_batch(one, objective, solver, starts, data, sigma, base1, anchors, **kw))
+    n = int(np.shape(data)[0])
+    out = []
+    for i in range(n):
+        sol = _row(sols1, i)
+        test = _tail_test(one, sol.params, sol.linear, data[i], sigma[i], base1, anchors[i], config)
+        stages = [{"stage": "batch (1 tail)", "steps": int(sol.steps), "result": _result_name(sol.result)},
+                  {"stage": "pulse tails", **test}]
+        out.append(BatchFit(one, cfg1, sol, test, stages))
+    two = [i for i in range(n) if out[i].test["two_tails"]]
+    if two:
+        starts2 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_two_tail_start(out[i].solution.params, out[i].test) for i in two])
+        idx = np.asarray(two)
+        sols2 = jax.device_get(fit_batch(problem, objective, solver, starts2, data[idx], sigma[idx], base2, anchors[idx], **kw))
+        for k, i in enumerate(two):
+            sol = _row(sols2, k)
+            stages = out[i].stages + [{"stage": "batch (2 tails)", "steps": int(sol.steps), "result": _result_name(sol.result)}]
+            out[i] = BatchFit(problem, cfg2, sol, out[i].test, stages)
+    return out
+
+
+def _row(sols: FitSolution, i: int) -> FitSolution:
+    return jax.tree_util.tree_map(lambda x: x[i], sols)
+
+
 class Calibrator:
     """A scene and a config with their problem built once: ``Calibrator(scene, config).fit(capture)``.
 
     Holds no data: :meth:`fit` is :func:`calibrate` with the prebuilt problem (the compiled
     fit is cached by ``eqx.filter_jit`` on the problem's structure, not on this object).
+    With ``pulse_tails = "auto"`` ``problem`` and :meth:`base_params` are the two-tail ones (every
+    parameter; the one-tail problem is derived from them); :meth:`for_result` gives the
+    calibrator of the model a fit chose.
     """
 
     def __init__(self, scene: Scene, config: FitConfig = FitConfig()):
@@ -895,6 +1049,17 @@ class Calibrator:
 
     def fit(self, capture: Capture) -> CalibrationResult:
         return calibrate(capture, self.config, scene=self.scene, problem=self.problem)
+
+    def for_result(self, fit: CalibrationResult) -> "Calibrator":
+        """The calibrator of the model ``fit`` ended with: itself, or with ``pulse_tails = "auto"``
+        one whose config and problem have the tails the fit chose (what its posterior samples)."""
+        if self.config.pulse_tails != "auto":
+            return self
+        cfg = tail_configs(self.config)[fit.pulse_tails - 1]
+        out = object.__new__(Calibrator)
+        out.scene, out.config = self.scene, cfg
+        out.problem = self.problem if fit.pulse_tails == 2 else one_tail_problem(self.problem, cfg.free)
+        return out
 
     def fit_many(self, captures: list[Capture], restart_failures: bool = True) -> list[CalibrationResult]:
         return calibrate_many(captures, self.config, scene=self.scene, restart_failures=restart_failures)

@@ -237,6 +237,7 @@ def log_density(
     the scene's value of each weakly identified nuisance parameter (:data:`NUISANCE`), on top
     of the fit's weak one; None: none (the fit's own objective alone). ``hold``: coordinates
     (of those the fit has) held at the point fit, not sampled (default :data:`HELD`)."""
+    calibrator = calibrator.for_result(fit)  # pulse_tails = "auto": the model the fit chose
     problem = calibrator.problem
     if fit.scene_fingerprint and fit.scene_fingerprint != scene_fingerprint(calibrator.scene):
         raise CalibrationError("the point fit was made for another scene than this calibrator's")
