@@ -37,6 +37,7 @@ from ..compile_cache import call_stored, prefetch
 from ..config import ConfigError, from_dict, load_toml
 from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
+from ._batch import CompactBatch, solve_marquardt_compact
 from ._discrepancy import discrepancy_report
 from ._laplace import laplace_covariance
 from ._precision import check_target, precision_plan
@@ -62,6 +63,7 @@ __all__ = [
     "CalibrationResult",
     "Calibrator",
     "ChiSquare",
+    "CompactBatch",
     "FitConfig",
     "FitSolution",
     "PoissonDeviance",
@@ -74,6 +76,7 @@ __all__ = [
     "fit_problem",
     "default_fit_batch",
     "fit_problem_batch",
+    "fit_problem_compact",
     "fit_problem_loop",
     "fit_report",
     "load_calibration",
@@ -536,12 +539,72 @@ def fit_problem_loop(
     return jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *outs)
 
 
+class _FlatResiduals(eqx.Module):
+    """The objective of :func:`_fit` on the flat coordinates, with ``args = (p0, data, sigma, prior)``:
+    a module (hashed by its structure, its arrays traced), so the compacting batch's programs are
+    compiled once per problem structure."""
+
+    problem: CalibrationProblem
+    objective: AbstractObjective
+
+    def __call__(self, f, a):
+        return self.objective(self.problem, _unravel(self.problem, a[0])(f), a)
+
+
+def _unravel(problem, p0):
+    return jax.flatten_util.ravel_pytree(problem.pack_jax(p0, problem.nonlinear))[1]
+
+
+@eqx.filter_jit
+def _prepare_batch(problem, starts, data, sigma, prior_params, anchors):
+    """:func:`_fit`'s start (profiled) and arguments, for every fit of a batch."""
+
+    def one(s, d, g, a):
+        p0 = problem.profile(s, d, g)[0] if problem.linear else s
+        prior = problem.pack_jax(prior_params, problem.nonlinear)
+        prior["n1_anchor"] = a
+        return jax.flatten_util.ravel_pytree(problem.pack_jax(p0, problem.nonlinear))[0], (p0, d, g, prior)
+
+    return jax.vmap(one)(starts, data, sigma, anchors)
+
+
+@eqx.filter_jit
+def _finish_batch(problem, out: SolveResult, args, prior_params, anchors, with_cov):
+    def one(o, a, anchor):
+        return _finish(problem, o, _unravel(problem, a[0]), a[0], a[1], a[2], prior_params, anchor, with_cov)
+
+    return jax.vmap(one)(out, args, anchors)
+
+
+def fit_problem_compact(
+    problem, objective, solver, starts: Params, data, sigma, prior_params, anchors, *, max_steps=200, loss_tol=1e-3, gn_first=10,
+    with_cov=True, options: CompactBatch = CompactBatch(), return_stats: bool = False,
+):
+    """:func:`fit_problem_batch`'s arguments and result, the fits that have stopped dropped from the
+    batch every ``options.chunk_steps`` steps (:mod:`tofjax.fit._batch`): a vmapped batch then runs
+    each fit for about its own steps, not the slowest fit's. The results are the vmapped batch's
+    (the same loop body on the same state). Compiles one program per bucket size
+    (``options.buckets(n)``) besides the start and the end. Needs :class:`MarquardtLM` (its loop
+    state can be resumed); any other solver runs as :func:`fit_problem_batch`.
+    ``return_stats``: also return the :class:`~tofjax.fit._batch.BatchStats` (None for another solver)."""
+    if not isinstance(solver, MarquardtLM):
+        sol = fit_problem_batch(problem, objective, solver, starts, data, sigma, prior_params, anchors, max_steps=max_steps,
+                                loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
+        return (sol, None) if return_stats else sol
+    tol = 2.0 * loss_tol / data[0].size if objective.minimise else loss_tol
+    f0, args = _prepare_batch(problem, starts, data, sigma, prior_params, anchors)
+    out, stats = solve_marquardt_compact(_FlatResiduals(problem, objective), solver, f0, args, max_steps=max_steps, loss_tol=tol,
+                                         options=options)
+    sol = _finish_batch(problem, out, args, prior_params, anchors, with_cov)
+    return (sol, stats) if return_stats else sol
+
+
 def default_fit_batch():
     """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_batch`
     (one vmapped call) where the default backend is an accelerator, :func:`fit_problem_loop`
     (one fit after the other) on a CPU, where the vmapped call is the slower of the two
     (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call")."""
-    return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_batch
+    return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_compact
 
 
 def _fit_positional(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):

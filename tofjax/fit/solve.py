@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-__all__ = ["MarquardtLM", "SolveResult", "dense_jvp", "solve_marquardt", "solve_with_history"]
+__all__ = ["MarquardtLM", "MarquardtState", "SolveResult", "dense_jvp", "marquardt_advance", "marquardt_init", "marquardt_solution",
+           "solve_marquardt", "solve_with_history"]
 
 
 def dense_jvp(fn):
@@ -185,6 +186,25 @@ class MarquardtLM(eqx.Module):
     geodesic_alpha: float = 0.75
 
 
+class MarquardtState(NamedTuple):
+    """The loop state of :func:`solve_marquardt` (a pytree; batched along a leading axis when vmapped):
+    the iterate, its residuals, Jacobian and loss, the damping and its growth factor, the step
+    count (-1 before the start's own first pass), whether the fit has stopped, its result code,
+    the loss history and (``trace``) the per-step diagnostics."""
+
+    y: jax.Array
+    r: jax.Array
+    jac: jax.Array
+    loss: jax.Array
+    lam: jax.Array
+    nu: jax.Array
+    step: jax.Array
+    done: jax.Array
+    code: object
+    history: jax.Array
+    trace: object
+
+
 def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0,
                     trace: bool = False) -> SolveResult:
     """Minimise ``0.5 |residuals(y, args)|^2`` from the flat vector ``y0`` with
@@ -197,6 +217,44 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
     loss decrease, whether the step was accepted, and the Gauss-Newton (undamped) predicted
     decrease ``0.5 g^T (J^T J)^-1 g`` (what is left to gain, to second order): for diagnosis.
     """
+    state = marquardt_init(residuals, solver, y0, args, max_steps=max_steps, trace=trace)
+    state = marquardt_advance(residuals, solver, state, args, max_steps=max_steps, loss_tol=loss_tol)
+    return marquardt_solution(state)
+
+
+def marquardt_init(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, trace: bool = False) -> MarquardtState:
+    """The state :func:`solve_marquardt` starts from (``y0``; its residuals and Jacobian are
+    computed here with ``lambda_trials``, by the loop's first pass otherwise)."""
+    return _marquardt(residuals, solver, y0, args, max_steps, 0.0, trace)[0]()
+
+
+def marquardt_advance(residuals, solver: MarquardtLM, state: MarquardtState, args, *, max_steps: int,
+                      loss_tol: float = 0.0, steps: int | None = None) -> MarquardtState:
+    """Run :func:`solve_marquardt`'s loop from ``state`` until the fit stops, reaches
+    ``max_steps``, or (``steps``) has run that many more loop passes. Running a fit in pieces
+    gives exactly the fit run at once (the state is the loop's whole carry): a batch of fits can
+    be advanced a few steps at a time, and the ones that have stopped dropped from the batch
+    (:func:`tofjax.fit.calibrate.fit_problem_compact`)."""
+    _, body = _marquardt(residuals, solver, state.y, args, max_steps, loss_tol, state.trace is not None)
+    stop = None if steps is None else state.step + steps
+
+    def cond(c):
+        go = (~c.done) & (c.step < max_steps)
+        return go if stop is None else go & (c.step < stop)
+
+    return jax.lax.while_loop(cond, body, state)
+
+
+def marquardt_solution(state: MarquardtState) -> SolveResult:
+    """The :class:`SolveResult` of a finished (or step-limited) state: a fit that has not stopped
+    by its own rules is ``nonlinear_max_steps_reached``."""
+    code = optx.RESULTS.where((state.code == optx.RESULTS.successful) & ~state.done,
+                              optx.RESULTS.nonlinear_max_steps_reached, state.code)
+    return SolveResult(state.y, code, state.step, state.history, state.trace)
+
+
+def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_tol: float, trace: bool):
+    """``(init, body)``: the start state's constructor and the loop body of :func:`solve_marquardt`."""
     ft = y0.dtype
     tiny = jnp.finfo(ft).tiny
     eye = jnp.eye(y0.shape[0], dtype=ft)
@@ -225,30 +283,30 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
 
     trials = bool(solver.lambda_trials) and not solver.geodesic
     names = ("lam", "rho", "pred", "actual", "accept", "gn_pred")
-    tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
-    if trace:
-        tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
-    # carry: y, r, J, loss, lambda, nu, step, done, result code, history
-    if trials:
-        r0, j0 = value_and_jac(y0)
-        loss0 = loss_of(r0)
-        ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
-        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
-        res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-        carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
-    else:
-        # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
-        # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
-        # executable's load time grows with its kernels)
-        r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
-        r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
-        j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
-        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
-        carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
-                  jnp.array(False), optx.RESULTS.successful, hist0, tr0)
 
-    def cond(c):
-        return (~c[7]) & (c[6] < max_steps)
+    def init():
+        tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
+        if trace:
+            tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
+        # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+        if trials:
+            r0, j0 = value_and_jac(y0)
+            loss0 = loss_of(r0)
+            ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
+            hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
+            res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
+            carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
+        else:
+            # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
+            # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
+            # executable's load time grows with its kernels)
+            r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+            r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
+            j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
+            hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
+            carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
+                      jnp.array(False), optx.RESULTS.successful, hist0, tr0)
+        return MarquardtState(*carry0)
 
     def body(c):
         y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
@@ -302,7 +360,7 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         code = optx.RESULTS.where(first, code0, code)
         pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
         pick[8] = code
-        return tuple(pick)
+        return MarquardtState(*pick)
 
     factors = jnp.asarray(solver.lambda_trials, ft)
 
@@ -350,11 +408,6 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
             tr = {k_: tr[k_].at[step].set(vals[k_]) for k_ in names} | {"y": tr["y"].at[step].set(y_new)}
         # a stop because the model says nothing is left is not a step
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
-        return y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr
+        return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr)
 
-    if trials:
-        body = body_trials
-
-    y, _, _, _, _, _, steps, done, code, hist, tr = jax.lax.while_loop(cond, body, carry0)
-    code = optx.RESULTS.where((code == optx.RESULTS.successful) & ~done, optx.RESULTS.nonlinear_max_steps_reached, code)
-    return SolveResult(y, code, steps, hist, tr)
+    return init, (body_trials if trials else body)
