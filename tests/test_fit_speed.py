@@ -136,3 +136,25 @@ def test_compact_batch_options_are_validated():
     for bad in ({"chunk_steps": 0}, {"min_bucket": 0}, {"growth": 1}, {"chunk_steps": 2.5}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             CompactBatch(**bad)
+
+
+def _saddle_residuals(y, c):
+    # a residual that depends on a product of two coordinates (as the two-tail pulse does on its
+    # weight x the tails' difference) and a weak prior on each: near the saddle at 0 the
+    # linearised residuals see almost no decrease, but along (1, -1) the loss falls by ~0.49
+    return jnp.stack([y[0] * y[1] + c, 0.1 * y[0], 0.1 * y[1]])
+
+
+def test_lambda_trials_do_not_stop_where_the_gauss_newton_model_is_wrong():
+    """The lambda_trials stop "the Gauss-Newton model says less than loss_tol is left" must not
+    report success where a step it has just tried gains more: from near the saddle of a product
+    residual the fit goes on to the minimum (the old rule stopped at the start, 0.49 above it,
+    and called it converged)."""
+    y0 = jnp.asarray([1e-3, -1e-3])
+    best = 0.5 * (0.1**2) * (2 * 0.99) + 0.5 * 0.01**2  # y0 y1 = -(1 - 0.01): the analytic minimum
+    for trials in [(1e-3, 1e-2, 1e-1, 1.0, 10.0), ()]:
+        solver = MarquardtLM(lambda_trials=trials)
+        out = jax.jit(lambda y: solve_marquardt(_saddle_residuals, solver, y, 1.0, max_steps=100, loss_tol=1e-3))(y0)
+        loss = 0.5 * float(jnp.sum(_saddle_residuals(out.value, 1.0) ** 2))
+        assert out.result == optx.RESULTS.successful and int(out.steps) > 1
+        assert loss == pytest.approx(best, abs=2e-3), (trials, loss)
