@@ -12,6 +12,9 @@ twelve nonlinear parameters), in one process per checkout:
   ``fit_problem_batch`` on ``--batch`` captures in one call, all from the same start (the
   envelope start of the first capture); ``speedup = batch x mean separate / batch call``.
   The batched fit is compiled by a first call, timed separately (``batch_compile_s``).
+  With ``--batch-mode both`` (the default) or ``compact``, the same batch also runs through
+  ``fit_problem_compact`` (the fits that have stopped dropped from the batch every 16 steps):
+  ``batch.compact`` holds its time, compile, speed-up and lane-steps beside the vmapped call's.
 * the estimates and standard errors of every capture's fit, so the parent can compare two
   checkouts in standard errors, and (``--reference``) a tight refit of each capture
   (``loss_tol = 0``, tolerances 1e-12, from the default fit's end point) as the yardstick.
@@ -187,7 +190,42 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
             "successful": int(np.sum(np.asarray(jax.tree_util.tree_leaves(sols.result)[0]) == 0)),
             "max_n1_diff_batch_vs_separate": float(np.max(np.abs(np.asarray(sols.params.n1)[: len(n1_sep)] - n1_sep))),
         }
+        if a.batch_mode in ("compact", "both"):
+            out["batch"]["compact"] = compact_batch(a, pb, objective, solver, starts, D, G, base, A, nocov, sols, statistics.mean(sep))
     return out
+
+
+def compact_batch(a, pb, objective, solver, starts, D, G, base, A, nocov, vmapped, separate_mean_s) -> dict:
+    """The same batch through ``fit_problem_compact`` (the stopped fits dropped every
+    ``chunk_steps``): its first call (compiles), a warm call, its lane-steps and its agreement
+    with the vmapped batch ``vmapped``."""
+    import jax
+    import numpy as np
+
+    from tofjax.fit import CompactBatch, fit_problem_compact
+
+    opts = CompactBatch()
+
+    def call():
+        sol, stats = fit_problem_compact(pb, objective, solver, starts, D, G, base, A, options=opts, return_stats=True, **nocov)
+        return jax.block_until_ready(sol), stats
+
+    t = time.perf_counter()
+    call()
+    first = time.perf_counter() - t
+    _progress(f"compact batch of {a.batch}, first call (compiles) {first:.1f} s")
+    t = time.perf_counter()
+    sol, stats = call()
+    batch_s = time.perf_counter() - t
+    _progress(f"compact batch of {a.batch}: {batch_s:.3f} s; speed-up {a.batch * separate_mean_s / batch_s:.2f}x; "
+              f"lane-steps {stats.lane_steps} (vmap {stats.vmap_lane_steps}, ideal {stats.ideal_lane_steps})")
+    code = lambda s: np.asarray(jax.tree_util.tree_leaves(s.result)[0])  # noqa: E731
+    return {"options": {"chunk_steps": opts.chunk_steps, "min_bucket": opts.min_bucket, "growth": opts.growth},
+            "batch_s": batch_s, "batch_compile_s": first - batch_s, "speedup": a.batch * separate_mean_s / batch_s,
+            **stats.as_dict(),
+            "steps_equal_vmap": bool(np.array_equal(np.asarray(sol.steps), np.asarray(vmapped.steps))),
+            "result_codes_equal_vmap": bool(np.array_equal(code(sol), code(vmapped))),
+            "max_n1_diff_vs_vmap": float(np.max(np.abs(np.asarray(sol.params.n1) - np.asarray(vmapped.params.n1))))}
 
 
 def batch_data(a, scene, dtype):
@@ -365,6 +403,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--batch", type=int, default=100)
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
+    p.add_argument("--batch-mode", choices=("vmap", "compact", "both"), default="both",
+                   help="vmap: the batch as one vmapped call; compact or both (default): also through fit_problem_compact, side by side")
     p.add_argument("--batch-data", help="an .npz of the batch's simulated data: read if it matches, else written")
     p.add_argument("--simulate-batch-only", action="store_true",
                    help="with --batch-data: only simulate the batch's data and write the file (no fits)")
@@ -410,7 +450,7 @@ def main(argv=None) -> int:
             dest = Path(tmp) / f"{name}.json"
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
-                   "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
+                   "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate), "--batch-mode", a.batch_mode,
                    *(["--batch-data", str(Path(a.batch_data).resolve())] if a.batch_data else []),
                    "--reference-steps", str(a.reference_steps), "--indep", str(a.indep)] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \

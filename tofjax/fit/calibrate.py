@@ -7,7 +7,8 @@ One pure entry, :func:`calibrate`, returns a :class:`CalibrationResult` with a r
   residuals; the data are arguments, never state.
 - :mod:`~tofjax.fit._start`: timing, then envelope, then the joint fit.
 - :func:`fit_problem`: one compiled solve from one start (:func:`fit_problem_batch`: many
-  starts and data sets in one compiled, vmapped call; :func:`fit_problem_loop`: the same
+  starts and data sets in one compiled, vmapped call; :func:`fit_problem_compact`: vmapped
+  calls of a few steps that drop the fits that have stopped; :func:`fit_problem_loop`: the same
   arguments, one fit after the other, faster on a CPU).
 - :mod:`~tofjax.fit._laplace` and :mod:`~tofjax.fit._result`: covariance and the result.
 
@@ -600,10 +601,13 @@ def fit_problem_compact(
 
 
 def default_fit_batch():
-    """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_batch`
-    (one vmapped call) where the default backend is an accelerator, :func:`fit_problem_loop`
-    (one fit after the other) on a CPU, where the vmapped call is the slower of the two
-    (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call")."""
+    """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_compact`
+    (vmapped calls that drop the fits that have stopped) where the default backend is an
+    accelerator, :func:`fit_problem_loop` (one fit after the other) on a CPU, where a vmapped call
+    is the slower (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call";
+    ``experiments/bench_batch_compact.py``). The compacting batch runs fewer lane-steps than the
+    plain vmapped call (:func:`fit_problem_batch`) whenever the fits' step counts differ
+    (docs/calibration.md, "A batch that drops the finished fits")."""
     return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_compact
 
 
@@ -900,8 +904,10 @@ def calibrate_many(
     """:func:`calibrate` for many captures of one scene, from the same kind of start (timing, then
     the best envelope point), the failures then refitted one by one with restarts unless
     ``restart_failures`` is False. ``fit_batch`` runs the fits (:func:`fit_problem_batch`'s
-    signature): by default :func:`default_fit_batch` (one vmapped call on an accelerator, one fit
-    after the other on a CPU); :func:`fit_problem_batch` forces the vmapped call,
+    signature): by default :func:`default_fit_batch` (the compacting vmapped batch on an accelerator,
+    one fit after the other on a CPU); :func:`fit_problem_batch` forces the one vmapped call,
+    :func:`fit_problem_compact` the compacting batch (``functools.partial(fit_problem_compact,
+    options=CompactBatch(...))`` for other options),
     :func:`tofjax.parallel.sharded_fit_batch` spreads it over devices."""
     scene = (scene or captures[0].scene).without_touches()
     for c in captures:
