@@ -12,6 +12,7 @@ body on the same state), so the results are the plain vmapped batch's.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -71,6 +72,7 @@ class BatchStats:
     n: int
     calls: list = field(default_factory=list)  # [(batch size, passes)]
     fit_steps: list = field(default_factory=list)
+    call_s: list = field(default_factory=list)  # wall seconds of each call, the host's sync included
 
     @property
     def lane_steps(self) -> int:
@@ -92,7 +94,7 @@ class BatchStats:
     def as_dict(self) -> dict:
         return {"n": self.n, "calls": [list(c) for c in self.calls], "lane_steps": self.lane_steps,
                 "ideal_lane_steps": self.ideal_lane_steps, "vmap_lane_steps": self.vmap_lane_steps,
-                "advance_programs": self.programs}
+                "advance_programs": self.programs, "call_s": self.call_s}
 
 
 @eqx.filter_jit
@@ -139,8 +141,10 @@ def solve_marquardt_compact(residuals, solver: MarquardtLM, y0s, args, *, max_st
         stopped = np.flatnonzero(~running)
         pad = stopped[0] if stopped.size else active[0]  # no padding without a stopped fit: size == n
         idx = np.concatenate([active, np.full(size - active.size, pad, active.dtype)]).astype(np.int32)
+        t = time.perf_counter()
         states = _advance(residuals, solver, states, args, jax.device_put(idx), max_steps, loss_tol, options.chunk_steps)
         after = np.asarray(states.step)[active]
+        stats.call_s.append(time.perf_counter() - t)
         stats.calls.append((size, int(np.max(after - step[active]))))
     stats.fit_steps = (np.asarray(states.step) - step0).tolist()
     return _solution(states), stats
