@@ -170,8 +170,8 @@ class FitConfig:
     - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
     - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than this
       (a few hundredths of a standard error from the optimum); 0 turns it off. (A
-      ``MarquardtLM(lambda_trials=...)`` passed as ``solver=`` also stops when the Gauss-Newton
-      model says less than this is left: ``0.5 g^T (J^T J)^-1 g``.)
+      ``MarquardtLM(lambda_trials=...)`` passed as ``solver=`` stops instead when the Gauss-Newton
+      model says less than this is left, ``0.5 g^T (J^T J)^-1 g``, and its best trial agrees.)
     - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for
       ``dogleg`` and an optimistix solver passed as ``solver=``; the default solver's first
       steps already are nearly Gauss-Newton steps); where they fail or do not lower the loss

@@ -171,9 +171,14 @@ class MarquardtLM(eqx.Module):
       docs/results/fit_bench_warmfit.json) and the compiled fit is larger (the small test scene
       compiled in 3.5 min against 2.4 min, side by side, loaded); the end points agree within
       0.07 Laplace standard errors (fit_bench_warmfit.json, fit_bench_study_slice.json).
-    - With ``lambda_trials``, the fit also stops when the Gauss-Newton model says less than ``loss_tol`` of the loss is left
-      (``0.5 g^T (J^T J)^-1 g``, a statistical criterion independent of the damping), or when an
-      accepted step lowers the loss by less than ``loss_tol``.
+    - With ``lambda_trials``, the fit stops successfully when the Gauss-Newton model says less than ``loss_tol``
+      of the loss is left (``0.5 g^T (J^T J)^-1 g``, a statistical criterion independent of the damping)
+      and the best trial agrees (gains less than ``loss_tol``), or on a negligible step. A small
+      gain alone is no stop: along a curved valley the best trial gains little while the model
+      says tenths are left (a straggler baseline stopped 0.43 above its optimum, 0.12 sd off in
+      n1; ``experiments/straggler_trials_stop.py``), and such a fit now goes on to the optimum or
+      to ``max_steps`` (``nonlinear_max_steps_reached``). Near a saddle of a product of parameters the
+      model can say nothing is left where a trial gains tenths: then the trial is taken.
     """
 
     rtol: float = 1e-7
@@ -403,7 +408,11 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         lam_new = jnp.where(accept, lk * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * jnp.max(factors) * nu / 2.0)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         small_step = jnp.all(jnp.abs(delta) <= solver.atol + solver.rtol * jnp.abs(y))
-        small_gain = accept & (step >= 1) & (loss - lt < loss_tol) if loss_tol > 0 else jnp.array(False)
+        # no stop on an accepted step's small gain alone: the best trial can gain less than
+        # loss_tol while the Gauss-Newton model says tenths are left (a damped step along a
+        # curved valley; on a straggler baseline it stopped 0.43 above the optimum and 0.12 sd off
+        # in n1, experiments/straggler_trials_stop.py): a success needs the model to agree (near)
+        small_gain = accept & (step >= 1) & (loss - lt < loss_tol) & (gn_pred < loss_tol) if loss_tol > 0 else jnp.array(False)
         stalled = lam_new > 1e16
         done = near | small_step | small_gain | stalled | ~ok_j
         code = optx.RESULTS.where(stalled & ~(near | small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
