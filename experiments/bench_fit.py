@@ -12,6 +12,9 @@ twelve nonlinear parameters), in one process per checkout:
   ``fit_problem_batch`` on ``--batch`` captures in one call, all from the same start (the
   envelope start of the first capture); ``speedup = batch x mean separate / batch call``.
   The batched fit is compiled by a first call, timed separately (``batch_compile_s``).
+  With ``--batch-mode both`` (the default) or ``compact``, the same batch also runs through
+  ``fit_problem_compact`` (the fits that have stopped dropped from the batch every 16 steps):
+  ``batch.compact`` holds its time, compile, speed-up and lane-steps beside the vmapped call's.
 * the estimates and standard errors of every capture's fit, so the parent can compare two
   checkouts in standard errors, and (``--reference``) a tight refit of each capture
   (``loss_tol = 0``, tolerances 1e-12, from the default fit's end point) as the yardstick.
@@ -191,6 +194,8 @@ def _rest(a, out, cal, caps, pb, objective, solver, start, base, anchor, cfg, sc
             "successful": int(np.sum(np.asarray(jax.tree_util.tree_leaves(sols.result)[0]) == 0)),
             "max_n1_diff_batch_vs_separate": float(np.max(np.abs(np.asarray(sols.params.n1)[: len(n1_sep)] - n1_sep))),
         }
+        if a.batch_mode in ("compact", "both"):
+            out["batch"]["compact"] = compact_batch(a, pb, objective, solver, starts, D, G, base, A, nocov, sols, statistics.mean(sep))
     return out
 
 
@@ -205,7 +210,8 @@ def batch_auto(a, cal, scene, objective, solver, dtype) -> dict:
 
     from tofjax.fit._start import envelope_candidates, timing_start
     from tofjax.fit._tails import one_tail_problem
-    from tofjax.fit.calibrate import _anchor, _data, base_params, fit_batch_tails, fit_problem_batch, fit_problem_loop, tail_configs
+    from tofjax.fit.calibrate import (_anchor, _data, base_params, fit_batch_tails, fit_problem_batch, fit_problem_compact,
+                                      fit_problem_loop, tail_configs)
 
     cfg = cal.config
     cfg1 = tail_configs(cfg)[0]
@@ -231,20 +237,24 @@ def batch_auto(a, cal, scene, objective, solver, dtype) -> dict:
         sep.append(time.perf_counter() - t)
         sep_steps.append([s["steps"] for s in f.stages if "steps" in s])
         _progress(f"separate fit {i} (auto): {sep[-1]:.3f} s, steps per stage {sep_steps[-1]}")
-    t = time.perf_counter()
-    rule(a.batch, fit_problem_batch)
-    first = time.perf_counter() - t
-    _progress(f"batch of {a.batch} (auto), first call (compiles) {first:.1f} s")
-    t = time.perf_counter()
-    fits = rule(a.batch, fit_problem_batch)
-    batch_s = time.perf_counter() - t
-    _progress(f"batch of {a.batch} (auto): {batch_s:.3f} s; speed-up {a.batch * statistics.mean(sep) / batch_s:.2f}x")
+    modes = {"vmap": fit_problem_batch, "compact": fit_problem_compact}
+    timed = {}
+    for mode in (("vmap", "compact") if a.batch_mode == "both" else (a.batch_mode,)):
+        t = time.perf_counter()
+        rule(a.batch, modes[mode])
+        first = time.perf_counter() - t
+        _progress(f"batch of {a.batch} (auto, {mode}), first call (compiles) {first:.1f} s")
+        t = time.perf_counter()
+        fits = rule(a.batch, modes[mode])
+        batch_s = time.perf_counter() - t
+        timed[mode] = {"batch_s": batch_s, "batch_first_call_s": first, "speedup": a.batch * statistics.mean(sep) / batch_s}
+        _progress(f"batch of {a.batch} (auto, {mode}): {batch_s:.3f} s; speed-up {timed[mode]['speedup']:.2f}x")
     s1 = [f.stages[0]["steps"] for f in fits]
     s2 = [f.stages[-1]["steps"] for f in fits if f.config.pulse_tails == 2]
     return {
         "pulse_tails": "auto", "n": a.batch, "separate_n": a.separate, "separate_s": sep, "separate_mean_s": statistics.mean(sep),
         "separate_steps_per_stage": sep_steps, "batch_s": batch_s, "batch_first_call_s": first,
-        "speedup": a.batch * statistics.mean(sep) / batch_s,
+        "speedup": a.batch * statistics.mean(sep) / batch_s, "modes": timed,
         "one_tail_steps_max": max(s1), "one_tail_steps_mean": statistics.mean(s1),
         "chose_two": len(s2), "two_tail_steps_max": max(s2) if s2 else None,
         "two_tail_steps_mean": statistics.mean(s2) if s2 else None,
@@ -257,6 +267,39 @@ def simulate_first(a, scene):
     from tofjax.simulate import simulate
 
     return simulate(scene, a.frames, seed=1000)
+
+
+def compact_batch(a, pb, objective, solver, starts, D, G, base, A, nocov, vmapped, separate_mean_s) -> dict:
+    """The same batch through ``fit_problem_compact`` (the stopped fits dropped every
+    ``chunk_steps``): its first call (compiles), a warm call, its lane-steps and its agreement
+    with the vmapped batch ``vmapped``."""
+    import jax
+    import numpy as np
+
+    from tofjax.fit import CompactBatch, fit_problem_compact
+
+    opts = CompactBatch()
+
+    def call():
+        sol, stats = fit_problem_compact(pb, objective, solver, starts, D, G, base, A, options=opts, return_stats=True, **nocov)
+        return jax.block_until_ready(sol), stats
+
+    t = time.perf_counter()
+    call()
+    first = time.perf_counter() - t
+    _progress(f"compact batch of {a.batch}, first call (compiles) {first:.1f} s")
+    t = time.perf_counter()
+    sol, stats = call()
+    batch_s = time.perf_counter() - t
+    _progress(f"compact batch of {a.batch}: {batch_s:.3f} s; speed-up {a.batch * separate_mean_s / batch_s:.2f}x; "
+              f"lane-steps {stats.lane_steps} (vmap {stats.vmap_lane_steps}, ideal {stats.ideal_lane_steps})")
+    code = lambda s: np.asarray(jax.tree_util.tree_leaves(s.result)[0])  # noqa: E731
+    return {"options": {"chunk_steps": opts.chunk_steps, "min_bucket": opts.min_bucket, "growth": opts.growth},
+            "batch_s": batch_s, "batch_compile_s": first - batch_s, "speedup": a.batch * separate_mean_s / batch_s,
+            **stats.as_dict(),
+            "steps_equal_vmap": bool(np.array_equal(np.asarray(sol.steps), np.asarray(vmapped.steps))),
+            "result_codes_equal_vmap": bool(np.array_equal(code(sol), code(vmapped))),
+            "max_n1_diff_vs_vmap": float(np.max(np.abs(np.asarray(sol.params.n1) - np.asarray(vmapped.params.n1))))}
 
 
 def batch_data(a, scene, dtype):
@@ -434,6 +477,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--batch", type=int, default=100)
     p.add_argument("--separate", type=int, default=10, help="separate calls timed (their mean x batch is the serial time)")
+    p.add_argument("--batch-mode", choices=("vmap", "compact", "both"), default="both",
+                   help="vmap: the batch as one vmapped call; compact or both (default): also through fit_problem_compact, side by side")
     p.add_argument("--batch-data", help="an .npz of the batch's simulated data: read if it matches, else written")
     p.add_argument("--pulse-tails", choices=("1", "2", "auto"), default="2",
                    help="FitConfig.pulse_tails of the worker (default 2, what earlier runs measured); auto: the batch "
@@ -482,7 +527,7 @@ def main(argv=None) -> int:
             dest = Path(tmp) / f"{name}.json"
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--out", str(dest),
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
-                   "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate),
+                   "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate), "--batch-mode", a.batch_mode,
                    *(["--batch-data", str(Path(a.batch_data).resolve())] if a.batch_data else []),
                    "--reference-steps", str(a.reference_steps), "--indep", str(a.indep), "--pulse-tails", a.pulse_tails] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \

@@ -1,5 +1,6 @@
 """Calibration: recovery of known parameters, honest uncertainty, and clear errors."""
 
+import functools
 import json
 
 import numpy as np
@@ -414,6 +415,23 @@ def test_many_fits_in_one_compiled_call_equal_the_loop(small, fitted):
         for k in ("n1", "mu_s_per_m", "mu_a_per_m"):
             assert float(b.values[k]) == pytest.approx(float(o.values[k]), rel=1e-6)
             assert float(b.stderr[k]) == pytest.approx(float(o.stderr[k]), rel=1e-4)
+
+
+@pytest.mark.slow  # compiles the batched fit's pieces (1-3 min here)
+def test_compacting_batch_of_calibrations_equals_the_loop(small, fitted):
+    """fit_problem_compact (the stopped fits dropped from the batch) gives the loop's fits: the same
+    steps and result codes, n1 within a small fraction of its standard error."""
+    from tofjax.fit import CompactBatch, calibrate_many, fit_problem_compact, fit_problem_loop
+
+    caps = [simulate(small, 30, seed=s) for s in (21, 22, 23)]
+    compact = calibrate_many(caps, restart_failures=False,
+                             fit_batch=functools.partial(fit_problem_compact, options=CompactBatch(chunk_steps=4, min_bucket=3)))
+    loop = calibrate_many(caps, restart_failures=False, fit_batch=fit_problem_loop)
+    assert len({o.steps for o in loop}) > 1  # the fits need different step counts
+    for b, o in zip(compact, loop):
+        assert b.result == o.result == "successful" and b.steps == o.steps
+        for k in ("n1", "mu_s_per_m", "mu_a_per_m"):
+            assert float(b.values[k]) == pytest.approx(float(o.values[k]), abs=0.01 * float(o.stderr[k]))
 
 
 def test_objective_and_solver_must_match(small):

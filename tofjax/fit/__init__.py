@@ -8,6 +8,8 @@ from ._problem import CalibrationProblem as CalibrationProblem
 from ._result import CalibrationError as CalibrationError
 from ._result import CalibrationRefused as CalibrationRefused
 from ._result import CalibrationResult as CalibrationResult
+from ._batch import BatchStats as BatchStats
+from ._batch import CompactBatch as CompactBatch
 from ._precision import PrecisionPlan as PrecisionPlan
 from ._precision import precision_plan as precision_plan
 from ._result import load_calibration as load_calibration
@@ -25,4 +27,5 @@ from .calibrate import calibrate_many as calibrate_many
 from .calibrate import fit_problem as fit_problem
 from .calibrate import default_fit_batch as default_fit_batch
 from .calibrate import fit_problem_batch as fit_problem_batch
+from .calibrate import fit_problem_compact as fit_problem_compact
 from .calibrate import fit_problem_loop as fit_problem_loop

@@ -7,7 +7,8 @@ One pure entry, :func:`calibrate`, returns a :class:`CalibrationResult` with a r
   residuals; the data are arguments, never state.
 - :mod:`~tofjax.fit._start`: timing, then envelope, then the joint fit.
 - :func:`fit_problem`: one compiled solve from one start (:func:`fit_problem_batch`: many
-  starts and data sets in one compiled, vmapped call; :func:`fit_problem_loop`: the same
+  starts and data sets in one compiled, vmapped call; :func:`fit_problem_compact`: vmapped
+  calls of a few steps that drop the fits that have stopped; :func:`fit_problem_loop`: the same
   arguments, one fit after the other, faster on a CPU).
 - :mod:`~tofjax.fit._laplace` and :mod:`~tofjax.fit._result`: covariance and the result.
 
@@ -37,6 +38,7 @@ from ..compile_cache import call_stored, prefetch
 from ..config import ConfigError, from_dict, load_toml
 from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
+from ._batch import CompactBatch, solve_marquardt_compact
 from ._discrepancy import discrepancy_report
 from ._laplace import laplace_covariance
 from ._precision import check_target, precision_plan
@@ -63,6 +65,7 @@ __all__ = [
     "CalibrationResult",
     "Calibrator",
     "ChiSquare",
+    "CompactBatch",
     "FitConfig",
     "FitSolution",
     "PoissonDeviance",
@@ -76,6 +79,7 @@ __all__ = [
     "default_fit_batch",
     "fit_batch_tails",
     "fit_problem_batch",
+    "fit_problem_compact",
     "fit_problem_loop",
     "fit_report",
     "load_calibration",
@@ -171,8 +175,8 @@ class FitConfig:
     - ``rtol``, ``atol``: optimistix tolerances in the unconstrained space.
     - ``loss_tol``: also stop when an accepted step lowers chi-square / 2 by less than this
       (a few hundredths of a standard error from the optimum); 0 turns it off. (A
-      ``MarquardtLM(lambda_trials=...)`` passed as ``solver=`` also stops when the Gauss-Newton
-      model says less than this is left: ``0.5 g^T (J^T J)^-1 g``.)
+      ``MarquardtLM(lambda_trials=...)`` passed as ``solver=`` stops instead when the Gauss-Newton
+      model says less than this is left, ``0.5 g^T (J^T J)^-1 g``, and its best trial agrees.)
     - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for
       ``dogleg`` and an optimistix solver passed as ``solver=``; the default solver's first
       steps already are nearly Gauss-Newton steps); where they fail or do not lower the loss
@@ -558,12 +562,75 @@ def fit_problem_loop(
     return jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *outs)
 
 
+class _FlatResiduals(eqx.Module):
+    """The objective of :func:`_fit` on the flat coordinates, with ``args = (p0, data, sigma, prior)``:
+    a module (hashed by its structure, its arrays traced), so the compacting batch's programs are
+    compiled once per problem structure."""
+
+    problem: CalibrationProblem
+    objective: AbstractObjective
+
+    def __call__(self, f, a):
+        return self.objective(self.problem, _unravel(self.problem, a[0])(f), a)
+
+
+def _unravel(problem, p0):
+    return jax.flatten_util.ravel_pytree(problem.pack_jax(p0, problem.nonlinear))[1]
+
+
+@eqx.filter_jit
+def _prepare_batch(problem, starts, data, sigma, prior_params, anchors):
+    """:func:`_fit`'s start (profiled) and arguments, for every fit of a batch."""
+
+    def one(s, d, g, a):
+        p0 = problem.profile(s, d, g)[0] if problem.linear else s
+        prior = problem.pack_jax(prior_params, problem.nonlinear)
+        prior["n1_anchor"] = a
+        return jax.flatten_util.ravel_pytree(problem.pack_jax(p0, problem.nonlinear))[0], (p0, d, g, prior)
+
+    return jax.vmap(one)(starts, data, sigma, anchors)
+
+
+@eqx.filter_jit
+def _finish_batch(problem, out: SolveResult, args, prior_params, anchors, with_cov):
+    def one(o, a, anchor):
+        return _finish(problem, o, _unravel(problem, a[0]), a[0], a[1], a[2], prior_params, anchor, with_cov)
+
+    return jax.vmap(one)(out, args, anchors)
+
+
+def fit_problem_compact(
+    problem, objective, solver, starts: Params, data, sigma, prior_params, anchors, *, max_steps=200, loss_tol=1e-3, gn_first=10,
+    with_cov=True, options: CompactBatch = CompactBatch(), return_stats: bool = False,
+):
+    """:func:`fit_problem_batch`'s arguments and result, the fits that have stopped dropped from the
+    batch every ``options.chunk_steps`` steps (:mod:`tofjax.fit._batch`): a vmapped batch then runs
+    each fit for about its own steps, not the slowest fit's. The results are the vmapped batch's
+    (the same loop body on the same state). Compiles one program per bucket size
+    (``options.buckets(n)``) besides the start and the end. Needs :class:`MarquardtLM` (its loop
+    state can be resumed); any other solver runs as :func:`fit_problem_batch`.
+    ``return_stats``: also return the :class:`~tofjax.fit._batch.BatchStats` (None for another solver)."""
+    if not isinstance(solver, MarquardtLM):
+        sol = fit_problem_batch(problem, objective, solver, starts, data, sigma, prior_params, anchors, max_steps=max_steps,
+                                loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
+        return (sol, None) if return_stats else sol
+    tol = 2.0 * loss_tol / data[0].size if objective.minimise else loss_tol
+    f0, args = _prepare_batch(problem, starts, data, sigma, prior_params, anchors)
+    out, stats = solve_marquardt_compact(_FlatResiduals(problem, objective), solver, f0, args, max_steps=max_steps, loss_tol=tol,
+                                         options=options)
+    sol = _finish_batch(problem, out, args, prior_params, anchors, with_cov)
+    return (sol, stats) if return_stats else sol
+
+
 def default_fit_batch():
-    """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_batch`
-    (one vmapped call) where the default backend is an accelerator, :func:`fit_problem_loop`
-    (one fit after the other) on a CPU, where the vmapped call is the slower of the two
-    (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call")."""
-    return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_batch
+    """The batch function :func:`calibrate_many` uses unless given one: :func:`fit_problem_compact`
+    (vmapped calls that drop the fits that have stopped) where the default backend is an
+    accelerator, :func:`fit_problem_loop` (one fit after the other) on a CPU, where a vmapped call
+    is the slower (measured: ``experiments/bench_fit_many.py``, README "Many fits in one call";
+    ``experiments/bench_batch_compact.py``). The compacting batch runs fewer lane-steps than the
+    plain vmapped call (:func:`fit_problem_batch`) whenever the fits' step counts differ
+    (docs/calibration.md, "A batch that drops the finished fits")."""
+    return fit_problem_loop if jax.default_backend() == "cpu" else fit_problem_compact
 
 
 def _fit_positional(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
@@ -931,8 +998,10 @@ def calibrate_many(
     """:func:`calibrate` for many captures of one scene, from the same kind of start (timing, then
     the best envelope point), the failures then refitted one by one with restarts unless
     ``restart_failures`` is False. ``fit_batch`` runs the fits (:func:`fit_problem_batch`'s
-    signature): by default :func:`default_fit_batch` (one vmapped call on an accelerator, one fit
-    after the other on a CPU); :func:`fit_problem_batch` forces the vmapped call,
+    signature): by default :func:`default_fit_batch` (the compacting vmapped batch on an accelerator,
+    one fit after the other on a CPU); :func:`fit_problem_batch` forces the one vmapped call,
+    :func:`fit_problem_compact` the compacting batch (``functools.partial(fit_problem_compact,
+    options=CompactBatch(...))`` for other options),
     :func:`tofjax.parallel.sharded_fit_batch` spreads it over devices."""
     scene = (scene or captures[0].scene).without_touches()
     for c in captures:

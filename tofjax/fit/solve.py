@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-__all__ = ["MarquardtLM", "SolveResult", "dense_jvp", "solve_marquardt", "solve_with_history"]
+__all__ = ["MarquardtLM", "MarquardtState", "SolveResult", "dense_jvp", "marquardt_advance", "marquardt_init", "marquardt_solution",
+           "solve_marquardt", "solve_with_history"]
 
 
 def dense_jvp(fn):
@@ -170,9 +171,14 @@ class MarquardtLM(eqx.Module):
       docs/results/fit_bench_warmfit.json) and the compiled fit is larger (the small test scene
       compiled in 3.5 min against 2.4 min, side by side, loaded); the end points agree within
       0.07 Laplace standard errors (fit_bench_warmfit.json, fit_bench_study_slice.json).
-    - With ``lambda_trials``, the fit also stops when the Gauss-Newton model says less than ``loss_tol`` of the loss is left
-      (``0.5 g^T (J^T J)^-1 g``, a statistical criterion independent of the damping), or when an
-      accepted step lowers the loss by less than ``loss_tol``.
+    - With ``lambda_trials``, the fit stops successfully when the Gauss-Newton model says less than ``loss_tol``
+      of the loss is left (``0.5 g^T (J^T J)^-1 g``, a statistical criterion independent of the damping)
+      and the best trial agrees (gains less than ``loss_tol``), or on a negligible step. A small
+      gain alone is no stop: along a curved valley the best trial gains little while the model
+      says tenths are left (a straggler baseline stopped 0.43 above its optimum, 0.12 sd off in
+      n1; ``experiments/straggler_trials_stop.py``), and such a fit now goes on to the optimum or
+      to ``max_steps`` (``nonlinear_max_steps_reached``). Near a saddle of a product of parameters the
+      model can say nothing is left where a trial gains tenths: then the trial is taken.
     """
 
     rtol: float = 1e-7
@@ -183,6 +189,25 @@ class MarquardtLM(eqx.Module):
     geodesic: bool = False
     geodesic_h: float = 0.0
     geodesic_alpha: float = 0.75
+
+
+class MarquardtState(NamedTuple):
+    """The loop state of :func:`solve_marquardt` (a pytree; batched along a leading axis when vmapped):
+    the iterate, its residuals, Jacobian and loss, the damping and its growth factor, the step
+    count (-1 before the start's own first pass), whether the fit has stopped, its result code,
+    the loss history and (``trace``) the per-step diagnostics."""
+
+    y: jax.Array
+    r: jax.Array
+    jac: jax.Array
+    loss: jax.Array
+    lam: jax.Array
+    nu: jax.Array
+    step: jax.Array
+    done: jax.Array
+    code: object
+    history: jax.Array
+    trace: object
 
 
 def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0,
@@ -197,6 +222,44 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
     loss decrease, whether the step was accepted, and the Gauss-Newton (undamped) predicted
     decrease ``0.5 g^T (J^T J)^-1 g`` (what is left to gain, to second order): for diagnosis.
     """
+    state = marquardt_init(residuals, solver, y0, args, max_steps=max_steps, trace=trace)
+    state = marquardt_advance(residuals, solver, state, args, max_steps=max_steps, loss_tol=loss_tol)
+    return marquardt_solution(state)
+
+
+def marquardt_init(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, trace: bool = False) -> MarquardtState:
+    """The state :func:`solve_marquardt` starts from (``y0``; its residuals and Jacobian are
+    computed here with ``lambda_trials``, by the loop's first pass otherwise)."""
+    return _marquardt(residuals, solver, y0, args, max_steps, 0.0, trace)[0]()
+
+
+def marquardt_advance(residuals, solver: MarquardtLM, state: MarquardtState, args, *, max_steps: int,
+                      loss_tol: float = 0.0, steps: int | None = None) -> MarquardtState:
+    """Run :func:`solve_marquardt`'s loop from ``state`` until the fit stops, reaches
+    ``max_steps``, or (``steps``) has run that many more loop passes. Running a fit in pieces
+    gives exactly the fit run at once (the state is the loop's whole carry): a batch of fits can
+    be advanced a few steps at a time, and the ones that have stopped dropped from the batch
+    (:func:`tofjax.fit.calibrate.fit_problem_compact`)."""
+    _, body = _marquardt(residuals, solver, state.y, args, max_steps, loss_tol, state.trace is not None)
+    stop = None if steps is None else state.step + steps
+
+    def cond(c):
+        go = (~c.done) & (c.step < max_steps)
+        return go if stop is None else go & (c.step < stop)
+
+    return jax.lax.while_loop(cond, body, state)
+
+
+def marquardt_solution(state: MarquardtState) -> SolveResult:
+    """The :class:`SolveResult` of a finished (or step-limited) state: a fit that has not stopped
+    by its own rules is ``nonlinear_max_steps_reached``."""
+    code = optx.RESULTS.where((state.code == optx.RESULTS.successful) & ~state.done,
+                              optx.RESULTS.nonlinear_max_steps_reached, state.code)
+    return SolveResult(state.y, code, state.step, state.history, state.trace)
+
+
+def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_tol: float, trace: bool):
+    """``(init, body)``: the start state's constructor and the loop body of :func:`solve_marquardt`."""
     ft = y0.dtype
     tiny = jnp.finfo(ft).tiny
     eye = jnp.eye(y0.shape[0], dtype=ft)
@@ -225,30 +288,30 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
 
     trials = bool(solver.lambda_trials) and not solver.geodesic
     names = ("lam", "rho", "pred", "actual", "accept", "gn_pred")
-    tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
-    if trace:
-        tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
-    # carry: y, r, J, loss, lambda, nu, step, done, result code, history
-    if trials:
-        r0, j0 = value_and_jac(y0)
-        loss0 = loss_of(r0)
-        ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
-        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
-        res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-        carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
-    else:
-        # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
-        # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
-        # executable's load time grows with its kernels)
-        r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
-        r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
-        j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
-        hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
-        carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
-                  jnp.array(False), optx.RESULTS.successful, hist0, tr0)
 
-    def cond(c):
-        return (~c[7]) & (c[6] < max_steps)
+    def init():
+        tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
+        if trace:
+            tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
+        # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+        if trials:
+            r0, j0 = value_and_jac(y0)
+            loss0 = loss_of(r0)
+            ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
+            hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
+            res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
+            carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
+        else:
+            # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
+            # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
+            # executable's load time grows with its kernels)
+            r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+            r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
+            j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
+            hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
+            carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
+                      jnp.array(False), optx.RESULTS.successful, hist0, tr0)
+        return MarquardtState(*carry0)
 
     def body(c):
         y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
@@ -302,7 +365,7 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         code = optx.RESULTS.where(first, code0, code)
         pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
         pick[8] = code
-        return tuple(pick)
+        return MarquardtState(*pick)
 
     factors = jnp.asarray(solver.lambda_trials, ft)
 
@@ -331,7 +394,13 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         k = jnp.argmin(loss_t)
         delta, lt, pk, lk = v[k], loss_t[k], pred[k], lams[k]
         rho = (loss - lt) / jnp.maximum(pk, tiny)
-        near = (gn_pred < loss_tol) if loss_tol > 0 else jnp.array(False)
+        # the Gauss-Newton model's "less than loss_tol is left" is checked against the trials just
+        # evaluated: near a singular point (the two-tail pulse's optimum with no slow tail in the
+        # data: the residuals depend on a product of parameters) the linearised residuals see no
+        # decrease where the loss still falls by tenths, and a stop on the model alone reported
+        # such fits converged (docs/calibration.md, "Straggler fits"). Where the best trial
+        # gains loss_tol or more, the model is wrong: take the step and go on.
+        near = ((gn_pred < loss_tol) & ~(loss - lt >= loss_tol)) if loss_tol > 0 else jnp.array(False)
         accept = jnp.isfinite(lt) & (lt <= loss) & (rho > 1e-4) & ~near
         y_new = jnp.where(accept, y + delta, y)
         r_new, j_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac), y_new)
@@ -339,7 +408,11 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
         lam_new = jnp.where(accept, lk * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * jnp.max(factors) * nu / 2.0)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         small_step = jnp.all(jnp.abs(delta) <= solver.atol + solver.rtol * jnp.abs(y))
-        small_gain = accept & (step >= 1) & (loss - lt < loss_tol) if loss_tol > 0 else jnp.array(False)
+        # no stop on an accepted step's small gain alone: the best trial can gain less than
+        # loss_tol while the Gauss-Newton model says tenths are left (a damped step along a
+        # curved valley; on a straggler baseline it stopped 0.43 above the optimum and 0.12 sd off
+        # in n1, experiments/straggler_trials_stop.py): a success needs the model to agree (near)
+        small_gain = accept & (step >= 1) & (loss - lt < loss_tol) & (gn_pred < loss_tol) if loss_tol > 0 else jnp.array(False)
         stalled = lam_new > 1e16
         done = near | small_step | small_gain | stalled | ~ok_j
         code = optx.RESULTS.where(stalled & ~(near | small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
@@ -350,11 +423,6 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
             tr = {k_: tr[k_].at[step].set(vals[k_]) for k_ in names} | {"y": tr["y"].at[step].set(y_new)}
         # a stop because the model says nothing is left is not a step
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
-        return y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr
+        return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr)
 
-    if trials:
-        body = body_trials
-
-    y, _, _, _, _, _, steps, done, code, hist, tr = jax.lax.while_loop(cond, body, carry0)
-    code = optx.RESULTS.where((code == optx.RESULTS.successful) & ~done, optx.RESULTS.nonlinear_max_steps_reached, code)
-    return SolveResult(y, code, steps, hist, tr)
+    return init, (body_trials if trials else body)
