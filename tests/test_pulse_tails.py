@@ -82,6 +82,20 @@ def test_many_fits_choose_as_one(scene, captures, auto_fits):
         assert [s["stage"] for s in m.stages][-1] == ("batch (2 tails)" if one.pulse_tails == 2 else "pulse tails")
 
 
+def test_batched_tail_tests_equal_one_at_a_time(scene, captures, auto_fits):
+    """A batch function other than the loop gets every fit's score test in one vmapped call
+    (tail_tests): the same statistics and choices as the test one fit at a time."""
+    def looped(*args, **kw):  # the loop's fits, but not the loop itself: the vmapped tests run
+        return fit_problem_loop(*args, **kw)
+
+    many = calibrate_many(list(captures), FitConfig(pulse_tails="auto"), scene=scene, restart_failures=False, fit_batch=looped)
+    for m, one in zip(many, auto_fits):
+        assert m.pulse_tails == one.pulse_tails
+        for q, z in one.pulse_tail_test["z_per_ratio"].items():
+            assert m.pulse_tail_test["z_per_ratio"][q] == pytest.approx(z, rel=1e-6, abs=1e-6)
+        assert m.pulse_tail_test["slow_weight_start"] == pytest.approx(one.pulse_tail_test["slow_weight_start"], rel=1e-6)
+
+
 @pytest.mark.slow  # compiles the vmapped one- and two-tail fits (minutes on the shared VM)
 def test_auto_batch_equals_the_loop(scene, captures):
     from tofjax.fit import fit_problem_batch

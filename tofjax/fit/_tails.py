@@ -34,7 +34,7 @@ import numpy as np
 
 from ._problem import CalibrationProblem
 
-__all__ = ["SLOW_RATIOS", "slow_tail_score", "tail_test"]
+__all__ = ["SLOW_RATIOS", "slow_tail_score", "tail_test", "tail_tests"]
 
 #: Slow/fast time-constant ratios the score is taken at: a tail twice to eight times as slow
 #: (at 1 the slow tail is the fast one and ``j`` lies in the span of the pulse's own columns).
@@ -100,10 +100,23 @@ def tail_test(one, two_same_free, params, linear, prior_params, data, sigma, anc
     two-tail fit starts (``slow_weight_start``, ``slow_tail_start_s``)."""
     z, w = jax.device_get(slow_tail_score(one, two_same_free, params, linear, prior_params, data, sigma, anchor,
                                           np.asarray(SLOW_RATIOS)))
+    return _record(z, w, float(np.asarray(params.pulse_tail_s)), threshold)
+
+
+def tail_tests(one, two_same_free, params, linear, prior_params, data, sigma, anchors, threshold: float) -> list[dict]:
+    """:func:`tail_test` for a batch of end points (``params``, ``linear``, ``data``, ``sigma``,
+    ``anchors`` with a leading batch axis) in one vmapped call: what a vmapped batch of fits uses,
+    so that an accelerator does not run one small program per fit."""
+    score = eqx.filter_vmap(slow_tail_score, in_axes=(None, None, 0, 0, None, 0, 0, 0, None))
+    z, w = jax.device_get(score(one, two_same_free, params, linear, prior_params, data, sigma, anchors, np.asarray(SLOW_RATIOS)))
+    taus = np.asarray(params.pulse_tail_s, np.float64)
+    return [_record(z[i], w[i], float(taus[i]), threshold) for i in range(len(taus))]
+
+
+def _record(z, w, tau: float, threshold: float) -> dict:
     z, w = np.asarray(z, np.float64), np.asarray(w, np.float64)
     z = np.where(np.isfinite(z), z, -np.inf)
     k = int(np.argmax(z))
-    tau = float(np.asarray(params.pulse_tail_s))
     return {
         "statistic": "one-sided score z of pulse_slow_weight at 0 (max over slow/fast ratios)",
         "z": float(z[k]),

@@ -53,7 +53,7 @@ from ._result import (
     scene_fingerprint,
 )
 from ._start import envelope_candidates, timing_start
-from ._tails import one_tail_problem, tail_test, two_tail_problem
+from ._tails import one_tail_problem, tail_test, tail_tests, two_tail_problem
 from .solve import MarquardtLM, SolveResult, dense_jvp, solve_marquardt, solve_with_history
 from .transforms import FITTABLE, default_transforms
 
@@ -1074,10 +1074,16 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     base1, base2 = base_params(scene, cfg1, dtype), base_params(scene, cfg2, dtype)
     sols1 = jax.device_get(fit_batch(one, objective, solver, starts, data, sigma, base1, anchors, **kw))
     n = int(np.shape(data)[0])
+    if fit_batch is fit_problem_loop:  # one fit after the other: one test after the other
+        tests = [_tail_test(one, _row(sols1, i).params, _row(sols1, i).linear, data[i], sigma[i], base1, anchors[i], config)
+                 for i in range(n)]
+    else:  # a batch on an accelerator: every fit's test in one vmapped call
+        tests = tail_tests(one, two_tail_problem(one, one.free), sols1.params, sols1.linear, base1, data, sigma, anchors,
+                           config.pulse_tail_threshold)
     out = []
     for i in range(n):
         sol = _row(sols1, i)
-        test = _tail_test(one, sol.params, sol.linear, data[i], sigma[i], base1, anchors[i], config)
+        test = tests[i]
         stages = [{"stage": "batch (1 tail)", "steps": int(sol.steps), "result": _result_name(sol.result)},
                   {"stage": "pulse tails", **test}]
         out.append(BatchFit(one, cfg1, sol, test, stages))
