@@ -606,7 +606,7 @@ def fit_problem_compact(
     """:func:`fit_problem_batch`'s arguments and result, the fits that have stopped dropped from the
     batch every ``options.chunk_steps`` steps (:mod:`tofjax.fit._batch`): a vmapped batch then runs
     each fit for about its own steps, not the slowest fit's. The results are the vmapped batch's
-    (the same loop body on the same state). Compiles one program per bucket size
+    (the same loop body on the same state) up to the batch-size-dependent rounding of batched kernels. Compiles one program per bucket size
     (``options.buckets(n)``) besides the start and the end. Needs :class:`MarquardtLM` (its loop
     state can be resumed); any other solver runs as :func:`fit_problem_batch`.
     ``return_stats``: also return the :class:`~tofjax.fit._batch.BatchStats` (None for another solver)."""
