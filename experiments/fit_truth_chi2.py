@@ -1,12 +1,12 @@
 """Diagnostic: is the search or the data the fit method's limit? For each frame of a saved
-``eval_mc_data.py`` run (own column) where a contact was missed, the chi-square of the fit as found
+``eval_mc_data.py`` run (``--column``, own or monte_carlo) where a contact was missed or a detection was false, the chi-square of the fit as found
 (its saved detections, refitted jointly from there) against the true contacts refitted the same way.
 
 A truth lower by more than ``n_sigma_forward^2`` (16) per contact difference says a better search exists;
 a truth no better says the data (or the threshold) decide. Rebuilds the run's frames exactly (same seeds,
 exposure, cached calibration in ``--out``). All data **simulated**.
 
-    python experiments/fit_truth_chi2.py --out out/x64_own --result out/x64_own/eval_mc_data.json
+    python experiments/fit_truth_chi2.py --out out/x64_own --result out/x64_own/eval_mc_data.json [--column own]
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ def main(argv=None):
     ap.add_argument("--out", required=True, help="the run's --out (its cached calibration)")
     ap.add_argument("--result", required=True, help="the run's eval_mc_data.json (own column)")
     ap.add_argument("--method", default="fit")
+    ap.add_argument("--column", default="own", choices=("own", "monte_carlo"))
     a = ap.parse_args(argv)
     tofjax.enable_x64()
     import eval_mc_data as ev
@@ -44,26 +45,35 @@ def main(argv=None):
     r = json.loads(Path(a.result).read_text())
     st = r["settings"]
     E, seed, nb = st["exposure"], st["seed"], st["baseline_frames"]
-    if "own" not in r["detection"]:
-        sys.exit("--result: needs an own column")
+    col = a.column
+    if col not in r["detection"]:
+        sys.exit(f"--result: has no {col} column")
     scene = ev.guided_scene()
     contacts = np.asarray(r["contacts"])
-    fpc = r["detection"]["own"]["frames_per_config"]
-    cal = Path(a.out) / (f"calibration_own_guided_{st['calib_frames']}f_{r['monte_carlo']['photons_per_sensor_per_seed']}"
-                         f"x{r['monte_carlo']['seeds_baseline']}_exposure{E:g}_own.json")
+    fpc = r["detection"][col]["frames_per_config"]
+    photons, nt = r["monte_carlo"]["photons_per_sensor_per_seed"], r["monte_carlo"]["seeds_touch"]
+    cal = Path(a.out) / (f"calibration_{col}_guided_{st['calib_frames']}f_{photons}"
+                         f"x{r['monte_carlo']['seeds_baseline']}_exposure{E:g}_"
+                         f"{ev.mc_source_hash() if col == 'monte_carlo' else 'own'}.json")
     _, js = json.loads(cal.read_text())
     optical = OpticalParams.from_calibration(dict(js, converged=True), scene)
-    b = expected_counts(scene, ev._own_model_options()) * E
+    if col == "own":
+        b = expected_counts(scene, ev._own_model_options()) * E
+        touch = [expected_counts(ev.touch_scene(scene, c), ev._own_model_options(True)) * E for c in contacts]
+    else:  # as run() builds them: the touch seeds' baseline (common random numbers)
+        b = E * np.mean([ev.mc_expected(scene, photons, k)[0] for k in range(nt)], 0)
+        touch = [E * np.mean([ev.mc_expected(ev.touch_scene(scene, c), photons, k)[0] for k in range(nt)], 0)
+                 for c in contacts]
     base = ev._capture(scene, b, nb, seed + 1000, "baseline")
-    touch = [expected_counts(ev.touch_scene(scene, c), ev._own_model_options(True)) * E for c in contacts]
     H = np.concatenate([ev._capture(scene, e, fpc, seed + 2000 + i, "touch").histograms for i, e in enumerate(touch)])
     truth = np.repeat(contacts, fpc, axis=0)
     det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(), n_baseline=nb)
-    frames = r["detection"]["own"]["methods"][a.method]["false_detections"]["frames"]
+    frames = r["detection"][col]["methods"][a.method]["false_detections"]["frames"]
     K = det.K
     rows = []
     for i, fr in enumerate(frames):
-        if not fr["missed"]:
+        false = sum(not d[3] for d in fr["detections"])
+        if not fr["missed"] and not false:
             continue
         y = (H[i].ravel() - det.base) / det.sigma
 
@@ -78,17 +88,19 @@ def main(argv=None):
 
         chi_found, n_found = refit([d[:3] for d in fr["detections"]])
         chi_truth, n_truth = refit(truth[i])
-        rows.append({"frame": i, "detections": n_found, "missed": len(fr["missed"]), "chi2_found_refitted": chi_found,
+        rows.append({"frame": i, "detections": n_found, "missed": len(fr["missed"]), "false": false,
+                     "chi2_found_refitted": chi_found,
                      "chi2_truth_refitted": chi_truth, "truth_lower_by": chi_found - chi_truth,
                      "score_difference": (chi_found + 16 * n_found) - (chi_truth + 16 * n_truth)})
         print(rows[-1], flush=True)
     out = {"study": "chi-square of the fit as found against the true contacts, both refitted (20 LM steps) from "
-                    "there, on the frames with a missed contact; simulated", "result": a.result,
+                    "there, on the frames with a missed contact or a false detection; simulated", "result": a.result,
+           "column": col, "score_what": "chi2 + 16 per contact (n_sigma_forward^2): the search's own comparison",
            "exposure": E, "dof": int(det.sigma.size), "frames": rows,
            "truth_lower_by_median": float(np.median([q["truth_lower_by"] for q in rows])) if rows else None,
            "seconds": time.perf_counter() - t0, "load_average_end": list(os.getloadavg())}
-    atomic_write_text(Path(a.out) / "fit_truth_chi2.json", json.dumps(out, indent=1), overwrite=True)
-    print(f"wrote {a.out}/fit_truth_chi2.json")
+    atomic_write_text(Path(a.out) / f"fit_truth_chi2_{col}.json", json.dumps(out, indent=1), overwrite=True)
+    print(f"wrote {a.out}/fit_truth_chi2_{col}.json")
 
 
 if __name__ == "__main__":
