@@ -229,9 +229,12 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
         if m.startswith("fit"):
             from tofjax.invert.greedy import FitDetectOptions, build_fit_detector
 
+            from tofjax.invert.sensitivity import fit_sensitivity_of
+
             if fit_det is None:  # built once; the variants share its responses and compiled model
                 fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
                                              n_baseline=baseline_frames)
+                out["sensitivity_fit"] = fit_map_summary(fit_sensitivity_of(fit_det), contacts, exposure)
             inv = fit_det if m == "fit" else fit_det.with_options(
                 dataclasses.replace(FitDetectOptions(), **fit_variants[m[4:]]))
             lv = [inv.options.n_sigma, *levels] if m == "fit" else [inv.options.n_sigma]
@@ -253,6 +256,8 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
             score["recall_border"] = float(found[border].mean()) if border.any() else float("nan")
             score["recall_interior"] = float(found[~border].mean()) if (~border).any() else float("nan")
             score["recall_by_contact_snr"] = _recall_by_snr(found, snr)
+            if name.startswith("fit"):
+                score["recall_by_map_snr"] = _recall_by_snr(found, map_snr(fit_sensitivity_of(fit_det), truth))
             score["false_detections"] = _false_kinds(res.detections, truth, cfg.match_radius_m)
             score["seconds"] = time.perf_counter() - t
             if getattr(inv, "reconstructor", None) is not None:
@@ -320,6 +325,78 @@ def _recall_by_snr(found: np.ndarray, snr: np.ndarray) -> dict:
             "missed": int(missed.size), "missed_below_5": int(np.sum(missed < 5)),
             "missed_snr_quantiles_10_50_90": np.quantile(missed, [0.1, 0.5, 0.9]).tolist() if missed.size else None,
             "recall_of_contacts_above_5": float(found[snr >= 5].mean()) if (snr >= 5).any() else None}
+
+
+def map_snr(sens, contacts: np.ndarray) -> np.ndarray:
+    """Each contact's matched-filter SNR by the fit method's sensitivity map (``sens``, strength 1, one frame of
+    the map's baseline): the map's value at the contact's cell times its strength; contacts (..., 3) flattened."""
+    c = np.asarray(contacts, float).reshape(-1, 3)
+    return c[:, 2] / sens.at(c[:, :2])["cell_noise"]
+
+
+def fit_map_summary(sens, contacts: np.ndarray, exposure: float, strengths=(0.7, 1.0)) -> dict:
+    """The fit method's sensitivity map (:func:`tofjax.invert.sensitivity.fit_sensitivity`) of a column's detection
+    baseline (at ``exposure``) in what a user asks: for the weakest and strongest contacts of the study, the
+    exposure (frames of a held contact summed, relative to one frame at exposure 1) at which a share of the sensed
+    area reaches SNR n_sigma (found half the time, alone) and 2 n_sigma (the reliable margin); and the study's own
+    contacts' map SNR against the information limit's (true optics, exact position)."""
+    from tofjax.invert.sensitivity import RELIABLE_MARGIN
+
+    ok = sens.sensed
+    snr1 = 1.0 / sens.cell_noise[ok] / np.sqrt(exposure)  # strength 1, one frame at exposure 1
+    rows = {}
+    for s in strengths:
+        for label, need in (("alone_50%", sens.n_sigma), ("margin_2", RELIABLE_MARGIN * sens.n_sigma)):
+            e = (need / (s * snr1)) ** 2  # exposure (frames summed) for this cell
+            rows[f"strength_{s:g}_{label}"] = {
+                "exposure_for_share_of_sensed_area_50_75_90_95_100": np.quantile(e, [0.5, 0.75, 0.9, 0.95, 1.0]).tolist(),
+                "share_of_sensed_area_at_this_exposure": float(np.mean(e <= exposure)),
+                **{f"share_at_exposure_{k}": float(np.mean(e <= k)) for k in (1, 4, 16, 32, 64, 128)}}
+    c = map_snr(sens, contacts)
+    border = sens.border[
+        np.clip((np.asarray(contacts)[..., 1].ravel() / sens.grid.dy).astype(int), 0, sens.grid.ny - 1),
+        np.clip((np.asarray(contacts)[..., 0].ravel() / sens.grid.dx).astype(int), 0, sens.grid.nx - 1)]
+    return {
+        "what": "the fit method's sensitivity map (tofjax.invert.sensitivity.fit_sensitivity_of: matched-filter SNR of "
+                "a lone contact per 5 mm cell, calibrated optics, this column's detection baseline); threshold "
+                f"n_sigma {sens.n_sigma:g}, reliable margin {RELIABLE_MARGIN:g} x (SNR {RELIABLE_MARGIN * sens.n_sigma:g}); "
+                "exposures are relative to one frame at the scene's exposure (1)",
+        "exposure_of_this_baseline": exposure, "sensed_cells": int(ok.sum()),
+        "by_strength": rows,
+        "study_contacts_map_snr_at_this_exposure_quantiles_10_25_50_75_90": np.quantile(c, [0.1, 0.25, 0.5, 0.75, 0.9]).tolist(),
+        "study_contacts_share_above_margin_2": float(np.mean(c >= RELIABLE_MARGIN * sens.n_sigma)),
+        "study_contacts_share_above_margin_2_border_interior": [
+            float(np.mean(c[border] >= RELIABLE_MARGIN * sens.n_sigma)) if border.any() else None,
+            float(np.mean(c[~border] >= RELIABLE_MARGIN * sens.n_sigma)) if (~border).any() else None],
+        "study_contacts_map_snr": c.tolist(),
+    }
+
+
+def predicted_recall(by_snr: dict, snr: np.ndarray, exposure: float, exposures=(16, 32, 64, 128, 256)) -> dict:
+    """Recall predicted at other exposures: each contact's map SNR scaled by ``sqrt(exposure' / exposure)``, and
+    found with the recall this result measured in that SNR bin (:func:`_recall_by_snr`; an empty bin takes the
+    next higher non-empty one's). Assumes recall depends on a contact's SNR only (not on its neighbours' SNR,
+    which grows too, nor on the model's error, which photon noise no longer hides at long exposures)."""
+    rows = by_snr["bins"]
+    rec = [r["recall"] for r in rows]
+    for i in range(len(rec) - 2, -1, -1):
+        rec[i] = rec[i + 1] if rec[i] is None else rec[i]
+    edges = np.asarray(SNR_BINS[1:-1])
+    return {"what": "recall if each contact's recall were that of its SNR bin in this result, SNR x sqrt(exposure "
+                    "ratio); a prediction, not a measurement",
+            **{f"{e:g}": float(np.mean(np.asarray(rec, float)[np.searchsorted(edges, snr * np.sqrt(e / exposure),
+                                                                            side="right")])) for e in exposures}}
+
+
+def found_from_result(score: dict, contacts: np.ndarray, frames_per_config: int) -> np.ndarray:
+    """Which true contacts (frames x 6, in order) a scored method found, from its ``false_detections`` frames
+    (their ``missed`` lists, positions rounded to 0.1 mm): a saved result checked against a map afterwards."""
+    truth = np.repeat(np.asarray(contacts), frames_per_config, axis=0)
+    found = []
+    for c, fr in zip(truth, score["false_detections"]["frames"]):
+        missed = np.asarray(fr["missed"], float).reshape(-1, 2)
+        found.append(~np.any(np.all(np.abs(np.round(c[:, None, :2], 4) - missed[None]) < 5e-5, -1), -1))
+    return np.concatenate(found)
 
 
 def information_limit(scene, baseline: np.ndarray, contacts: np.ndarray, touch_expected: list[np.ndarray],
@@ -541,6 +618,62 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     return result
 
 
+def check_map(out: Path, result_path: Path, overwrite: bool = False) -> dict:
+    """The fit method's sensitivity map of each detection column of a saved result (``result_path``, written by
+    :func:`run` into ``out``, whose cached calibrations it reuses), rebuilt from the same baseline frames (same
+    Monte Carlo seeds, exposure and photon-noise seed) without compiling the fit's model, and the result's recall
+    by the map's per-contact SNR (from its ``false_detections`` frames): does the map predict what was found?
+    Writes ``out/sensitivity_check.json``."""
+    from tofjax.invert.correction import OpticalParams
+    from tofjax.invert.sensitivity import fit_sensitivity
+    from tofjax.outputs import atomic_write_text, check_output
+    from tofjax.simulate import expected_counts
+
+    path = check_output(out / "sensitivity_check.json", overwrite=overwrite)
+    r = json.loads(Path(result_path).read_text())
+    st, mc = r["settings"], r["monte_carlo"]
+    E, photons, nb, nt = st["exposure"], mc["photons_per_sensor_per_seed"], mc["seeds_baseline"], mc["seeds_touch"]
+    scene = guided_scene()
+    contacts = np.asarray(r["contacts"])
+    result = {"study": "the fit method's sensitivity map against a saved six-contact result (issue 14); simulated",
+              "result": str(result_path), "exposure": E, "load_average_start": list(os.getloadavg()), "columns": {}}
+    for col, score in r["detection"].items():
+        if col == "own":
+            b = expected_counts(scene, _own_model_options()) * E
+        else:
+            b = E * np.mean([mc_expected(scene, photons, k)[0] for k in range(nt)], 0)
+        cal = out / (f"calibration_{col}_guided_{st['calib_frames']}f_{photons}x{nb}"
+                     f"_exposure{E:g}_{mc_source_hash() if col == 'monte_carlo' else 'own'}.json")
+        if cal.exists():
+            _, js = json.loads(cal.read_text())
+        else:  # calibrated as run() does (and cached the same way)
+            if col == "own":
+                exp, var = b, None
+            else:
+                seeds = np.stack([mc_expected(scene, photons, k)[0] for k in range(nb)])
+                exp, var = E * seeds.mean(0), E**2 * seeds.var(0, ddof=1) / nb
+            fig, js = calibrate_column(scene, exp, var, st["calib_frames"], st["seed"], "guided", f"simulated ({col})")
+            atomic_write_text(cal, json.dumps([fig, js]), overwrite=True)
+        optical = OpticalParams.from_calibration(dict(js, converged=True), scene)
+        base = _capture(scene, b, st["baseline_frames"], st["seed"] + 1000, "baseline")
+        t = time.perf_counter()
+        sens = fit_sensitivity(scene, base.mean(), optical, n_baseline=st["baseline_frames"])
+        c = {"map_seconds": time.perf_counter() - t,
+             "sensitivity_fit": fit_map_summary(sens, contacts, E), "methods": {}}
+        snr = map_snr(sens, np.repeat(contacts, score["frames_per_config"], axis=0))
+        for m, sc in score["methods"].items():
+            if "false_detections" in sc:
+                found = found_from_result(sc, contacts, score["frames_per_config"])
+                by = _recall_by_snr(found, snr)
+                c["methods"][m] = {"recall": float(found.mean()), "recall_in_result": sc["recall"],
+                                   "recall_by_map_snr": by,
+                                   "predicted_recall_at_exposure": predicted_recall(by, snr, E)}
+        result["columns"][col] = c
+    result["load_average_end"] = list(os.getloadavg())
+    atomic_write_text(path, json.dumps(result, indent=1))
+    return result
+
+
 def main(argv=None):
     import tofjax
 
@@ -568,6 +701,10 @@ def main(argv=None):
                          "detectors; minutes of Monte Carlo on a loaded machine)")
     ap.add_argument("--columns", default="own,monte_carlo",
                     help="detection columns, comma-separated: own, monte_carlo (both calibrated either way)")
+    ap.add_argument("--check-map", metavar="RESULT_JSON",
+                    help="only the fit method's sensitivity map of each detection column of a saved result (run with "
+                         "the same --out: its cached calibrations) and that result's recall by the map's SNR; writes "
+                         "OUT/sensitivity_check.json")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
@@ -592,6 +729,13 @@ def main(argv=None):
     if not cols or set(cols) - {"own", "monte_carlo"}:
         ap.error(f"--columns: own and/or monte_carlo, got {a.columns!r}")
     tofjax.enable_x64()
+    if a.check_map:
+        r = check_map(Path(a.out), Path(a.check_map), overwrite=a.overwrite)
+        for col, c in r["columns"].items():
+            for m, v in c["methods"].items():
+                print(col, m, json.dumps([(b["snr_from"], b["contacts"], b["recall"]) for b in v["recall_by_map_snr"]["bins"]]))
+        print(f"wrote {a.out}/sensitivity_check.json")
+        return
     if a.generate:
         generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
         return

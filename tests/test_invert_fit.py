@@ -230,3 +230,51 @@ def test_fast_pair_split_replaces_a_bound_ghost_by_the_pair_it_stands_for(stand_
     assert chi_p < 5.0, chi_p
     with pytest.raises(ConfigError, match="pair_candidates"):
         FitDetectOptions(pair_candidates=0)
+
+
+def test_fast_fit_sensitivity_map_is_the_fit_threshold(stand_in):
+    """The fit method's sensitivity map (``fit_sensitivity``): its per-cell noise is the matched filter's of the
+    detector's own responses (built without compiling the fit's model: the same values), it grows as the
+    photon noise (the stand-in's response is fixed: 4x the baseline, 2x the noise in strength units), the SNR as
+    sqrt(frames), and it is the fit's threshold: a noise-free lone contact at 1.15 x the map's minimum strength
+    is found, at 0.85 x it is not (n_sigma 6, overdispersion off)."""
+    from tofjax.invert.sensitivity import SensitivityOptions, fit_sensitivity, fit_sensitivity_of
+
+    sc, base, optical = stand_in
+    K = 2
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=K, iterations=4, overdispersion=False, relocate=False,
+                            rebirth=False, split=False)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=10**9)
+    sens = fit_sensitivity_of(det)
+    lib = fit_sensitivity(sc, base, optical, fit=opts, n_baseline=10**9)
+    np.testing.assert_allclose(lib.cell_noise[lib.sensed], sens.cell_noise[sens.sensed], rtol=1e-9)
+    assert sens.method == "fit" and (sens.threshold_snr[sens.sensed] == 6.0).all()
+    x4 = fit_sensitivity(sc, 4 * base, optical, SensitivityOptions(frames=3), fit=opts, n_baseline=10**9)
+    np.testing.assert_allclose(x4.cell_noise[x4.sensed], 2.0 * sens.cell_noise[sens.sensed], rtol=1e-9)
+    np.testing.assert_allclose(x4.snr[x4.sensed], np.sqrt(3) / x4.cell_noise[x4.sensed], rtol=1e-12)
+    # the cell of (0.08, 0.06) (inside, seen), its centre exactly: a contact there alone
+    j = int(np.argmin(np.hypot(*(det.centres - [0.08, 0.06]).T)))
+    xy = det.centres[j]
+    s_min = float(sens.at(xy)["min_strength"])
+    one = _stand_in_change(sc, 1)
+    found = []
+    for f in (1.15, 0.85):
+        frame = base + np.asarray(one(jnp.asarray([*xy, f * s_min]))).reshape(sc.shape)
+        found.append(len(det.process(frame[None]).detections[0].touches))
+    assert 0 < s_min < 0.8 and found == [1, 0], (s_min, found)
+
+
+def test_fast_fit_sensitivity_rejects_what_it_would_ignore(stand_in):
+    from tofjax.invert.reconstruct import ReconstructOptions
+    from tofjax.invert.sensitivity import SensitivityOptions, fit_sensitivity
+
+    sc, base, optical = stand_in
+    fit = FitDetectOptions(cell_m=0.02)
+    with pytest.raises(ConfigError, match="response: the fit method"):
+        fit_sensitivity(sc, base, optical, SensitivityOptions(response="added"), fit)
+    with pytest.raises(ConfigError, match="reconstruct"):
+        fit_sensitivity(sc, base, optical, SensitivityOptions(reconstruct=ReconstructOptions(tau=2.0)), fit)
+    with pytest.raises(InversionError, match="guided"):
+        fit_sensitivity(sc, base, dataclasses.replace(optical, optics="default"), fit=fit)
+    with pytest.raises(ConfigError, match="baseline"):
+        fit_sensitivity(sc, base[:2], optical, fit=fit)

@@ -192,3 +192,16 @@ def test_cli_bad_input_is_one_line(files, extra, message, capsys):
     err = capsys.readouterr().err.strip()
     assert rc != 0 and message in err and "\n" not in err and "Traceback" not in err
     assert not (files / "bad" / "sensitivity.json").exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    ([], "guided optics"),  # no calibration: the scene's (default) optics, which the fit method cannot use
+    (["--contact-response", "added"], "signed contact response"),
+])
+def test_cli_fit_method_needs_guided_optics_one_line(files, extra, message, capsys):
+    """``--method fit`` (the contact fit's map) refuses the default optics in one line, before any model is built."""
+    rc = main(["sensitivity", str(files / "small.toml"), "--baseline", str(files / "base.h5"), "--method", "fit",
+               "--out", str(files / "badfit"), *extra])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert rc != 0 and message in err and "Traceback" not in err
+    assert not (files / "badfit" / "sensitivity.json").exists()

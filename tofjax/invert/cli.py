@@ -268,14 +268,14 @@ def _common(s):
 
 
 def _cmd_sensitivity(a) -> int:
-    """``tofjax sensitivity``: where a contact of ``--strength`` is detectable (model method), JSON and PNG."""
+    """``tofjax sensitivity``: where a contact of ``--strength`` is detectable (model or fit method), JSON and PNG."""
     from ..capture import read_capture
     from ..outputs import atomic_write_text
     from ..scene import load_scene
     from .correction import check_compatible
     from .pipeline import load_optics
     from .plots import plot_sensitivity
-    from .sensitivity import SensitivityOptions, sensitivity
+    from .sensitivity import SensitivityOptions, fit_sensitivity, sensitivity
 
     changes = {"n_sigma": a.n_sigma, "response": a.contact_response}
     options = SensitivityOptions(strength=a.strength, frames=a.frames, **{k: v for k, v in changes.items() if v is not None})
@@ -287,9 +287,13 @@ def _cmd_sensitivity(a) -> int:
     with _printed_warnings(a.command):
         optical = load_optics(scene, a.calibration, allow_unconverged=a.allow_unconverged_calibration,
                               allow_other_scene=a.allow_other_scene_calibration)
-    print(f"tofjax {a.command}: building the model-based reconstruction's noise (the forward model's response at "
-          "every cell; tens of seconds) ...", file=sys.stderr, flush=True)
-    res = sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
+    what = "model-based reconstruction's" if a.method == "model" else "contact fit's"
+    print(f"tofjax {a.command}: building the {what} noise (the forward model's response at every cell; tens of "
+          "seconds) ...", file=sys.stderr, flush=True)
+    if a.method == "fit":
+        res = fit_sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
+    else:
+        res = sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
     out = Path(a.out)
     data = res.to_json()
     data["inputs"] = {"scene": str(a.scene), "baseline": str(a.baseline), "baseline_frames": base.n_frames,
@@ -325,12 +329,14 @@ def register(sub) -> None:
 
     s = sub.add_parser(
         "sensitivity",
-        help="where on the skin a contact is detectable (model method): minimum strength per cell, SNR, frames needed",
+        help="where on the skin a contact is detectable (model or fit method): minimum strength per cell, SNR, "
+        "frames needed",
         description="Sensitivity map of the model-based detection (`detect --method model`): per grid cell the "
         "smallest strength of a lone contact detected in one frame half the time (the lasso's shrinkage plus "
         "--n-sigma times the noise of the summed strength, from the baseline's photon noise), the matched-filter "
         "SNR of a contact of --strength, and the frames to sum for it to be detected. Among several contacts "
-        "nearly all are found only with a 2x margin (simulated study). Writes OUT/sensitivity.json and "
+        "nearly all are found only with a 2x margin (simulated study). --method fit: the contact fit's map (guided "
+        "optics, signed contact response; threshold --n-sigma 6 in matched-filter SNR). Writes OUT/sensitivity.json and "
         "OUT/sensitivity.png. See docs/inversion.md, 'Sensitivity map'.",
     )
     s.add_argument("scene", help="scene TOML file, or a built-in name (its contacts are ignored)")
@@ -338,8 +344,13 @@ def register(sub) -> None:
     _optics_arguments(s)
     s.add_argument("--strength", type=float, default=1.0,
                    help="contact strength of interest, in the units detect reports (default 1.0)")
+    s.add_argument("--method", choices=("model", "fit"), default="model",
+                   help="the detection method the map is for: 'model' (grid reconstruction, default) or 'fit' "
+                   "(contacts fitted directly; needs a guided-optics calibration; threshold: a lone contact's "
+                   "matched-filter SNR above --n-sigma)")
     s.add_argument("--n-sigma", type=float,
-                   help="model method's threshold on the summed strength in its noise (default: detect's, 1)")
+                   help="the threshold in noise units: the model method's on the summed strength (default: detect's, "
+                   "1), the fit method's on a contact's chi-square drop, sqrt (default 6)")
     s.add_argument("--frames", type=int, default=1,
                    help="frames summed, the baseline on the same exposure (default 1); the JSON also gives the "
                    "frames needed per cell")

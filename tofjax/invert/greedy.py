@@ -56,7 +56,7 @@ from .correction import InversionError, OpticalParams
 from .detect import Detection
 from .maps import Grid
 
-__all__ = ["FitDetectOptions", "FitDetector", "build_fit_detector"]
+__all__ = ["FitDetectOptions", "FitDetector", "ProposalResponses", "build_fit_detector", "proposal_responses"]
 
 
 @dataclass(frozen=True)
@@ -180,33 +180,62 @@ class FitResult:
                            for i, d in enumerate(self.detections or [])]}
 
 
+@dataclass(frozen=True)
+class ProposalResponses:
+    """The fit method's proposal grid and each cell's unit contact response in noise units (see
+    :func:`proposal_responses`): ``bounds`` (2, 2) [m] where contact centres may lie, ``grid`` the scene's grid of
+    ``cell_m``, ``cells`` the flat indices of its cells inside ``bounds``, ``centres`` (n, 2) [m] theirs,
+    ``sigma`` (S*Z*B,) the noise of a frame minus the baseline, ``A`` (n, S*Z*B) the signed response of a
+    strength-1 contact at each centre over ``sigma``, ``gdiag`` (n,) ``sum(A^2)``: the squared matched-filter
+    SNR of a strength-1 contact alone at the cell in one frame (what a contact there lowers the chi-square by)."""
+
+    bounds: np.ndarray
+    grid: Grid
+    cells: np.ndarray
+    centres: np.ndarray
+    sigma: np.ndarray
+    A: np.ndarray
+    gdiag: np.ndarray
+
+
+def proposal_responses(scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: FitDetectOptions,
+                       n_baseline: int) -> ProposalResponses:
+    """The fit method's proposal grid and responses (no compiled model: the part of :class:`FitDetector` that
+    the sensitivity map, :func:`tofjax.invert.sensitivity.fit_sensitivity`, needs). ``baseline`` (S, Z, B) is the
+    mean of ``n_baseline`` frames; a frame's noise is ``sqrt(max(B, 1) (1 + 1/n_baseline))``."""
+    from .reconstruct import response_matrix
+
+    o = options
+    lx, ly = scene.waveguide.size_m
+    bounds = np.array([[o.edge_margin_m, lx - o.edge_margin_m], [o.edge_margin_m, ly - o.edge_margin_m]])
+    grid = Grid.for_scene(scene, o.cell_m)
+    c = grid.centres().reshape(-1, 2)
+    inside = ((c[:, 0] >= bounds[0, 0]) & (c[:, 0] <= bounds[0, 1]) & (c[:, 1] >= bounds[1, 0])
+              & (c[:, 1] <= bounds[1, 1]))
+    cells = np.flatnonzero(inside)
+    centres = c[cells]
+    base = np.asarray(baseline, float)
+    sigma = np.sqrt(np.maximum(base, 1.0) * (1.0 + 1.0 / n_baseline)).ravel()
+    R = response_matrix(scene, optical, centres, o.contact_radius_m, signed=True)  # (K, S, Z, B)
+    A = R.reshape(len(centres), -1) / sigma[None]
+    return ProposalResponses(bounds, grid, cells, centres, sigma, A, np.sum(A**2, 1))
+
+
 class FitDetector:
     """Precomputed fit detector of one scene, baseline and calibration (see :func:`build_fit_detector`)."""
 
     def __init__(self, scene: Scene, baseline: np.ndarray, optical: OpticalParams, options: FitDetectOptions,
                  n_baseline: int):
-        from .reconstruct import response_matrix
-
         if optical.optics != "guided":
             raise InversionError("--method fit needs a calibration with the guided optics (skin contacts); "
                                  f"this one has {optical.optics!r}")
         self.scene, self.options, self.optical = scene, options, optical
         o = options
-        lx, ly = scene.waveguide.size_m
-        self.bounds = np.array([[o.edge_margin_m, lx - o.edge_margin_m], [o.edge_margin_m, ly - o.edge_margin_m]])
-        self.grid = Grid.for_scene(scene, o.cell_m)
-        c = self.grid.centres().reshape(-1, 2)
-        inside = ((c[:, 0] >= self.bounds[0, 0]) & (c[:, 0] <= self.bounds[0, 1]) & (c[:, 1] >= self.bounds[1, 0])
-                  & (c[:, 1] <= self.bounds[1, 1]))
-        self.cells = np.flatnonzero(inside)
-        self.centres = c[self.cells]
-        base = np.asarray(baseline, float)
-        self.sigma = np.sqrt(np.maximum(base, 1.0) * (1.0 + 1.0 / n_baseline)).ravel()
-        self.base = base.ravel()
-        R = response_matrix(scene, optical, self.centres, o.contact_radius_m, signed=True)  # (K, S, Z, B)
-        A = R.reshape(len(self.centres), -1) / self.sigma[None]
-        self._A = A.astype(np.float32)
-        self._gdiag = np.sum(A**2, 1)
+        p = proposal_responses(scene, baseline, optical, options, n_baseline)
+        self.bounds, self.grid, self.cells, self.centres, self.sigma = p.bounds, p.grid, p.cells, p.centres, p.sigma
+        self.base = np.asarray(baseline, float).ravel()
+        self._A = p.A.astype(np.float32)
+        self._gdiag = p.gdiag
         K = o.max_contacts
         change, dtype = _contact_change(scene, optical, K, o.contact_radius_m)
         sig = jnp.asarray(self.sigma, dtype)

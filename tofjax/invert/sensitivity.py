@@ -29,6 +29,16 @@ contact alone. ``docs/inversion.md`` ("Sensitivity map") gives how well it predi
 sum of as many): signal and Poisson variance both grow ``frames`` times, so every noise in
 strength units shrinks by ``sqrt(frames)``, the SNR grows by it, and a contact of strength ``s``
 needs ``(s_min / s)^2`` frames (rounded up).
+
+**The fit method** (:func:`fit_sensitivity`, :mod:`tofjax.invert.greedy`, guided optics, the skin contact's
+signed response: the light it adds and the light it shadows). The fit keeps a contact that lowers the
+chi-square by more than ``n_sigma^2``; a contact of strength ``s`` alone at a known cell lowers it by
+``(s / sigma_k)^2`` (``sigma_k``: the matched filter's strength noise, on the fit's own proposal grid), with no
+shrinkage, so ``s_min(k) = n_sigma * sigma_k`` and the threshold is ``n_sigma`` (6) in SNR units everywhere.
+Among six contacts at unknown positions a contact needs about twice that (SNR 12: found at 99-100% in
+the simulated six-contact study on Monte Carlo data at 16x exposure, SNR 8-12 at 61-68%): the same
+``RELIABLE_MARGIN``. The fit's overdispersion correction (drops divided by the reduced chi-square when the model
+misses the data) raises the threshold on data the model does not describe; the map assumes it does.
 """
 
 from __future__ import annotations
@@ -44,12 +54,22 @@ from .correction import OpticalParams
 from .maps import Grid
 from .reconstruct import RESPONSES, ReconstructOptions, Reconstructor, build_reconstructor
 
-__all__ = ["RELIABLE_MARGIN", "SensitivityOptions", "SensitivityResult", "sensitivity", "sensitivity_of"]
+__all__ = ["RELIABLE_MARGIN", "SensitivityOptions", "SensitivityResult", "fit_sensitivity", "fit_sensitivity_of",
+           "sensitivity", "sensitivity_of"]
 
 #: strength / min_strength above which the simulated six-contact study at mu_s + mu_a = 4 /m found 96-97%
 #: of the contacts (``docs/results/sensitivity_vs_recall.json``); ``min_strength`` itself is a 50% point
 #: for a contact alone, lower still among several contacts. Summaries and the figure show both.
 RELIABLE_MARGIN = 2.0
+#: For the fit method (``min_strength`` = n_sigma matched-filter noise) the same margin is SNR 12 at n_sigma 6.
+
+_MARGIN_WHAT = {
+    "model": "strength >= 2 x min_strength: the margin above which the six-contact study at 4 /m found 96-97% of the "
+             "contacts (docs/inversion.md, 'Sensitivity map')",
+    "fit": "strength >= 2 x min_strength (matched-filter SNR >= 2 n_sigma, 12): where the fit method found 99-100% of "
+           "the contacts in the simulated six-contact study on Monte Carlo data at 16x (docs/inversion.md, "
+           "'Sensitivity map')",
+}
 
 
 @dataclass(frozen=True)
@@ -120,6 +140,7 @@ class SensitivityResult:
     threshold_snr: np.ndarray
     snr: np.ndarray
     frames_needed: np.ndarray
+    method: str = "model"
 
     @property
     def sensed(self) -> np.ndarray:
@@ -166,8 +187,7 @@ class SensitivityResult:
             "detectable_one_frame": {"all": share(one, sensed), "border": share(one, sensed & border),
                                      "interior": share(one, sensed & ~border)},
             "detectable_one_frame_with_margin_2": {
-                "what": "strength >= 2 x min_strength: the margin above which the six-contact study at 4 /m found "
-                        "96-97% of the contacts (docs/inversion.md, 'Sensitivity map')",
+                "what": _MARGIN_WHAT[self.method],
                 "all": share(sure, sensed), "border": share(sure, sensed & border),
                 "interior": share(sure, sensed & ~border)},
             "detectable_with_frames": {"frames": self.options.frames, "all": share(many, sensed),
@@ -191,10 +211,10 @@ class SensitivityResult:
         o = self.options
         return {
             "format": "tofjax.sensitivity", "version": 1,
-            "what": "model method's detectability per cell (one contact alone, known position; Poisson noise of "
-                    "the baseline); see docs/inversion.md, 'Sensitivity map'",
+            "what": f"{self.method} method's detectability per cell (one contact alone, known position; Poisson noise "
+                    "of the baseline); see docs/inversion.md, 'Sensitivity map'",
             "scene": self.scene.name,
-            "options": {"strength": o.strength, "frames": o.frames, "n_sigma": self.n_sigma, "tau": self.tau,
+            "options": {"method": self.method, "strength": o.strength, "frames": o.frames, "n_sigma": self.n_sigma, "tau": self.tau,
                         "response": self.response, "border_m": o.border_m, "cell_m": self.grid.dx},
             "summary": self.summary(),
             "grid": {"nx": self.grid.nx, "ny": self.grid.ny, "dx_m": self.grid.dx, "dy_m": self.grid.dy,
@@ -257,3 +277,79 @@ def sensitivity(
     optical = OpticalParams.from_scene(scene) if optical is None else optical
     rec = build_reconstructor(scene.without_touches(), b, optical, options.reconstruct_options(), n_baseline=n_baseline)
     return sensitivity_of(rec, options)
+
+
+def _fit_map(grid: Grid, cells: np.ndarray, gdiag: np.ndarray, scene: Scene, options: SensitivityOptions,
+             n_sigma: float) -> SensitivityResult:
+    """The fit method's map from its proposal grid: ``gdiag`` (per cell in ``cells``) is the squared
+    matched-filter SNR of a strength-1 contact alone in one frame; cells outside ``cells`` are never sensed."""
+    sig = np.full(grid.ny * grid.nx, np.inf)
+    g = np.asarray(gdiag, float)
+    sig[cells] = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), np.inf)  # double where: no 1/0
+    sig = sig.reshape(grid.ny, grid.nx)
+    sensed = np.isfinite(sig)
+    with np.errstate(invalid="ignore"):
+        s_min = np.where(sensed, n_sigma * sig, np.inf)
+        snr = np.where(sensed, options.strength * math.sqrt(options.frames) / sig, 0.0)
+        need = np.where(sensed, np.ceil((s_min / options.strength) ** 2 * (1.0 - 1e-12)), np.inf)
+    return SensitivityResult(
+        grid=grid, scene=scene, options=options, tau=0.0, n_sigma=n_sigma, response="signed", cell_noise=sig,
+        noise=sig, shrinkage=np.where(sensed, 0.0, np.inf), min_strength=s_min,
+        threshold_snr=np.where(sensed, n_sigma, np.inf), snr=snr, frames_needed=np.maximum(need, 1.0), method="fit")
+
+
+def _check_fit_options(options: SensitivityOptions) -> None:
+    if options.response not in ("auto", "signed"):
+        raise ConfigError(f"response: the fit method fits the signed contact response, got {options.response!r}")
+    if options.reconstruct != ReconstructOptions():
+        raise ConfigError("reconstruct: the fit method has no reconstruction options (leave them at their defaults)")
+
+
+def fit_sensitivity_of(detector, options: SensitivityOptions = SensitivityOptions()) -> SensitivityResult:
+    """The fit method's sensitivity map of a built :class:`tofjax.invert.greedy.FitDetector` (its proposal grid,
+    responses and noise; ``options.n_sigma``, when given, replaces its ``n_sigma``). See the module docstring."""
+    _check_fit_options(options)
+    n_sigma = detector.options.n_sigma if options.n_sigma is None else float(options.n_sigma)
+    return _fit_map(detector.grid, detector.cells, detector._gdiag, detector.scene, options, n_sigma)
+
+
+def fit_sensitivity(
+    scene: Scene,
+    baseline: np.ndarray,
+    optical: OpticalParams | None = None,
+    options: SensitivityOptions = SensitivityOptions(),
+    fit=None,
+    *,
+    n_baseline: int = 1,
+) -> SensitivityResult:
+    """The fit method's (``detect --method fit``) sensitivity map of ``scene`` (its contacts are ignored),
+    without compiling the fit's model (the responses on its proposal grid only).
+
+    **Arguments:**
+
+    - ``scene``, ``baseline`` (S, Z, B) mean no-touch histograms, ``n_baseline`` frames averaged into it.
+    - ``optical``: calibrated optics; must be the guided optics (default: the scene's, as guided optics).
+    - ``options``: :class:`SensitivityOptions` (``response`` auto or signed; ``reconstruct`` left at its defaults).
+    - ``fit``: the fit method's :class:`tofjax.invert.greedy.FitDetectOptions` (grid, contact radius, edge
+      margin, ``n_sigma``; default its defaults).
+
+    **Returns:** a :class:`SensitivityResult` on the fit's proposal grid (``method`` "fit")."""
+    import dataclasses
+
+    from .correction import InversionError
+    from .greedy import FitDetectOptions, proposal_responses
+
+    _check_fit_options(options)
+    fit = FitDetectOptions() if fit is None else fit
+    b = np.asarray(baseline, float)
+    if b.shape != scene.shape:
+        raise ConfigError(f"baseline: histograms have shape {b.shape} (sensors, zones, bins), the scene {scene.shape}")
+    if optical is None:
+        optical = dataclasses.replace(OpticalParams.from_scene(scene), optics="guided")
+    if optical.optics != "guided":
+        raise InversionError("the fit method's map needs a calibration with the guided optics (skin contacts); "
+                             f"this one has {optical.optics!r}")
+    sc = scene.without_touches()
+    p = proposal_responses(sc, b, optical, fit, n_baseline)
+    n_sigma = fit.n_sigma if options.n_sigma is None else float(options.n_sigma)
+    return _fit_map(p.grid, p.cells, p.gdiag, sc, options, n_sigma)
