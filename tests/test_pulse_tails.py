@@ -30,8 +30,8 @@ def auto_fits(scene, captures):
 
 
 def test_pulse_tails_values(tmp_path):
-    assert FitConfig().pulse_tails == "auto"
-    assert {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(FitConfig().free)
+    assert FitConfig().pulse_tails == 2  # not the default: see docs/calibration.md, "Pulse tails: one or two"
+    assert {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(FitConfig(pulse_tails="auto").free)
     for bad in (0, 3, "two", "Auto", True, 2.0, None):
         with pytest.raises(ConfigError, match=r"^pulse_tails: must be 1, 2 or \"auto\", got") as e:
             FitConfig(pulse_tails=bad)
