@@ -38,6 +38,8 @@ def test_pulse_tails_values(tmp_path):
         assert "\n" not in str(e.value)
     with pytest.raises(ConfigError, match="pulse_tails = \"auto\" chooses"):
         FitConfig(pulse_tails="auto", free=("n1", "mu_s_per_m", "pulse_tail_s"))
+    with pytest.raises(ConfigError, match="free: 'colour' cannot be fitted"):  # the free list's own errors first
+        FitConfig(pulse_tails="auto", free=("n1", "colour"))
     with pytest.raises(ConfigError, match="pulse_tail_threshold"):
         FitConfig(pulse_tail_threshold=0.0)
     for text, want in (('pulse_tails = "auto"', "auto"), ("pulse_tails = 1", 1), ("pulse_tails = 2", 2)):

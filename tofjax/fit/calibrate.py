@@ -301,9 +301,6 @@ class FitConfig:
             object.__setattr__(self, "free", tuple(k for k in DEFAULT_FREE if k not in drop))
         elif self.pulse_tails == 1 and any(k in SLOW_TAIL for k in self.free):
             raise ConfigError("free: pulse_slow_weight and pulse_slow_tail_s need pulse_tails = 2")
-        elif self.pulse_tails == "auto" and not all(k in self.free for k in SLOW_TAIL):
-            raise ConfigError('free: pulse_tails = "auto" chooses whether to fit pulse_slow_weight and pulse_slow_tail_s: '
-                              "list both, or set pulse_tails = 1")
         elif self.optics == "guided" and any(k in NOT_GUIDED for k in self.free):
             raise ConfigError("free: near_field_shape is a parameter of the default optics only (optics = 'guided' has no near-field shape)")
         if self.solver not in SOLVERS:
@@ -339,6 +336,9 @@ class FitConfig:
                 "free: at least one of n1, mu_s_per_m, mu_a_per_m, the pulse, the emission time or the "
                 "reflectances must be free (gain, ambient and crosstalk alone are a linear solve, not a fit)"
             )
+        if self.pulse_tails == "auto" and not all(k in self.free for k in SLOW_TAIL):
+            raise ConfigError('free: pulse_tails = "auto" chooses whether to fit pulse_slow_weight and pulse_slow_tail_s: '
+                              "list both, or set pulse_tails = 1")
 
     def make_solver(self):
         """The optimistix solver object the ``solver`` string names."""
