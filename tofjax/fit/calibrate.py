@@ -206,7 +206,7 @@ class FitConfig:
       0, or both tails equal) and fits crawl (docs/calibration.md, "Straggler fits"). The
       result says which model was chosen and why (``pulse_tails``, ``pulse_tail_test``).
       Not the default: where the data do have a slow tail (every real SPAD measured so far) the
-      one-tail fit that comes first crawls to its step limit (200 steps, then 18-54 two-tail
+      one-tail fit that comes first crawls to its step limit (200 steps, then 15-71 two-tail
       steps, against 6-53 for ``pulse_tails = 2`` alone; docs/calibration.md).
     - ``pulse_tail_threshold``: ``"auto"``'s threshold on the one-sided score statistic z of
       the slow tail's share (the largest over slow/fast time-constant ratios 2, 4 and 8);
