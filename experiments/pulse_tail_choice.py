@@ -220,7 +220,9 @@ def main(argv=None) -> int:
     path = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
     if a.merge:
         parts = [json.loads(Path(f).read_text()) if f.endswith(".json") else from_log(Path(f)) for f in a.merge]
-        runs = {q["data"]: q["runs"] for q in parts}
+        runs: dict = {}
+        for q in parts:  # parts of one data set (e.g. its configs run in two processes) are joined
+            runs.setdefault(q["data"], {}).update(q["runs"])
         merged = {"what": "FitConfig.pulse_tails = 'auto' against 1 and 2: warm Calibrator.fit per baseline (issue 13, straggler fits)",
                   "simulated": True, "parts": [{k: v for k, v in q.items() if k != "runs"} for q in parts],
                   "summary": {d: {t: r["summary"] for t, r in by.items()} for d, by in runs.items()},

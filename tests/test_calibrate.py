@@ -261,13 +261,13 @@ def test_a_refused_fit_is_restarted_from_other_starts(fitted, small):
 
 
 def test_two_tail_defaults_and_one_tail_config():
-    """Calibration chooses the pulse tails by default ("auto", tests/test_pulse_tails.py) and
-    lists the slow-tail parameters; pulse_tails = 2 fits them; pulse_tails = 1 drops them from
-    the default free set and refuses them when listed."""
+    """Calibration fits two pulse tails and a per-zone edge by default ("auto" chooses:
+    tests/test_pulse_tails.py); pulse_tails = 1 drops the slow-tail parameters from the default
+    free set and refuses them when listed."""
     cfg = FitConfig()
-    assert cfg.pulse_tails == "auto" and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(cfg.free)
-    two = FitConfig(pulse_tails=2)
-    assert two.pulse_tails == 2 and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(two.free)
+    assert cfg.pulse_tails == 2 and {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(cfg.free)
+    auto = FitConfig(pulse_tails="auto")
+    assert {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(auto.free)
     one = FitConfig(pulse_tails=1)
     assert not {"pulse_slow_weight", "pulse_slow_tail_s"} & set(one.free)
     with pytest.raises(ConfigError, match="pulse_tails = 2"):

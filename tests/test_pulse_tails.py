@@ -30,14 +30,16 @@ def auto_fits(scene, captures):
 
 
 def test_pulse_tails_values(tmp_path):
-    assert FitConfig().pulse_tails == "auto"
-    assert {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(FitConfig().free)
+    assert FitConfig().pulse_tails == 2  # not the default: see docs/calibration.md, "Pulse tails: one or two"
+    assert {"pulse_slow_weight", "pulse_slow_tail_s"} <= set(FitConfig(pulse_tails="auto").free)
     for bad in (0, 3, "two", "Auto", True, 2.0, None):
         with pytest.raises(ConfigError, match=r"^pulse_tails: must be 1, 2 or \"auto\", got") as e:
             FitConfig(pulse_tails=bad)
         assert "\n" not in str(e.value)
     with pytest.raises(ConfigError, match="pulse_tails = \"auto\" chooses"):
         FitConfig(pulse_tails="auto", free=("n1", "mu_s_per_m", "pulse_tail_s"))
+    with pytest.raises(ConfigError, match="free: 'colour' cannot be fitted"):  # the free list's own errors first
+        FitConfig(pulse_tails="auto", free=("n1", "colour"))
     with pytest.raises(ConfigError, match="pulse_tail_threshold"):
         FitConfig(pulse_tail_threshold=0.0)
     for text, want in (('pulse_tails = "auto"', "auto"), ("pulse_tails = 1", 1), ("pulse_tails = 2", 2)):
@@ -106,10 +108,17 @@ def test_auto_batch_equals_the_loop(scene, captures):
     assert [b.pulse_tails for b in batch] == [o.pulse_tails for o in loop] == [1, 2]
     for b, o in zip(batch, loop):
         assert b.result == o.result == "successful"
-        assert b.pulse_tail_test["z"] == pytest.approx(o.pulse_tail_test["z"], rel=1e-6)
+        # on the slow-tail capture the one-tail stage crawls to its step limit (docs/calibration.md):
+        # there the vmapped and the looped fit end at points of the flat valley a rounding apart,
+        # and z differs by about 1e-3 (measured: 47.09 and 47.04); a converged stage agrees to 1e-6
+        converged = b.stages[0]["result"] == "successful"
+        assert b.pulse_tail_test["z"] == pytest.approx(o.pulse_tail_test["z"], rel=1e-6 if converged else 1e-2)
         for k in ("n1", "mu_s_per_m", "mu_a_per_m"):
-            assert float(b.values[k]) == pytest.approx(float(o.values[k]), rel=1e-6)
-            assert float(b.stderr[k]) == pytest.approx(float(o.stderr[k]), rel=1e-4)
+            if converged:
+                assert float(b.values[k]) == pytest.approx(float(o.values[k]), rel=1e-6)
+            else:  # the same optimum from starts a rounding apart: far inside its error
+                assert abs(float(b.values[k]) - float(o.values[k])) < 0.05 * float(o.stderr[k])
+            assert float(b.stderr[k]) == pytest.approx(float(o.stderr[k]), rel=1e-4 if converged else 1e-2)
 
 
 def test_explicit_tails_are_kept(scene, captures):

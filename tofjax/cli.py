@@ -382,8 +382,8 @@ def build_parser(extensions: bool = True) -> argparse.ArgumentParser:
                    help="forward model optics (default: the config's, else 'default'); stored in the JSON, "
                         "and detect/process use the same")
     s.add_argument("--pulse-tails", choices=("1", "2", "auto"), default=None,
-                   help="pulse tails to fit (default: the config's, else 'auto': a second, slow tail only where "
-                        "a score test at the one-tail fit supports it)")
+                   help="pulse tails to fit (default: the config's, else 2); auto: one tail, and a second, slow tail "
+                        "only where a score test at the one-tail fit supports it")
     s.set_defaults(func=_cmd_calibrate)
 
     s = sub.add_parser("scene", help="validate a scene file and show what the model will include")

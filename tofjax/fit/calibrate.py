@@ -199,7 +199,7 @@ class FitConfig:
       chi-squares around the timing estimate (default); False: the timing start alone.
     - ``restarts``: further starts (the envelope's other basins first, then its next best
       points) when the fit fails or ends on a bound.
-    - ``pulse_tails``: ``"auto"`` (default), 1 or 2. 2: the pulse has a second, slower tail
+    - ``pulse_tails``: 2 (default), 1 or ``"auto"``. 2: the pulse has a second, slower tail
       whose share and time constant are fitted (``pulse_slow_weight``, ``pulse_slow_tail_s``):
       a real SPAD's response is not one exponentially modified Gaussian, and on data tofjax did
       not make a one-tail pulse leaves a reduced chi-square of 20-46. 1: one tail (the slow-tail
@@ -209,6 +209,9 @@ class FitConfig:
       ``pulse_tail_threshold``). Where they are absent the two-tail optimum is singular (share
       0, or both tails equal) and fits crawl (docs/calibration.md, "Straggler fits"). The
       result says which model was chosen and why (``pulse_tails``, ``pulse_tail_test``).
+      Not the default: where the data do have a slow tail (every real SPAD measured so far) the
+      one-tail fit that comes first crawls to its step limit (200 steps, then 15-71 two-tail
+      steps, against 6-53 for ``pulse_tails = 2`` alone; docs/calibration.md).
     - ``pulse_tail_threshold``: ``"auto"``'s threshold on the one-sided score statistic z of
       the slow tail's share (the largest over slow/fast time-constant ratios 2, 4 and 8);
       default 4 (false alarms on tail-less data below 3 x 3.2e-5 by Bonferroni; a slow tail of
@@ -278,7 +281,7 @@ class FitConfig:
     quadrature: int = 2
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
-    pulse_tails: int | str = "auto"
+    pulse_tails: int | str = 2
     pulse_tail_threshold: float = 4.0
     basin_check_chi2: float = 1.5
     optics: str = "default"
@@ -302,9 +305,6 @@ class FitConfig:
             object.__setattr__(self, "free", tuple(k for k in DEFAULT_FREE if k not in drop))
         elif self.pulse_tails == 1 and any(k in SLOW_TAIL for k in self.free):
             raise ConfigError("free: pulse_slow_weight and pulse_slow_tail_s need pulse_tails = 2")
-        elif self.pulse_tails == "auto" and not all(k in self.free for k in SLOW_TAIL):
-            raise ConfigError('free: pulse_tails = "auto" chooses whether to fit pulse_slow_weight and pulse_slow_tail_s: '
-                              "list both, or set pulse_tails = 1")
         elif self.optics == "guided" and any(k in NOT_GUIDED for k in self.free):
             raise ConfigError("free: near_field_shape is a parameter of the default optics only (optics = 'guided' has no near-field shape)")
         if self.solver not in SOLVERS:
@@ -340,6 +340,9 @@ class FitConfig:
                 "free: at least one of n1, mu_s_per_m, mu_a_per_m, the pulse, the emission time or the "
                 "reflectances must be free (gain, ambient and crosstalk alone are a linear solve, not a fit)"
             )
+        if self.pulse_tails == "auto" and not all(k in self.free for k in SLOW_TAIL):
+            raise ConfigError('free: pulse_tails = "auto" chooses whether to fit pulse_slow_weight and pulse_slow_tail_s: '
+                              "list both, or set pulse_tails = 1")
 
     def make_solver(self):
         """The optimistix solver object the ``solver`` string names."""
