@@ -57,7 +57,6 @@ def worker(a) -> dict:
     from tofjax.fit._start import envelope_candidates, timing_start
     from tofjax.fit.calibrate import Calibrator, _anchor, _data
     from tofjax.scene import load_scene
-    from tofjax.simulate import simulate
 
     from tofjax.fit.calibrate import FitConfig
 
@@ -71,7 +70,7 @@ def worker(a) -> dict:
     out: dict = {"solver": type(solver).__name__, "jax": jax.__version__, "backend": jax.default_backend(),
                  "device_kind": jax.devices()[0].device_kind}
 
-    caps = [("own", simulate(scene, a.frames, seed=1000 + i)) for i in range(a.captures)]
+    caps = [("own", simulated(a, scene, 1000 + i)) for i in range(a.captures)]
     if a.indep:
         sys.path.insert(0, str(ROOT / "tests"))
         from indep_sim import IndepRig
@@ -264,9 +263,22 @@ def batch_auto(a, cal, scene, objective, solver, dtype) -> dict:
 
 
 def simulate_first(a, scene):
+    return simulated(a, scene, 1000)
+
+
+def simulated(a, scene, seed):
+    """One baseline of ``scene``, with ``--slow-tail W`` a second, slow pulse tail of share W at 4x
+    the fast time constant (what a real SPAD has and the default scene does not state)."""
+    import numpy as np
+
+    from tofjax.model import ModelOptions, Params
     from tofjax.simulate import simulate
 
-    return simulate(scene, a.frames, seed=1000)
+    if not a.slow_tail:
+        return simulate(scene, a.frames, seed=seed)
+    truth = Params.from_scene(scene, np.float64)
+    truth = truth.replace(pulse_slow_weight=np.asarray(a.slow_tail), pulse_slow_tail_s=np.asarray(4.0 * float(truth.pulse_tail_s)))
+    return simulate(scene, a.frames, seed=seed, options=ModelOptions(pulse_tails=2), params=truth)
 
 
 def compact_batch(a, pb, objective, solver, starts, D, G, base, A, nocov, vmapped, separate_mean_s) -> dict:
@@ -314,9 +326,10 @@ def batch_data(a, scene, dtype):
     import numpy as np
 
     from tofjax.fit.calibrate import _data
-    from tofjax.simulate import simulate
 
     key = {"scene": a.scene, "frames": a.frames, "batch": a.batch, "seed0": 2000}
+    if a.slow_tail:
+        key["slow_tail"] = a.slow_tail
     path = Path(a.batch_data) if a.batch_data else None
     if path is not None and path.exists():
         with np.load(path) as z:
@@ -325,7 +338,7 @@ def batch_data(a, scene, dtype):
                 _progress(f"batch: data read from {path}")
                 return jnp.asarray(z["mean"], dtype), jnp.asarray(z["sigma"], dtype)
         _progress(f"batch: {path} holds {stored}, not {key}: simulating")
-    pairs = [_data(simulate(scene, a.frames, seed=2000 + i), dtype) for i in range(a.batch)]
+    pairs = [_data(simulated(a, scene, 2000 + i), dtype) for i in range(a.batch)]
     D = jnp.stack([p[0] for p in pairs])
     G = jnp.stack([p[1] for p in pairs])
     if path is not None:
@@ -483,6 +496,8 @@ def main(argv=None) -> int:
     p.add_argument("--pulse-tails", choices=("1", "2", "auto"), default="2",
                    help="FitConfig.pulse_tails of the worker (default 2, what earlier runs measured); auto: the batch "
                         "runs the auto rule (fit_batch_tails) and records steps per stage")
+    p.add_argument("--slow-tail", type=float, default=0.0,
+                   help="simulate every baseline with a slow pulse tail of this share (4x the fast time constant; default 0: none)")
     p.add_argument("--simulate-batch-only", action="store_true",
                    help="with --batch-data: only simulate the batch's data and write the file (no fits)")
     p.add_argument("--reference", action="store_true", help="also a tight refit of every capture (slow)")
@@ -496,6 +511,8 @@ def main(argv=None) -> int:
                    help="instead: compare two calib_independent.json of the same slice; writes fit_bench_study_slice.json")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if not 0.0 <= a.slow_tail < 0.5:
+        p.error(f"--slow-tail: a share in [0, 0.5), got {a.slow_tail}")
     if a.compare_study:
         from tofjax.outputs import atomic_write_text
 
@@ -529,7 +546,7 @@ def main(argv=None) -> int:
                    "--scene", a.scene, "--frames", str(a.frames), "--captures", str(a.captures),
                    "--repeats", str(a.repeats), "--batch", str(a.batch), "--separate", str(a.separate), "--batch-mode", a.batch_mode,
                    *(["--batch-data", str(Path(a.batch_data).resolve())] if a.batch_data else []),
-                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep), "--pulse-tails", a.pulse_tails] \
+                   "--reference-steps", str(a.reference_steps), "--indep", str(a.indep), "--pulse-tails", a.pulse_tails, "--slow-tail", str(a.slow_tail)] \
                 + (["--reference"] if a.reference and name == "this" else []) + (["--no-compile"] if a.no_compile else []) \
                 + (["--no-stages"] if a.no_stages else []) \
                 + (["--lambda-trials", *map(str, a.lambda_trials)] if a.lambda_trials else [])
