@@ -5,8 +5,9 @@ value and gradient over the corners of the grid (mu_s, mu_a in {0, 1e-3, 1e3} /m
 {1.0001, 1.4, 3.5}, 1e9 counts, bin 0, tiny and huge pulses, contacts at a sensor and the
 far corner, float32 and float64). This module adds what that does not cover:
 
-* the forward model and its gradient along whole decades of mu_s and mu_a (0 to 1e3 /m) and
-  of n1 (1.0001 to 3.5), built from *scenes* (validation included), in float32 and float64;
+* the forward model along whole decades of mu_s and mu_a (0 to 1e3 /m) and of n1 (1.0001 to
+  3.5), built from *scenes* (validation included), in float32 and float64 (its gradient along the
+  same decades is in tests/test_model.py's sweep: one compiled value-and-gradient for both);
 * simulated captures from 0 to 1e9 counts per bin (photon noise, saturation);
 * calibration fits on a small scene at a few extreme truths: finite results, never NaN;
 * the Monte Carlo reference at the extremes (scattering and absorption to 1e3 /m, n1 to 3.5,
@@ -56,22 +57,23 @@ def edge_contacts(scene):
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_forward_and_gradient_over_decades(optoskin, dtype):
+def test_forward_over_decades(optoskin, dtype):
+    """The forward model without pile-up (the default) along whole decades of mu_s and mu_a and of
+    n1, from scenes: finite and never below zero by more than rounding. Its gradient over the same
+    decades is checked in tests/test_model.py::test_no_nan_or_inf_at_the_extremes (with pile-up: the
+    same program plus its last step), where one compiled value-and-gradient serves both sweeps
+    (here it compiled a second one per dtype: about 20 s of CPU each)."""
     scene = optoskin.replace(touches=edge_contacts(optoskin))
     opts = ModelOptions(dtype=dtype)
     model = build_model(scene, opts)
-    vg = jax.jit(jax.value_and_grad(lambda p: jnp.sum(jnp.log1p(jnp.maximum(model(p), 0.0)))))
     for mu_s in DECADES:
         for mu_a in DECADES:
             for n1 in (INDICES[0], INDICES[-1]) if mu_s in (0.0, 1e3) else (1.4,):
                 s = with_waveguide(scene, mu_s_per_m=mu_s, mu_a_per_m=mu_a, n1=n1)  # scene validation accepts it
-                p = Params.from_scene(s, opts.jnp_dtype)
-                val, grad = vg(p)
-                assert finite(val) and finite(grad), (mu_s, mu_a, n1, dtype)
-    fwd = jax.jit(lambda p: model(p))
+                y = np.asarray(model(Params.from_scene(s, opts.jnp_dtype)))  # compiled once (model.__call__)
+                assert np.isfinite(y).all() and y.min() > -1e-3 * max(y.max(), 1.0), (mu_s, mu_a, n1, dtype)
     for n1 in INDICES:
-        p = Params.from_scene(with_waveguide(scene, n1=n1), opts.jnp_dtype)
-        y = np.asarray(fwd(p))
+        y = np.asarray(model(Params.from_scene(with_waveguide(scene, n1=n1), opts.jnp_dtype)))
         assert np.isfinite(y).all() and y.min() > -1e-3 * y.max(), n1
 
 
@@ -83,7 +85,7 @@ def test_simulated_counts_from_zero_to_1e9(optoskin):
     from tofjax.model import sample_counts
 
     model = build_model(optoskin)
-    fwd = jax.jit(lambda p: model(p))
+    fwd = model  # compiled (model.__call__); the same program as the next test's
     base = Params.from_scene(optoskin)
     for gain in (0.0, 1e-6, 150.0, 1e9):
         lam = fwd(base.replace(gain=np.full(6, gain), crosstalk_counts=np.full((6, 7), 20 * gain),
@@ -100,7 +102,7 @@ def test_simulated_counts_from_zero_to_1e9(optoskin):
 def test_bin_zero_emission_and_pulse_widths(optoskin):
     """Light entering in bin 0, pulses of 1 fs and of 50 ns, through the simulator (one model, jitted once)."""
     model = build_model(optoskin)
-    fwd = jax.jit(lambda p: model(p))
+    fwd = model  # compiled (model.__call__), as in the previous test
     base = Params.from_scene(optoskin)
     for kw in ({"emission_time_s": 0.0}, {"pulse_sigma_s": 1e-15, "pulse_tail_s": 1e-15},
                {"pulse_sigma_s": 5e-9, "pulse_tail_s": 5e-8}):

@@ -65,9 +65,10 @@ def test_beer_lambert_touch(optoskin, mu_t, d):
     scene = strip_scene(optoskin, mu_s=0.0, mu_a=0.0, fov=20.0)
     scene = scene.replace(touches=(Touch(position_m=(0.15, d), radius_m=0.002, strength=1.0),))
     model, p0 = run(scene, components=("touch",))
-    f = jax.jit(lambda p: model(p).sum())
-    clear = float(f(p0))
-    lossy = float(f(p0.replace(mu_a_per_m=mu_t)))
+    # model(p) is compiled with the model as an argument: one program for every example (a jitted
+    # closure over each example's model compiled afresh per example)
+    clear = float(model(p0).sum())
+    lossy = float(model(p0.replace(mu_a_per_m=mu_t)).sum())
     # the disk spans d +- r, so compare with the chord-averaged transmittance
     r = 0.002
     u = np.cos(np.arange(1, 6) * np.pi / 6)
@@ -215,8 +216,12 @@ def test_gradients_match_central_differences(optoskin):
     def loss(params):
         return jnp.sum(weights * model(params))
 
-    loss = jax.jit(loss)
-    grad = jax.jit(jax.grad(loss))(p)
+    # two compiled programs: value and gradient (reverse mode; its value serves the differences)
+    # and forward mode (a separately jitted loss was a third, about 8 s of CPU)
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    jvp_of = jax.jit(lambda q, t: jax.jvp(loss, (q,), (t,))[1])
+    loss0, grad = value_and_grad(p)
+    scale = abs(float(loss0))
     rng = np.random.default_rng(0)
     names = [f.name for f in dataclasses.fields(p)]
     checked = 0
@@ -227,14 +232,14 @@ def test_gradients_match_central_differences(optoskin):
         along_grad = float(np.sum(np.asarray(getattr(grad, name)) * direction))
         tangent = jax.tree_util.tree_map(jnp.zeros_like, p)
         tangent = eqx.tree_at(lambda t: getattr(t, name), tangent, jnp.asarray(direction))
-        _, jvp = jax.jvp(loss, (p,), (tangent,))
+        jvp = jvp_of(p, tangent)
         eps = 1e-6
-        plus = float(loss(p.replace(**{name: value + eps * direction})))
-        minus = float(loss(p.replace(**{name: value - eps * direction})))
+        plus = float(value_and_grad(p.replace(**{name: value + eps * direction}))[0])
+        minus = float(value_and_grad(p.replace(**{name: value - eps * direction}))[0])
         fd = (plus - minus) / (2 * eps)
-        tol = dict(rel=2e-4, abs=1e-6 * abs(float(loss(p))))
+        tol = dict(rel=2e-4, abs=1e-6 * scale)
         assert along_grad == pytest.approx(fd, **tol), name
-        assert float(jvp) == pytest.approx(along_grad, rel=1e-9, abs=1e-9 * abs(float(loss(p)))), name
+        assert float(jvp) == pytest.approx(along_grad, rel=1e-9, abs=1e-9 * scale), name
         checked += 1
     assert checked == len(names) >= 20
 
@@ -242,12 +247,20 @@ def test_gradients_match_central_differences(optoskin):
 # ---- extremes ----------------------------------------------------------------------------
 
 GRID = [(mu_s, mu_a, n1) for mu_s in (0.0, 1e-3, 1e3) for mu_a in (0.0, 1e-3, 1e3) for n1 in (1.0001, 1.4, 3.5)]
+# whole decades of mu_s and mu_a (n1 at its extremes where scattering is 0 or 1e3 /m), built from scenes
+# (validation included): tests/test_extremes.py's sweep, here so one compiled value-and-gradient serves both
+DECADES = (0.0, 1e-2, 1.0, 1e2, 1e3)
+DECADE_GRID = [(mu_s, mu_a, n1) for mu_s in DECADES for mu_a in DECADES
+               for n1 in ((1.0001, 3.5) if mu_s in (0.0, 1e3) else (1.4,))]
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_no_nan_or_inf_at_the_extremes(optoskin, dtype):
     """Value and gradient stay finite over mu_s, mu_a in {0, 1e-3, 1e3} /m, n1 in {1.0001, 1.4, 3.5},
-    counts up to 1e9, emission at bin 0, tiny and huge pulses, contacts at a sensor and at the far edge."""
+    whole decades of mu_s and mu_a from 0 to 1e3 /m (scenes the scene validation accepts), counts
+    up to 1e9, emission at bin 0, tiny and huge pulses, contacts at a sensor and at the far edge.
+    With pile-up: the model without it is the same program up to its last step, so a NaN there
+    reaches this value and gradient too."""
     s0 = optoskin.sensors[0].position_m
     scene = optoskin.replace(
         touches=(
@@ -269,6 +282,9 @@ def test_no_nan_or_inf_at_the_extremes(optoskin, dtype):
         return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
 
     variants = [base.replace(mu_s_per_m=a, mu_a_per_m=b, n1=c) for a, b, c in GRID]
+    variants += [Params.from_scene(scene.replace(waveguide=dataclasses.replace(scene.waveguide, mu_s_per_m=a, mu_a_per_m=b, n1=c)),
+                                   opts.jnp_dtype) for a, b, c in DECADE_GRID]
+    labels = GRID + DECADE_GRID
     variants += [
         base.replace(gain=np.full(6, 1e9 * 0.01), crosstalk_counts=np.full((6, 7), 1e9)),  # ~1e9 counts
         base.replace(emission_time_s=0.0),  # light enters in bin 0
@@ -279,7 +295,7 @@ def test_no_nan_or_inf_at_the_extremes(optoskin, dtype):
     ]
     for i, v in enumerate(variants):
         val, grad = value_and_grad(v)
-        assert finite(val) and finite(grad), f"variant {i}: {GRID[i] if i < len(GRID) else ''}"
+        assert finite(val) and finite(grad), f"variant {i}: {labels[i] if i < len(labels) else ''}"
         y = np.asarray(model(v))
         assert np.isfinite(y).all() and (y >= -1e-3 * max(1.0, np.abs(y).max())).all()
 
