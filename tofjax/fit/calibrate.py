@@ -444,19 +444,26 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
     return base
 
 
-def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
-    names = problem.nonlinear
-    if problem.linear:
-        p0, _, _, _ = problem.profile(start, data, sigma)
-    else:
-        p0 = start
-    u0 = problem.pack_jax(p0, names)
-    prior = problem.pack_jax(prior_params, names)
+def _fit_inputs(problem, start, data, sigma, prior_params, anchor):
+    """``(f0, unravel, args)`` of one fit: the profiled start flattened, its unravel, and the
+    objective's ``args = (p0, data, sigma, prior)`` (the prior holds the timing anchor)."""
+    p0 = problem.profile(start, data, sigma)[0] if problem.linear else start
+    u0 = problem.pack_jax(p0, problem.nonlinear)
+    prior = problem.pack_jax(prior_params, problem.nonlinear)
     prior["n1_anchor"] = anchor
     f0, unravel = jax.flatten_util.ravel_pytree(u0)
-    args = (p0, data, sigma, prior)
-    # the deviance loss is chi-square per bin: the same tolerance in its units
-    tol = 2.0 * loss_tol / data.size if objective.minimise else loss_tol
+    return f0, unravel, (p0, data, sigma, prior)
+
+
+def _solver_loss_tol(objective, loss_tol, n_data):
+    """``loss_tol`` in the objective's units: the deviance loss is chi-square per bin."""
+    return 2.0 * loss_tol / n_data if objective.minimise else loss_tol
+
+
+def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov):
+    f0, unravel, args = _fit_inputs(problem, start, data, sigma, prior_params, anchor)
+    p0 = args[0]
+    tol = _solver_loss_tol(objective, loss_tol, data.size)
 
     def flat(f, a):
         return objective(problem, unravel(f), a)
@@ -586,10 +593,8 @@ def _prepare_batch(problem, starts, data, sigma, prior_params, anchors):
     """:func:`_fit`'s start (profiled) and arguments, for every fit of a batch."""
 
     def one(s, d, g, a):
-        p0 = problem.profile(s, d, g)[0] if problem.linear else s
-        prior = problem.pack_jax(prior_params, problem.nonlinear)
-        prior["n1_anchor"] = a
-        return jax.flatten_util.ravel_pytree(problem.pack_jax(p0, problem.nonlinear))[0], (p0, d, g, prior)
+        f0, _, args = _fit_inputs(problem, s, d, g, prior_params, a)
+        return f0, args
 
     return jax.vmap(one)(starts, data, sigma, anchors)
 
@@ -617,7 +622,7 @@ def fit_problem_compact(
         sol = fit_problem_batch(problem, objective, solver, starts, data, sigma, prior_params, anchors, max_steps=max_steps,
                                 loss_tol=loss_tol, gn_first=gn_first, with_cov=with_cov)
         return (sol, None) if return_stats else sol
-    tol = 2.0 * loss_tol / data[0].size if objective.minimise else loss_tol
+    tol = _solver_loss_tol(objective, loss_tol, data[0].size)
     f0, args = _prepare_batch(problem, starts, data, sigma, prior_params, anchors)
     out, stats = solve_marquardt_compact(_FlatResiduals(problem, objective), solver, f0, args, max_steps=max_steps, loss_tol=tol,
                                          options=options)
@@ -1060,9 +1065,10 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     (:func:`fit_problem_batch`'s signature; :func:`fit_problem_loop` on a CPU).
 
     With ``"auto"``: one tail for every fit (``starts`` are one-tail starts; ``problem`` is
-    :func:`build_problem`'s two-tail problem), the score test per fit at its end point (the same
-    host-side call whatever ran the batch, so a loop and a vmapped batch choose alike), then one
-    batch of two-tail fits for the fits that need them, each started from its one-tail end point.
+    :func:`build_problem`'s two-tail problem), the score test per fit at its end point (one call
+    per fit after :func:`fit_problem_loop`, as :func:`calibrate` makes it; every fit's in one
+    vmapped call after any other batch function), then one batch of two-tail fits for the fits
+    that need them, each started from its one-tail end point.
     Otherwise one batch of ``problem``. Returns one :class:`BatchFit` per fit (``with_cov``: with
     the Laplace pieces; the test computes its own)."""
     kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=with_cov)
@@ -1077,12 +1083,13 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     base1, base2 = base_params(scene, cfg1, dtype), base_params(scene, cfg2, dtype)
     sols1 = jax.device_get(fit_batch(one, objective, solver, starts, data, sigma, base1, anchors, **kw))
     n = int(np.shape(data)[0])
+    scored = two_tail_problem(one, one.free)
+    thr = config.pulse_tail_threshold
     if fit_batch is fit_problem_loop:  # one fit after the other: one test after the other
-        tests = [_tail_test(one, _row(sols1, i).params, _row(sols1, i).linear, data[i], sigma[i], base1, anchors[i], config)
-                 for i in range(n)]
+        tests = [tail_test(one, scored, r.params, r.linear, base1, data[i], sigma[i], anchors[i], thr)
+                 for i, r in ((i, _row(sols1, i)) for i in range(n))]
     else:  # a batch on an accelerator: every fit's test in one vmapped call
-        tests = tail_tests(one, two_tail_problem(one, one.free), sols1.params, sols1.linear, base1, data, sigma, anchors,
-                           config.pulse_tail_threshold)
+        tests = tail_tests(one, scored, sols1.params, sols1.linear, base1, data, sigma, anchors, thr)
     out = []
     for i in range(n):
         sol = _row(sols1, i)
