@@ -242,15 +242,24 @@ def sensitivity_of(reconstructor: Reconstructor, options: SensitivityOptions = S
     with np.errstate(invalid="ignore", divide="ignore"):
         s_min = np.where(sensed, shrink + n_sigma * N, np.inf)
         thr = np.where(sensed, s_min / sig, np.inf)
-        snr = np.where(sensed, options.strength * math.sqrt(options.frames) / sig, 0.0)
-        # rounded up; a ratio within 1e-12 of an integer (rounding error) counts as that integer
-        need = np.where(sensed, np.ceil((s_min / options.strength) ** 2 * (1.0 - 1e-12)), np.inf)
+    snr, need = _snr_and_frames(sensed, sig, s_min, options)
     return SensitivityResult(
         grid=reconstructor.grid, scene=reconstructor.scene, options=options, tau=float(ro.tau), n_sigma=n_sigma,
         response=reconstructor.response, cell_noise=sig, noise=N, shrinkage=np.where(sensed, shrink, np.inf),
         min_strength=s_min, threshold_snr=thr, snr=snr,
-        frames_needed=np.maximum(need, 1.0),
+        frames_needed=need,
     )
+
+
+def _snr_and_frames(sensed, sig, s_min, options: SensitivityOptions):
+    """Per cell the SNR of ``options.strength`` summed over ``options.frames`` (strength noise ``sig``
+    shrinks by sqrt(frames)) and the frames a contact of that strength needs to reach ``s_min``:
+    ``(s_min / strength)^2``, rounded up, at least 1 (unsensed cells: SNR 0, frames inf)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        snr = np.where(sensed, options.strength * math.sqrt(options.frames) / sig, 0.0)
+        # rounded up; a ratio within 1e-12 of an integer (rounding error) counts as that integer
+        need = np.where(sensed, np.ceil((s_min / options.strength) ** 2 * (1.0 - 1e-12)), np.inf)
+    return snr, np.maximum(need, 1.0)
 
 
 def sensitivity(
@@ -290,12 +299,11 @@ def _fit_map(grid: Grid, cells: np.ndarray, gdiag: np.ndarray, scene: Scene, opt
     sensed = np.isfinite(sig)
     with np.errstate(invalid="ignore"):
         s_min = np.where(sensed, n_sigma * sig, np.inf)
-        snr = np.where(sensed, options.strength * math.sqrt(options.frames) / sig, 0.0)
-        need = np.where(sensed, np.ceil((s_min / options.strength) ** 2 * (1.0 - 1e-12)), np.inf)
+    snr, need = _snr_and_frames(sensed, sig, s_min, options)
     return SensitivityResult(
         grid=grid, scene=scene, options=options, tau=0.0, n_sigma=n_sigma, response="signed", cell_noise=sig,
         noise=sig, shrinkage=np.where(sensed, 0.0, np.inf), min_strength=s_min,
-        threshold_snr=np.where(sensed, n_sigma, np.inf), snr=snr, frames_needed=np.maximum(need, 1.0), method="fit")
+        threshold_snr=np.where(sensed, n_sigma, np.inf), snr=snr, frames_needed=need, method="fit")
 
 
 def _check_fit_options(options: SensitivityOptions) -> None:
