@@ -9,7 +9,12 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
+from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+
 jax.config.update("jax_enable_x64", True)
+# The CPU compiler the CLI uses (XLA's elemental emitters: most of the suite is compilation),
+# set before any test starts JAX's backend.
+use_fast_cpu_compiler()
 # Many tests compile the same model or fit again (each CLI call builds afresh): a
 # compilation cache shared by the session turns those into cache hits.
 _cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")

@@ -252,3 +252,31 @@ def test_core_command_parser_is_the_full_parsers():
     assert a == b
     sub = next(x for x in core._actions if hasattr(x, "choices") and isinstance(x.choices, dict))
     assert set(sub.choices) == set(_CORE)
+
+
+def test_fast_cpu_compiler_flag_respects_the_user_and_the_backend():
+    """The emitter flag is added to $XLA_FLAGS beside the user's flags, never against an explicit
+    choice of the same option or $TOFJAX_CPU_EMITTER=fusion, and never once JAX's backend runs
+    (too late to matter: XLA read its flags when it started)."""
+    import jax.numpy as jnp
+
+    from tofjax.compile_cache import FAST_CPU_FLAG, use_fast_cpu_compiler
+
+    jnp.zeros(1).block_until_ready()  # the backend runs in this test process
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert use_fast_cpu_compiler(env) is False and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
+    from jax._src import xla_bridge
+
+    real = xla_bridge.backends_are_initialized
+    xla_bridge.backends_are_initialized = lambda: False
+    try:
+        env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+        assert use_fast_cpu_compiler(env) is True
+        assert env["XLA_FLAGS"] == f"--xla_force_host_platform_device_count=2 {FAST_CPU_FLAG}"
+        assert use_fast_cpu_compiler(env) is False  # already there: added once
+        mine = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
+        assert use_fast_cpu_compiler(mine) is False and mine["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+        default = {"TOFJAX_CPU_EMITTER": "fusion"}
+        assert use_fast_cpu_compiler(default) is False and "XLA_FLAGS" not in default
+    finally:
+        xla_bridge.backends_are_initialized = real
