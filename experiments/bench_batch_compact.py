@@ -87,6 +87,8 @@ def main(argv=None) -> int:
     os.environ.setdefault("TOFJAX_PROGRAM_STORE", "0")
     import jax
 
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
     import numpy as np

@@ -51,6 +51,8 @@ def _flat(values: dict) -> dict:
 def worker(a) -> dict:
     import jax
 
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
@@ -526,6 +528,8 @@ def main(argv=None) -> int:
             p.error("--simulate-batch-only needs --batch-data FILE")
         import jax
 
+        from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+        use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
         jax.config.update("jax_enable_x64", True)
         from tofjax.scene import load_scene
 

@@ -44,6 +44,8 @@ def _scene(name: str):
 def worker(a) -> dict:
     import jax
 
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 

@@ -99,6 +99,8 @@ def main(argv=None):
     ap.add_argument("--scene", default="optoskin", help="scene file or built-in name (default optoskin)")
     ap.add_argument("--repeats", type=int, default=200)
     args = ap.parse_args(argv)
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     tofjax.enable_x64()
     scene = load_scene(args.scene)
     out = Path(args.out)

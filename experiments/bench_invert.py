@@ -130,6 +130,8 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--repeats", type=int, default=30)
     a = ap.parse_args(argv)
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     tofjax.enable_x64()  # float64 reference; the timed pipeline is float32
     r = run(Path(a.out), a.resolution_mm / 1000.0, a.batch, a.repeats)
     print(json.dumps({k: v for k, v in r.items() if k not in ("targets",)}, indent=1))

@@ -101,6 +101,8 @@ def main(argv=None) -> int:
         atomic_write_text(out_path, json.dumps(out, indent=1) + "\n", overwrite=a.overwrite)
         print(out["ns_per_element"], f"wrote {out_path}")
         return 0
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     enable_x64()  # for the float64 cases (every case names its dtype)
     from tofjax.mc import MCOptions, run_mc
     from tofjax.mc.slab import SlabOptions, run_slab

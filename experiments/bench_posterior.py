@@ -412,6 +412,8 @@ def main(argv=None):
         check_output(Path(a.out), overwrite=a.overwrite)
         collect(a.collect, Path(a.out), a.note)
         return
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     tofjax.enable_x64()
     from tofjax.compile_cache import enable_compilation_cache
 

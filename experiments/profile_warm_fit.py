@@ -58,6 +58,8 @@ def main(argv=None) -> int:
 
     from tofjax import enable_x64
 
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     enable_x64()
     from tofjax.fit import Calibrator, FitConfig
     from tofjax.outputs import atomic_write_text

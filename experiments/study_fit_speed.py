@@ -499,6 +499,8 @@ def main(argv=None) -> None:
     p.add_argument("--config", default="configs/studies/fit_speed.toml")
     p.add_argument("--out", default="out/fit_speed")
     a = p.parse_args(argv)
+    from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
+    use_fast_cpu_compiler()  # the CLI's CPU compiler (before JAX's backend starts)
     tofjax.enable_x64()
     r = run(load_config(a.config), Path(a.out))
     print(markdown(r))
