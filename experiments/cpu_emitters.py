@@ -13,8 +13,14 @@ scene, a **simulated** 100-frame baseline (seed 1000):
 * ``calibration_warm_s``: the median of ``--warm`` more fits of the same capture;
 * ``model_compile_s`` / ``model_warm_s``: ``jit(value_and_grad(sum(model(p)^2)))`` compiled
   (trace, lower, compile) and its median warm call;
+* ``posterior_gradient_s``: one value and gradient of the calibration's posterior log-density
+  (a NUTS leapfrog step; :func:`tofjax.fit.posterior.log_density`), median of 20 warm calls;
 * ``mc_events_per_s``: the Monte Carlo's packet-events per second (default scene, next-event
-  estimation, float32, 10,000 photons per sensor; median of three runs after one to compile);
+  estimation, float32, 10,000 photons per sensor; median of three runs after one to compile).
+  Its transport program asks for the fusion emitters itself (``tofjax/mc/transport.py``,
+  ``_compiler_options``: 2.2x faster there), so from that change on both columns run it alike;
+  ``docs/results/cpu_emitters_before_mc_override.json`` has the run before it (5.4e6 against
+  2.5e6 packet-events/s);
 * ``n1``, ``mu_t``, ``steps``: the fit's answer, to show the emitters agree.
 
 Wall seconds, medians over the rounds, and the per-round ratios (fusion / elemental).
@@ -36,7 +42,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {"fusion": "--xla_cpu_use_fusion_emitters=true", "elemental": "--xla_cpu_use_fusion_emitters=false"}
-MEASURES = ("calibration_cold_s", "calibration_warm_s", "model_compile_s", "model_warm_s", "mc_events_per_s")
+MEASURES = ("calibration_cold_s", "calibration_warm_s", "model_compile_s", "model_warm_s", "posterior_gradient_s",
+            "mc_events_per_s")
 
 
 def worker(warm: int) -> dict:
@@ -79,12 +86,23 @@ def worker(warm: int) -> dict:
         t = time.perf_counter()
         jax.block_until_ready(compiled(p))
         m_times.append(time.perf_counter() - t)
+    from tofjax.fit.posterior import log_density
+
+    ld = log_density(cal, cap, res)
+    vg = jax.jit(jax.value_and_grad(ld.fn))
+    f0 = jnp.asarray(ld.flat0)
+    jax.block_until_ready(vg(f0))
+    g_times = []
+    for _ in range(20):
+        t = time.perf_counter()
+        jax.block_until_ready(vg(f0))
+        g_times.append(time.perf_counter() - t)
     from tofjax.mc import MCOptions, run_mc
 
     run_mc(scene, MCOptions(photons=10_000))  # compile; then the median rate of three runs
     mc_rate = statistics.median(run_mc(scene, MCOptions(photons=10_000, seed=s)).events_per_second for s in range(3))
     return {
-        "mc_events_per_s": mc_rate,
+        "mc_events_per_s": mc_rate, "posterior_gradient_s": statistics.median(g_times),
         "calibration_cold_s": cold, "calibration_warm_s": statistics.median(times),
         "model_compile_s": m_compile, "model_warm_s": statistics.median(m_times),
         "n1": float(res.params.n1), "mu_t": float(np.asarray(res.params.mu_s_per_m) + np.asarray(res.params.mu_a_per_m)), "steps": int(res.steps),
@@ -123,7 +141,7 @@ def main(argv=None) -> int:
             runs[v].append(rec)
             print(f"round {r + 1} {v:9s} cold {rec['calibration_cold_s']:6.2f} s  warm {rec['calibration_warm_s'] * 1e3:6.0f} ms  "
                   f"model compile {rec['model_compile_s']:5.2f} s  warm {rec['model_warm_s'] * 1e3:6.2f} ms  "
-                  f"MC {rec['mc_events_per_s']:.3g} ev/s  n1 {rec['n1']:.9f} ({rec['steps']} steps)  load {load:.1f}", flush=True)
+                  f"posterior grad {rec['posterior_gradient_s'] * 1e3:5.2f} ms  MC {rec['mc_events_per_s']:.3g} ev/s  n1 {rec['n1']:.9f} ({rec['steps']} steps)  load {load:.1f}", flush=True)
     med = {v: {m: statistics.median(x[m] for x in runs[v]) for m in MEASURES} for v in VARIANTS}
     ratios = {m: [f[m] / e[m] for f, e in zip(runs["fusion"], runs["elemental"])] for m in MEASURES}
     n1_diff = max(abs(f["n1"] - e["n1"]) for f, e in zip(runs["fusion"], runs["elemental"]))

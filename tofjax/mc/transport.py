@@ -1014,6 +1014,16 @@ def _lanes(q: int) -> int:
     return max(q // div, min(q, floor))
 
 
+def _compiler_options(mesh: Mesh) -> dict | None:
+    """XLA's fusion emitters for the transport on a CPU, whatever ``$XLA_FLAGS`` chose for the
+    rest (:func:`tofjax.compile_cache.use_fast_cpu_compiler` turns them off: the calibration
+    compiles 1.4x faster without them, but this loop of transcendental-heavy kernels runs
+    2.2x slower, ``experiments/cpu_emitters.py``)."""
+    if mesh.devices.flat[0].platform != "cpu":
+        return None
+    return {"xla_cpu_use_fusion_emitters": True}
+
+
 def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):
     """Compiled ``shard_map``: (per_call, n_batch) global indices + validity -> summed tallies.
 
@@ -1040,7 +1050,7 @@ def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args)
         check_vma=False,
     )
     t0 = time.perf_counter()
-    exe = jax.jit(sm).lower(*args).compile()
+    exe = jax.jit(sm).lower(*args).compile(compiler_options=_compiler_options(mesh))
     _COMPILED[cache_key] = exe
     return exe, time.perf_counter() - t0
 
