@@ -705,3 +705,35 @@ def test_bad_precision_targets_are_one_line_errors(key, bad, tmp_path):
     cfg.write_text(f"{key} = nan\n")
     with pytest.raises(ConfigError, match=f"fit.toml: {key}"):
         load_fit_config(cfg)
+
+
+def test_compile_ahead_compiles_each_program_once_and_changes_nothing(small, monkeypatch):
+    """The fit and its Laplace pieces compile on background threads while the start stages run
+    (compile_cache.compile_ahead): each program is compiled at most once (the calls find the
+    background's executables: same shapes, no second compile), and the result equals a
+    calibration without it, bit for bit."""
+    import jax.monitoring as mon
+
+    from tofjax.compile_cache import AHEAD_ENV_VAR
+
+    # a shape no other test compiles, so this calibration is the first of its programs
+    scene = small.replace(sensor=SensorModel(bin_width_s=1e-10, n_bins=44, zones=2, fov_deg=20.0), sensors=small.sensors[:2])
+    cap = simulate(scene, 20, seed=11)
+    compiled = []
+
+    def listen(name, secs, fun_name="", **_):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiled.append(fun_name)
+
+    mon.register_event_duration_secs_listener(listen)
+    try:
+        monkeypatch.setenv(AHEAD_ENV_VAR, "1")
+        ahead = Calibrator(scene, FitConfig(pulse_tails=2)).fit(cap)
+    finally:
+        mon.unregister_event_duration_listener(listen)
+    assert compiled.count("jit(fit_problem)") <= 1 and compiled.count("jit(_covariance)") <= 1, compiled
+    monkeypatch.setenv(AHEAD_ENV_VAR, "0")
+    plain = Calibrator(scene, FitConfig(pulse_tails=2)).fit(cap)
+    assert float(ahead.params.n1) == float(plain.params.n1)
+    assert ahead.steps == plain.steps and ahead.result == plain.result
+    np.testing.assert_array_equal(np.asarray(ahead.covariance), np.asarray(plain.covariance))

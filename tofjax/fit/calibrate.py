@@ -34,7 +34,7 @@ import numpy as np
 import optimistix as optx
 
 from ..capture import Capture
-from ..compile_cache import call_stored, prefetch
+from ..compile_cache import call_stored, compile_ahead, prefetch
 from ..config import ConfigError, from_dict, load_toml
 from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
@@ -704,6 +704,34 @@ def _prefetch_fit(problem, objective, solver, base: Params, data, sigma, config:
                                                  config.max_steps, config.loss_tol, config.gn_first))
 
 
+def _compile_fit_ahead(problem, objective, solver, base: Params, data, sigma, config: FitConfig) -> bool:
+    """Compile the fit and its Laplace pieces on the background thread while the start stages
+    run (:func:`tofjax.compile_cache.compile_ahead`; where the program store is off). The
+    programs depend on the arguments' shapes only, so ``base`` stands in for the start and the
+    prior, zeros for the timing anchor, and the fit's output shapes (``eqx.filter_eval_shape``)
+    for the covariance's parameters."""
+    dt = np.dtype(data.dtype)
+    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=False)
+
+    def fit_args():
+        return (problem, objective, solver, base, data, sigma, base, jax.device_put(np.zeros(2, dt)))
+
+    def compile_fit():
+        return fit_problem.lower(*fit_args(), **kw).compile()
+
+    def compile_cov():
+        args = fit_args()
+        out = eqx.filter_eval_shape(fit_problem, *args, **kw)
+
+        def zeros(tree):
+            return jax.tree_util.tree_map(lambda x: jax.device_put(np.zeros(x.shape, x.dtype)), tree)
+
+        return _covariance.lower(problem, zeros(out.params), zeros(out.linear), base, data, sigma, args[7]).compile()
+
+    started = compile_ahead("calibration fit", compile_fit)
+    return compile_ahead("calibration covariance", compile_cov) or started
+
+
 # ---- from a capture to a result -----------------------------------------------------------------
 
 
@@ -852,7 +880,8 @@ def calibrate(
     if config.pulse_tails == "auto":
         return _calibrate_auto(capture, config, scene, problem, solver, objective, data, sigma, fingerprint)
     base = base_params(scene, config, dtype)
-    _prefetch_fit(problem, objective, solver, base, data, sigma, config)
+    if not _prefetch_fit(problem, objective, solver, base, data, sigma, config):
+        _compile_fit_ahead(problem, objective, solver, base, data, sigma, config)
     start, found, anchor, candidates, n_basins, stages = _starts(problem, config, scene, capture, data, sigma, base)
     best = _fit_starts(problem, config, scene, objective, solver, candidates, n_basins, data, sigma, base, anchor,
                        capture.n_frames, stages, fingerprint)
