@@ -412,3 +412,28 @@ def test_far_edge_second_bounce(monkeypatch):
     monkeypatch.setattr(guided, "EDGE_SECOND", True)
     b = run(strip_sc, GUIDED, ("end",))
     np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9 * a.max())
+
+
+def test_contacts_shadow_the_edges_second_bounce_legs(monkeypatch):
+    """A contact in a corner sits on the far edge's wall-to-wall legs (guided.EDGE_SECOND_SHADOW):
+    with the legs' frustration the edge returns less light there, never more, and nothing changes
+    for a contact that frustrates nothing (strength 0); values and gradients stay finite."""
+    import tofjax.model.guided as guided
+
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.2, 0.2], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.0, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": BIN, "n_bins": 96, "zones": 3, "fov_deg": 60.0, "emission_time_s": T_E},
+        "sensors": [{"position_m": [0.0, 0.0], "direction_deg": 45.0}],
+        "touches": [{"position_m": [0.18, 0.18], "radius_m": 0.008, "strength": 1.0}],
+    })
+    opts = ModelOptions(optics="guided", skin=SkinContact())
+    on = run(sc, opts, ("end", "shadowing"))
+    monkeypatch.setattr(guided, "EDGE_SECOND_SHADOW", False)
+    off = run(sc, opts, ("end", "shadowing"))
+    assert np.isfinite(on).all() and (on <= off + 1e-12 * off.max()).all() and on.sum() < 0.999 * off.sum()
+    off0 = run(sc, opts, ("end", "shadowing"), touch_strength=[0.0])
+    monkeypatch.setattr(guided, "EDGE_SECOND_SHADOW", True)
+    np.testing.assert_allclose(run(sc, opts, ("end", "shadowing"), touch_strength=[0.0]), off0, rtol=1e-12, atol=1e-12 * off0.max())
+    model = build_model(sc, opts)
+    grad = jax.jit(jax.grad(lambda q: jnp.sum(model(q) ** 0.5)))(Params.from_scene(sc))
+    assert np.isfinite(np.asarray(grad.touch_xy_m)).all() and np.isfinite(float(grad.n1))

@@ -306,8 +306,8 @@ def _trace_switches() -> tuple:
     """The module-level switches of :mod:`tofjax.model.guided` that tracing reads."""
     from . import guided
 
-    return (guided.DIST_DIVISOR, guided.NEAR_FIELD_PER_THICKNESS, guided.SECOND_ORDER, guided.EDGE_SECOND,
-            guided.EDGE_SECOND_STRIDE, guided.DISCRETE_HITS)
+    return (guided.DIST_DIVISOR, guided.NEAR_FIELD_PER_THICKNESS, guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL,
+            guided.EDGE_SECOND, guided.EDGE_SECOND_STRIDE, guided.EDGE_SECOND_SHADOW, guided.DISCRETE_HITS)
 
 
 def build_model(

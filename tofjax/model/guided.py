@@ -64,11 +64,20 @@ NEAR_FIELD_PER_THICKNESS = 0.3
 #: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
 #: 2.4x the default optics on the touch scene instead of 1.5x (docs/tradeoff.md).
 SECOND_ORDER = False
+#: With ``SECOND_ORDER``: also the reversed order of the same paths (sensor -> contact -> skin return
+#: -> diffuse wall -> sensor), each with its forward twin's amplitude and delay (reciprocity),
+#: detected in the wall point's zone. Off: against the Monte Carlo one contact's signal fits worse
+#: with it near walls and corners (relative L2 0.46 against 0.24 at 2 cm from a corner, first order
+#: alone; experiments/mc_contact_walls.py, docs/results/mc_contact_walls.json).
+SECOND_ORDER_RECIPROCAL = False
 #: Add the far edge's second diffuse bounce (:func:`_edge_second`: light the lit wall footprint sends to
 #: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE``: every how
 #: many-th ray of a zone is a source (its power times the stride).
 EDGE_SECOND = True
 EDGE_SECOND_STRIDE = 4
+#: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
+#: its first leg and its return (a contact in a corner sits on the legs across it).
+EDGE_SECOND_SHADOW = True
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
@@ -254,9 +263,11 @@ def _edge(ctx, gg, el, frus):
            / (math.pi * gg.fov * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
            * jnp.exp(-mu_t * L / el.c_out) * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
     amp = jnp.where(L > 0, amp, 0.0)
+    amp_ret = amp  # the second bounce's receiving rays: their return leg only (below)
     if frus is not None:
         P_out, P_ret, _ = frus
-        amp = amp * jnp.prod(1.0 - P_out, axis=-1)[..., None] * jnp.prod(1.0 - P_ret, axis=-2)
+        amp_ret = amp * jnp.prod(1.0 - P_ret, axis=-2)
+        amp = amp_ret * jnp.prod(1.0 - P_out, axis=-1)[..., None]
     elif ctx.contacts is not None:
         from .components import shadow
 
@@ -266,7 +277,7 @@ def _edge(ctx, gg, el, frus):
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
     out = deposit(t, amp.reshape(S, Z, -1), nodes)
     if EDGE_SECOND:
-        out = out + _edge_second(ctx, gg, el, amp, frus)
+        out = out + _edge_second(ctx, gg, el, amp_ret if frus is not None else amp, frus)
     return p.gain[:, None, None] * out
 
 
@@ -303,10 +314,38 @@ def _edge_second(ctx, gg, el, amp1, frus):
     P1 = jnp.maximum(gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 1e-300)
     ratio = (p.end_reflectance * G * 0.5 * Ps[:, None, None, :] * cos_i * cos_j * (seg / P1)[..., None] / r
              * jnp.exp(-mu_t * r * inv_c))  # (S, Z, A, I)
+    if frus is not None and EDGE_SECOND_SHADOW:
+        ratio = ratio * _leg_transmission(ctx, gg, el, Ws, d)
     a1 = jnp.sum(amp1, -1)  # (S, Z, A) first-bounce amplitude, all return elevations
     amp = a1[..., None] * ratio
     t = p.emission_time_s + (Ls[:, None, None, :] / el.c_out + r * inv_c + L[..., None] * inv_c) / nodes.c1
     return deposit(t.reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+
+
+def _leg_transmission(ctx, gg, el, src, d):
+    """Share of the wall-to-wall light of :func:`_edge_second` (from ``src`` (S, I, 2) along ``d``
+    (S, Z, A, I, 2) to the receiving wall point) that crosses every contact unfrustrated: each
+    contact's chord of the leg, its top-face hits per guided elevation (``chord |mu| / (2 h cos)``),
+    averaged over the band with a Lambertian wall's guided weights (``dmu cos``), the product over
+    the contacts; a contact beyond either end of the leg does nothing (a smooth step one radius wide)."""
+    p = ctx.params
+    skin = gg.skin
+    rad = p.touch_radius_m  # (N,)
+    length = jnp.sqrt(jnp.sum(d**2, -1) + 1e-30)  # (S, Z, A, I) in-plane
+    u = d / length[..., None]
+    rel = p.touch_xy_m[None, None, None, None] - src[:, None, None, :, None, :]  # (S, 1, 1, I, N, 2)
+    along = jnp.sum(rel * u[..., None, :], -1)  # (S, Z, A, I, N)
+    across = rel[..., 0] * u[..., None, 1] - rel[..., 1] * u[..., None, 0]
+    half2 = rad**2 - across**2
+    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
+    chord = jnp.where(half2 > 0, chord, 0.0)
+    inside = jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
+    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (S, Z, A, I, N, J)
+    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
+    w = el.dmu * el.c / jnp.sum(el.dmu * el.c)  # a Lambertian wall's guided emission per elevation
+    return jnp.prod(1.0 - jnp.sum(P * w, -1) * inside, axis=-1)  # (S, Z, A, I)
 
 
 def _touch(ctx, gg, el):
@@ -356,7 +395,9 @@ def _touch_diffuse(ctx, gg, el):
     returned. Each ray's wall point is a Lambertian source (``R cos / pi``); the contact's area over
     its distance ``rho`` from it times ``|mu| / (2 h cos)`` hits per metre gives the frustrated share;
     the skin returns it to the sensor like the first-order touch (times at the band's mean delay
-    on the middle leg)."""
+    on the middle leg). With :data:`SECOND_ORDER_RECIPROCAL` also each path's reverse (the
+    contact's return lighting the wall point, which returns it to the sensor): by reciprocity the
+    same amplitude and delay, detected in the wall point's zone."""
     p, geom, nodes, cg = ctx.params, ctx.geom, ctx.nodes, ctx.contacts
     skin = gg.skin
     L = geom.ray_length  # (S, Z, A)
@@ -380,11 +421,14 @@ def _touch_diffuse(ctx, gg, el):
     amp = src[..., None] * back[:, None, None]  # (S, Z, A, N, J)
     inv_c = jnp.sum(el.dmu * el.mu / el.c) / jnp.sum(el.dmu * el.mu)  # mean 1/cos of a Lambertian source
     t = p.emission_time_s + (L[..., None, None] / el.c_out + rho[..., None] * inv_c + D[:, None, None, :, None] / el.c) / nodes.c1
-    S, N = amp.shape[0], amp.shape[3]
-    amp = jnp.moveaxis(amp, 3, 1).reshape(S, N, -1)
-    t = jnp.moveaxis(jnp.broadcast_to(t, src.shape + el.c.shape), 3, 1).reshape(S, N, -1)
-    per_contact = deposit(t, amp, nodes)  # (S, N, K)
-    return p.gain[:, None, None] * jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
+    S, Z, N = amp.shape[0], amp.shape[1], amp.shape[3]
+    t = jnp.broadcast_to(t, src.shape + el.c.shape)  # (S, Z, A, N, J)
+    per_contact = deposit(jnp.moveaxis(t, 3, 1).reshape(S, N, -1), jnp.moveaxis(amp, 3, 1).reshape(S, N, -1), nodes)  # (S, N, K)
+    out = jnp.einsum("szn,snk->szk", cg.fraction, per_contact)
+    if SECOND_ORDER_RECIPROCAL:
+        # the reversed paths: same amplitudes and delays, detected in the wall point's zone
+        out = out + deposit(t.reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+    return p.gain[:, None, None] * out
 
 
 def _touch_free(ctx, gg, el):
