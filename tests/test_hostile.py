@@ -721,6 +721,8 @@ def test_params_refuse_what_the_model_cannot_evaluate():
             p.replace(**{field: np.full(np.shape(getattr(p, field)), value)})
     with pytest.raises(ParamsError, match="touch_xy_m"):
         p.replace(touch_xy_m=np.zeros((3, 2)))
+    with pytest.raises(ParamsError, match="ambient_counts"):  # replace checks the shape rules of what it changes
+        p.replace(ambient_counts=np.zeros((1, 1)))
     with pytest.raises(ParamsError, match="unknown field"):
         p.replace(radius=1.0)
     assert isinstance(ParamsError("x"), UserError)
