@@ -422,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
     from . import enable_compilation_cache, enable_x64
     from .compile_cache import use_fast_cpu_compiler
 
-    # XLA's elemental CPU emitters compile 1.4-1.6x faster (experiments/cpu_emitters.py); the
+    # XLA's elemental CPU emitters: a cold calibration 1.4x faster (experiments/cpu_emitters.py); the
     # flag must be in $XLA_FLAGS before JAX's backend starts.
     use_fast_cpu_compiler()
     enable_x64()

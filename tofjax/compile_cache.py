@@ -121,8 +121,9 @@ def use_fast_cpu_compiler(environ: dict[str, str] | None = None) -> bool:
     """Compile CPU programs with XLA's elemental emitters instead of its newer fusion emitters
     (``--xla_cpu_use_fusion_emitters=false`` added to ``$XLA_FLAGS``).
 
-    Measured on the 2-core VM (``experiments/cpu_emitters.py``): a calibration compiles about
-    1.4-1.6x faster and its warm fit runs no slower; every test's compile shrinks alike. The
+    Measured on the 2-core VM (``experiments/cpu_emitters.py``): a cold calibration runs about
+    1.4x faster and its warm fit 1.1x faster; the test suite took half the time. One loop ran
+    slower with it, the Monte Carlo's transport, whose program asks for the fusion emitters itself. The
     flag concerns the CPU backend only (accelerators ignore it). XLA reads ``$XLA_FLAGS`` once,
     when JAX's backend starts, so call this at the entry point before any JAX computation (the
     CLI and the tests do), like :func:`tofjax.enable_x64`; never on import.
@@ -266,9 +267,9 @@ def compile_ahead(name: str, compile_fn: Callable[[], Any]) -> bool:
     call will have), which fills JAX's in-process caches, so the call itself then neither traces
     nor compiles. XLA compiles release the GIL, so they overlap with this thread's work and with
     each other (two background threads: a calibration's fit and its Laplace pieces compile side
-    by side; on the 2-core VM a cold calibration takes 8.8-9.1 s instead of 10.0-10.7 s,
-    ``experiments/cpu_emitters.py``). :func:`call_stored` waits for a pending compilation of its name before it runs
-    (two threads compiling the same program would each compile it).
+    by side; on the 2-core VM a cold calibration took 9.31 s instead of 11.47 s, medians of 5,
+    ``experiments/compile_ahead.py``). :func:`call_stored` waits for a pending compilation of its
+    name before it runs (two threads compiling the same program would each compile it).
 
     Only where the program store is off (a library call; with the store on, :func:`prefetch`
     reads the stored executable instead). ``$TOFJAX_COMPILE_AHEAD=0`` turns it off. A failed

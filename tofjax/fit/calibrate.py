@@ -705,7 +705,7 @@ def _prefetch_fit(problem, objective, solver, base: Params, data, sigma, config:
 
 
 def _compile_fit_ahead(problem, objective, solver, base: Params, data, sigma, config: FitConfig) -> bool:
-    """Compile the fit and its Laplace pieces on the background thread while the start stages
+    """Compile the fit and its Laplace pieces on background threads while the start stages
     run (:func:`tofjax.compile_cache.compile_ahead`; where the program store is off). The
     programs depend on the arguments' shapes only, so ``base`` stands in for the start and the
     prior, zeros for the timing anchor, and the fit's output shapes (``eqx.filter_eval_shape``)
