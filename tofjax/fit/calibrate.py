@@ -970,7 +970,8 @@ def _calibrate_auto(capture, config, scene, two, solver, objective, data, sigma,
     dtype = two.model.geometry.ray_length.dtype
     base1, base2 = base_params(scene, cfg1, dtype), base_params(scene, cfg2, dtype)
     frames = capture.n_frames
-    _prefetch_fit(one, objective, solver, base1, data, sigma, cfg1)
+    if not _prefetch_fit(one, objective, solver, base1, data, sigma, cfg1):
+        _compile_fit_ahead(one, objective, solver, base1, data, sigma, cfg1)
     start, found, anchor, candidates, n_basins, stages = _starts(one, cfg1, scene, capture, data, sigma, base1)
     first = _fit_starts(one, cfg1, scene, objective, solver, candidates[:1], 1, data, sigma, base1, anchor, frames, stages,
                         fingerprint, label=" (1 tail)")
