@@ -7,7 +7,7 @@ terms: the first order (sensor -> contact -> sensor) and, behind ``guided.SECOND
 default), light a diffuse wall sends across the contact (sensor -> wall -> contact -> sensor);
 ``guided.SECOND_ORDER_RECIPROCAL`` adds each such path's reverse (sensor -> contact -> wall ->
 sensor: by reciprocity the same amplitude and delay, detected in the wall point's zone);
-``guided.EDGE_SECOND_SHADOW`` (on) lets contacts frustrate the far edge's second bounce on its
+``guided.EDGE_SECOND_SHADOW`` (off by default: no better detection, 1.55x its cost) lets contacts frustrate the far edge's second bounce on its
 wall-to-wall legs (a contact in a corner sits on the legs across it), and the second bounce's
 receiving rays now carry their return leg's frustration only (before, also their outbound leg's,
 which that path does not travel: ``docs/results/mc_contact_walls_before_leg_shadow.json`` is the
@@ -16,8 +16,8 @@ run before both changes).
 For each contact position (one contact, radius 6 mm, strength 1, the skin contact model) this
 compares the **touch signal** (touch minus baseline; Monte Carlo: the mean over ``--seeds`` seeds of
 touch minus baseline with the same seed, common random numbers) of the Monte Carlo with the guided
-model's variants: first order only (the default), the same with the legs unshadowed, plus the forward
-second order, plus both orders. The
+model's variants: first order only (the default), the same with the second bounce's legs frustrated
+(``EDGE_SECOND_SHADOW``), plus the forward second order, plus both orders. The
 figure is the relative L2 of the signal with the contact's strength profiled (one scale per
 variant: ``||d - s g|| / ||d||`` at the best ``s``), with ``s`` itself and the Monte Carlo's own
 noise (the seeds' spread: the L2 a perfect model would show). All data **simulated**; Monte Carlo
@@ -40,8 +40,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 #: (SECOND_ORDER, SECOND_ORDER_RECIPROCAL, EDGE_SECOND_SHADOW) of tofjax.model.guided
-VARIANTS = {"first_order": (False, False, True), "first_order_legs_unshadowed": (False, False, False),
-            "second_order_forward": (True, False, True), "second_order_both": (True, True, True)}
+VARIANTS = {"first_order": (False, False, False), "first_order_legs_shadowed": (False, False, True),
+            "second_order_forward": (True, False, False), "second_order_both": (True, True, False)}
 
 
 def main(argv=None) -> int:
@@ -107,11 +107,12 @@ def main(argv=None) -> int:
         row = {"xy_m": [x, y], "mc_signal_added": float(dm.clip(0).sum()), "mc_signal_removed": float(dm.clip(None, 0).sum()),
                "mc_noise_relative": noise, "variants": {}}
         for v, (second, recip, legs) in VARIANTS.items():
+            saved = guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW
             guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW = second, recip, legs
             try:
                 g = guided_counts(ts) - guided_counts(scene)
             finally:
-                guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW = False, False, True
+                guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW = saved
             s = float(np.vdot(dm, g) / np.vdot(g, g))
             res = dm - s * g
             row["variants"][v] = {"relative_l2_strength_profiled": float(np.linalg.norm(res) / np.linalg.norm(dm)),

@@ -415,8 +415,8 @@ def test_far_edge_second_bounce(monkeypatch):
 
 
 def test_contacts_shadow_the_edges_second_bounce_legs(monkeypatch):
-    """A contact in a corner sits on the far edge's wall-to-wall legs (guided.EDGE_SECOND_SHADOW):
-    with the legs' frustration the edge returns less light there, never more, and nothing changes
+    """A contact in a corner sits on the far edge's wall-to-wall legs (guided.EDGE_SECOND_SHADOW, off by
+    default): with the legs' frustration the edge returns less light there, never more, and nothing changes
     for a contact that frustrates nothing (strength 0); values and gradients stay finite."""
     import tofjax.model.guided as guided
 
@@ -427,6 +427,7 @@ def test_contacts_shadow_the_edges_second_bounce_legs(monkeypatch):
         "touches": [{"position_m": [0.18, 0.18], "radius_m": 0.008, "strength": 1.0}],
     })
     opts = ModelOptions(optics="guided", skin=SkinContact())
+    monkeypatch.setattr(guided, "EDGE_SECOND_SHADOW", True)
     on = run(sc, opts, ("end", "shadowing"))
     monkeypatch.setattr(guided, "EDGE_SECOND_SHADOW", False)
     off = run(sc, opts, ("end", "shadowing"))

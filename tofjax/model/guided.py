@@ -76,8 +76,12 @@ SECOND_ORDER_RECIPROCAL = False
 EDGE_SECOND = True
 EDGE_SECOND_STRIDE = 4
 #: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
-#: its first leg and its return (a contact in a corner sits on the legs across it).
-EDGE_SECOND_SHADOW = True
+#: its first leg and its return (a contact in a corner sits on the legs across it). Off: against the
+#: Monte Carlo it brings one contact's signal 2 cm from a corner closer (relative L2 0.235 -> 0.188,
+#: experiments/mc_contact_walls.py) but six-contact detection at 64x exposure no better (precision /
+#: recall 88.7 / 93.1% against 88.3 / 94.4% on the same data, experiments/eval_mc_data.py), and it
+#: costs the guided model 1.45x on touch-six and the detection 1.55x.
+EDGE_SECOND_SHADOW = False
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
