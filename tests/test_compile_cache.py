@@ -280,3 +280,24 @@ def test_fast_cpu_compiler_flag_respects_the_user_and_the_backend():
         assert use_fast_cpu_compiler(default) is False and "XLA_FLAGS" not in default
     finally:
         xla_bridge.backends_are_initialized = real
+
+
+def test_fusion_jit_is_jit_with_the_fusion_emitters_on_a_cpu():
+    """fusion_jit gives jax.jit's values; on a CPU its program is compiled with XLA's fusion emitters
+    (the compile option reaches the executable), made once per backend."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tofjax.compile_cache import FUSION_EMITTERS, fusion_jit
+
+    def f(x, y):
+        return jnp.sin(x) * y + jnp.exp(-x * x)
+
+    g = fusion_jit(f)
+    x = jnp.linspace(-2.0, 2.0, 33)
+    np.testing.assert_allclose(np.asarray(g(x, 3.0)), np.asarray(jax.jit(f)(x, 3.0)), rtol=1e-12, atol=1e-15)
+    assert g.__name__ == "f" and FUSION_EMITTERS == {"xla_cpu_use_fusion_emitters": True}
+    if jax.default_backend() == "cpu":
+        lowered = jax.jit(f, compiler_options=FUSION_EMITTERS).lower(x, 3.0)
+        assert lowered.compile().as_text()  # the option is one this XLA accepts on its CPU backend

@@ -54,7 +54,7 @@ _OFF = {"0", "off", "false", "no", "none", ""}
 _program_dir: Path | None = None
 
 __all__ = ["AHEAD_ENV_VAR", "CPU_EMITTER_ENV_VAR", "ENV_VAR", "FAST_CPU_FLAG", "PROGRAM_ENV_VAR", "call_stored", "compile_ahead",
-           "default_cache_dir", "enable_compilation_cache", "prefetch", "program_store", "use_fast_cpu_compiler"]
+           "default_cache_dir", "enable_compilation_cache", "fusion_jit", "prefetch", "program_store", "use_fast_cpu_compiler"]
 
 
 def default_cache_dir(environ: dict[str, str] | None = None) -> Path | None:
@@ -150,6 +150,31 @@ def use_fast_cpu_compiler(environ: dict[str, str] | None = None) -> bool:
         return False
     env["XLA_FLAGS"] = f"{flags} {FAST_CPU_FLAG}".strip()
     return True
+
+
+#: XLA's compile option that :func:`fusion_jit` sets for CPU programs
+FUSION_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
+
+
+def fusion_jit(fn: Callable) -> Callable:
+    """``jax.jit(fn)`` whose CPU programs keep XLA's fusion emitters whatever ``$XLA_FLAGS`` says
+    (:func:`use_fast_cpu_compiler` turns them off for the rest): for the loops that run far
+    more often than they compile and run faster with them (the inversion's gather-heavy maps:
+    2x the frames per second in a batch, ``experiments/bench_invert.py``). The compile option
+    is passed on a CPU backend only; one jitted function per backend, made on first use."""
+    import jax
+
+    jitted: dict[str, Callable] = {}
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        backend = jax.default_backend()
+        f = jitted.get(backend)
+        if f is None:
+            f = jitted[backend] = jax.jit(fn, compiler_options=FUSION_EMITTERS if backend == "cpu" else None)
+        return f(*args, **kwargs)
+
+    return call
 
 
 def program_store() -> Path | None:
