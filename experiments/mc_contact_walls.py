@@ -84,6 +84,10 @@ def main(argv=None) -> int:
         "corner_5cm": (0.05, H - 0.05),
         "corner_3cm": (0.03, H - 0.03),
         "corner_2cm": (0.02, H - 0.02),
+        # where the 64x six-contact run missed contacts (docs/results/eval_mc_data_fit_exposure64_12configs_mc_nolegs.json)
+        "missed_a": (0.044, 0.249),
+        "missed_b": (0.057, 0.273),
+        "missed_c": (0.085, 0.263),
     }
 
     def extras(s):
