@@ -49,6 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="JSON file to write")
     ap.add_argument("--photons", type=int, default=25_000, help="Monte Carlo packets per sensor and seed")
     ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--positions", default="", help="comma-separated position names (default: all)")
+    ap.add_argument("--cache", default=None, help="folder caching the Monte Carlo runs (default: eval_mc_data.py's)")
     ap.add_argument("--end-reflectance", type=float, default=None,
                     help="the edges' reflectance in both (default: the scene's); 0: absorbing edges")
     a = ap.parse_args(argv)
@@ -64,6 +66,16 @@ def main(argv=None) -> int:
     enable_x64()
     import eval_mc_data as E
 
+    cache = E.CACHE
+    if a.cache:
+        E.CACHE = Path(a.cache)
+    try:
+        return _run(a, ap, E)
+    finally:
+        E.CACHE = cache
+
+
+def _run(a, ap, E) -> int:
     import tofjax.model.guided as guided
     from tofjax.mc.bench import NOT_TRANSPORTED
     from tofjax.mc.capture import ANALYTIC_EXTRAS
@@ -89,6 +101,13 @@ def main(argv=None) -> int:
         "missed_b": (0.057, 0.273),
         "missed_c": (0.085, 0.263),
     }
+
+    if a.positions:
+        names = [n.strip() for n in a.positions.split(",") if n.strip()]
+        unknown = [n for n in names if n not in positions]
+        if unknown:
+            ap.error(f"--positions: unknown {', '.join(unknown)} (known: {', '.join(positions)})")
+        positions = {n: positions[n] for n in names}
 
     def extras(s):
         o = ModelOptions(quadrature=4, dtype="float32")

@@ -41,3 +41,24 @@ def test_predicted_recall_at_the_results_exposure_is_its_recall_and_grows_with_e
     assert abs(pred["16"] - found.mean()) < 1e-12
     assert pred["16"] < pred["64"] < pred["1024"]
     assert abs(pred["1024"] - by["bins"][-1]["recall"]) < 1e-12  # every contact in the top bin
+
+
+def test_mc_contact_walls_fast(tmp_path):
+    """experiments/mc_contact_walls.py on one position with a few hundred packets: every variant's profiled
+    L2 is finite and no larger than the unscaled one, the Monte Carlo's noise is positive, and it names
+    an unknown position instead of failing later."""
+    import json
+
+    import pytest
+
+    walls = load("mc_contact_walls")
+    out = tmp_path / "walls.json"
+    assert walls.main(["--out", str(out), "--photons", "400", "--seeds", "2", "--positions", "wall_2cm",
+                       "--cache", str(tmp_path / "cache")]) == 0
+    row = json.loads(out.read_text())["positions"]["wall_2cm"]
+    assert row["mc_noise_relative"] > 0 and set(row["variants"]) == set(walls.VARIANTS)
+    for v in row["variants"].values():
+        assert np.isfinite(v["relative_l2_strength_profiled"])
+        assert v["relative_l2_strength_profiled"] <= v["relative_l2_unscaled"] + 1e-12
+    with pytest.raises(SystemExit):
+        walls.main(["--out", str(out), "--positions", "nowhere"])
