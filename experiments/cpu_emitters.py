@@ -46,6 +46,19 @@ MEASURES = ("calibration_cold_s", "calibration_warm_s", "model_compile_s", "mode
             "mc_events_per_s")
 
 
+def _warm_times(fn, arg, calls: int = 20) -> list[float]:
+    """Seconds of ``calls`` warm calls of ``fn(arg)`` (one call first, to compile and warm it)."""
+    import jax
+
+    jax.block_until_ready(fn(arg))
+    times = []
+    for _ in range(calls):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(arg))
+        times.append(time.perf_counter() - t)
+    return times
+
+
 def worker(warm: int) -> dict:
     sys.path.insert(0, str(ROOT))
     import jax
@@ -80,23 +93,13 @@ def worker(warm: int) -> dict:
     t = time.perf_counter()
     compiled = f.lower(p).compile()
     m_compile = time.perf_counter() - t
-    jax.block_until_ready(compiled(p))
-    m_times = []
-    for _ in range(20):
-        t = time.perf_counter()
-        jax.block_until_ready(compiled(p))
-        m_times.append(time.perf_counter() - t)
+    m_times = _warm_times(compiled, p)
     from tofjax.fit.posterior import log_density
 
     ld = log_density(cal, cap, res)
     vg = jax.jit(jax.value_and_grad(ld.fn))
     f0 = jnp.asarray(ld.flat0)
-    jax.block_until_ready(vg(f0))
-    g_times = []
-    for _ in range(20):
-        t = time.perf_counter()
-        jax.block_until_ready(vg(f0))
-        g_times.append(time.perf_counter() - t)
+    g_times = _warm_times(vg, f0)
     from tofjax.mc import MCOptions, run_mc
 
     run_mc(scene, MCOptions(photons=10_000))  # compile; then the median rate of three runs

@@ -276,13 +276,18 @@ _ahead: dict[str, Any] = {}
 _ahead_pool: list = []
 
 
-def _background():
-    if not _pool:
+def _executor(holder: list, workers: int, prefix: str):
+    """The thread pool kept in ``holder``, made on first use."""
+    if not holder:
         from concurrent.futures import ThreadPoolExecutor
 
-        # one worker: reads run in the order they were asked for (the order they are needed)
-        _pool.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="tofjax-prefetch"))
-    return _pool[0]
+        holder.append(ThreadPoolExecutor(max_workers=workers, thread_name_prefix=prefix))
+    return holder[0]
+
+
+def _background():
+    # one worker: reads run in the order they were asked for (the order they are needed)
+    return _executor(_pool, 1, "tofjax-prefetch")
 
 
 def compile_ahead(name: str, compile_fn: Callable[[], Any]) -> bool:
@@ -306,11 +311,7 @@ def compile_ahead(name: str, compile_fn: Callable[[], Any]) -> bool:
         return False
     if os.environ.get(AHEAD_ENV_VAR, "1").strip().lower() in _OFF:
         return False
-    if not _ahead_pool:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _ahead_pool.append(ThreadPoolExecutor(max_workers=2, thread_name_prefix="tofjax-ahead"))
-    _ahead[name] = _ahead_pool[0].submit(compile_fn)
+    _ahead[name] = _executor(_ahead_pool, 2, "tofjax-ahead").submit(compile_fn)
     return True
 
 

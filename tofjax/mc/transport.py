@@ -1019,9 +1019,11 @@ def _compiler_options(mesh: Mesh) -> dict | None:
     rest (:func:`tofjax.compile_cache.use_fast_cpu_compiler` turns them off: the calibration
     compiles 1.4x faster without them, but this loop of transcendental-heavy kernels runs
     2.2x slower, ``experiments/cpu_emitters.py``)."""
+    from ..compile_cache import FUSION_EMITTERS
+
     if mesh.devices.flat[0].platform != "cpu":
         return None
-    return {"xla_cpu_use_fusion_emitters": True}
+    return dict(FUSION_EMITTERS)
 
 
 def _chunk_fn(st: _Static, mesh: Mesh, n_batch: int, per_call: int, dtype, args):

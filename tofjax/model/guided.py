@@ -267,7 +267,7 @@ def _edge(ctx, gg, el, frus):
            / (math.pi * gg.fov * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
            * jnp.exp(-mu_t * L / el.c_out) * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
     amp = jnp.where(L > 0, amp, 0.0)
-    amp_ret = amp  # the second bounce's receiving rays: their return leg only (below)
+    amp_ret = amp  # the second bounce's receiving rays (with skin contacts: their return leg only)
     if frus is not None:
         P_out, P_ret, _ = frus
         amp_ret = amp * jnp.prod(1.0 - P_ret, axis=-2)
@@ -275,13 +275,13 @@ def _edge(ctx, gg, el, frus):
     elif ctx.contacts is not None:
         from .components import shadow
 
-        amp = amp * shadow(geom.ray_length, ctx.contacts, p)[..., None]
+        amp = amp_ret = amp * shadow(geom.ray_length, ctx.contacts, p)[..., None]
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
     out = deposit(t, amp.reshape(S, Z, -1), nodes)
     if EDGE_SECOND:
-        out = out + _edge_second(ctx, gg, el, amp_ret if frus is not None else amp, frus)
+        out = out + _edge_second(ctx, gg, el, amp_ret, frus)
     return p.gain[:, None, None] * out
 
 
