@@ -96,6 +96,24 @@ def test_skin_contact_amplitudes():
     assert out[0.0]["end"] > out[0.3]["end"] > out[0.9]["end"]
 
 
+def test_strength_scales_the_coupling_up_to_full_contact():
+    """A contact's strength multiplies the skin's coupling, beyond 1 too (a contact coupling more than the skin
+    model's typical share), up to full optical contact: strength 2 at coupling 0.3 is strength 1 at coupling 0.6,
+    and any strength beyond 1 / coupling is full contact."""
+    comps = ("end", "touch", "shadowing")
+
+    def sums(coupling, strength):
+        sc = strip(touches=[dict(TOUCH, strength=strength)])
+        parts = build_model(sc, ModelOptions(optics="guided", skin=SkinContact(coupling=coupling)), comps).breakdown(
+            Params.from_scene(sc))
+        return np.array([float(np.asarray(parts[k]).sum()) for k in ("end", "touch")])
+
+    np.testing.assert_allclose(sums(0.3, 2.0), sums(0.6, 1.0), rtol=1e-12)
+    np.testing.assert_allclose(sums(0.3, 5.0), sums(1.0, 1.0), rtol=1e-12)
+    one = sums(0.3, 1.0)
+    assert sums(0.3, 2.0)[1] > one[1] and sums(0.3, 2.0)[0] < one[0]
+
+
 def test_second_order_touch_adds_light(monkeypatch):
     """The (off by default) second-order touch term: far-edge light frustrated at the contact adds light."""
     import tofjax.model.guided as guided

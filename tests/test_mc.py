@@ -1,5 +1,6 @@
 """Monte Carlo photon transport (tofjax.mc): physics limits, reproducibility, sharding."""
 
+import dataclasses
 import json
 import math
 import os
@@ -193,6 +194,9 @@ def test_skin_contact_model():
     assert 0 < r3.ledger["contact_loss"] < r10.ledger["contact_loss"]
     for r in (r3, r10):
         assert sum(r.ledger.values()) == pytest.approx(1.0, abs=1e-9)
+    # a strength above 1 scales the coupling on, up to full optical contact (the analytic model's convention)
+    strong = sc.replace(touches=(dataclasses.replace(sc.touches[0], strength=10.0 / 3.0),))
+    assert run_mc(strong, MCOptions(**base, contact=SkinContact(coupling=0.3))).ledger == pytest.approx(r10.ledger, abs=1e-12)
     with pytest.raises(ConfigError, match="contact_albedo"):
         MCOptions(contact=SkinContact(), contact_albedo=0.5)
 

@@ -105,7 +105,7 @@ class MCOptions:
     - ``contact``: a :class:`~tofjax.mc.contact.SkinContact` (index, absorption, reduced
       scattering, anisotropy and coupling of skin, from the literature): sets the contact's
       index and its diffuse albedo (diffusion theory), and the share of each contact in optical
-      contact (``coupling`` x the contact's ``strength``; the rest is an air gap). Without it
+      contact (``coupling`` x the contact's ``strength``, at most 1; the rest is an air gap). Without it
       (default) ``contact_n`` and ``contact_albedo`` apply, in full optical contact.
     - ``contact_albedo``: diffuse albedo of every contact (default: each contact's
       ``strength``, clipped to 1).
@@ -348,14 +348,15 @@ class _Static:
         h = float(sm.bin_width_s) / self.q
         t_e = float(sm.emission_time)
         el = scene.contact_elements()
-        strength = np.clip(el[:, 3], 0.0, 1.0)
+        strength = np.clip(el[:, 3], 0.0, None)
         if opts.contact is not None:
             # a skin model: its diffuse albedo seen from the guide; a contact's strength scales the
-            # share of its area in optical contact
+            # share of its area in optical contact (above 1: more than the skin's typical share, up to
+            # full optical contact), as the analytic model's guided optics do
             albedo = np.full(len(el), opts.contact.diffuse_albedo(n1))
-            coupling = opts.contact.coupling * strength
+            coupling = np.minimum(opts.contact.coupling * strength, 1.0)
         else:
-            albedo = strength if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
+            albedo = np.minimum(strength, 1.0) if opts.contact_albedo is None else np.full(len(el), opts.contact_albedo)
             coupling = np.ones(len(el))
         self.n_contacts = len(el)
         self.edge_mode = opts.edges

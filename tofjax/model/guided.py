@@ -214,6 +214,13 @@ def _weighted_step(times, weights, nodes: Nodes):
     return jnp.cumsum(w, axis=-1) - 0.5 * w
 
 
+def _coupling(skin, strength):
+    """The share of each contact's area in optical contact: the skin's ``coupling`` times the contact's
+    ``strength``, at most 1 (a strength above 1 is a contact coupling more than the skin model's typical
+    one, up to full optical contact at ``1 / coupling``)."""
+    return jnp.clip(skin.coupling * strength, 0.0, 1.0)
+
+
 def _frustrated(hits, q):
     """Share of light frustrated over a chord with ``hits`` expected top-face hits (``chord |mu| / (2 h
     cos)``), each frustrating ``q`` (``coupling (1 - R_Fresnel)``).
@@ -244,7 +251,7 @@ def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
     half2 = rad**2 - across**2
     chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
     chord = jnp.where((along > 0) & (half2 > 0), chord, 0.0)
-    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    fc = _coupling(skin, p.touch_strength)  # (N,)
     Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
     hits_out = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
     P_out = _frustrated(hits_out, fc * (1.0 - Rs_out))  # share frustrated over the chord
@@ -344,7 +351,7 @@ def _leg_transmission(ctx, gg, el, src, d):
     chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
     chord = jnp.where(half2 > 0, chord, 0.0)
     inside = jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
-    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    fc = _coupling(skin, p.touch_strength)  # (N,)
     Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
     hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (S, Z, A, I, N, J)
     P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
@@ -365,7 +372,7 @@ def _touch(ctx, gg, el):
     rad = p.touch_radius_m
     D, w = contact_ranges(ctx, floor=0.5 * rad[:, None])  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
-    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    fc = _coupling(skin, p.touch_strength)  # (N,)
     Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
     chord = 0.5 * math.pi * rad  # mean chord of a disk seen from afar
     hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
@@ -410,7 +417,7 @@ def _touch_diffuse(ctx, gg, el):
     to_c = p.touch_xy_m[None, None, None, :, :] - wall[..., None, :]  # (S, Z, A, N, 2)
     rho = jnp.sqrt(jnp.sum(to_c**2, -1) + p.touch_radius_m**2)  # (S, Z, A, N), never 0
     cos_w = jnp.clip(jnp.sum(to_c * gg.wall_normal[..., None, :], -1) / rho, 0.0, 1.0)
-    fc = skin.coupling * jnp.clip(p.touch_strength, 0.0, 1.0)  # (N,)
+    fc = _coupling(skin, p.touch_strength)  # (N,)
     Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
     # frustrated share per unit power leaving the wall point, summed over the band
     band = jnp.sum(el.dmu * el.mu * (1.0 - Rs) * jnp.exp(-mu_t * rho[..., None] / el.c), -1)  # (S, Z, A, N)
