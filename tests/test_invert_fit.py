@@ -23,9 +23,10 @@ from small_scenes import BINS, EDGE_BIN
 from small_scenes import three_sensor_square as _small_scene
 
 
-def _stand_in_change(scene, K):
+def _stand_in_change(scene, K, smooth=False):
     """theta (3K,) -> change (S*Z*B,): each contact removes light in the zones that see it (triangular
-    share between zone centres) from its range bin up to the far edge, and from the far-edge return."""
+    share between zone centres; ``smooth``: a Gaussian share, no kinks) from its range bin up to the far edge,
+    and from the far-edge return."""
     pos = jnp.asarray([sp.position_m for sp in scene.sensors])
     dirs = jnp.asarray([sp.direction_deg for sp in scene.sensors])
     half = scene.sensor.fov_deg / 2
@@ -38,7 +39,10 @@ def _stand_in_change(scene, K):
         x, y, s = theta[:K], theta[K : 2 * K], theta[2 * K :]
         dx, dy = x[None] - pos[:, 0, None], y[None] - pos[:, 1, None]  # (S, K)
         off = (jnp.degrees(jnp.arctan2(dy, dx)) - dirs[:, None] + 180.0) % 360.0 - 180.0
-        share = jnp.clip(1.0 - jnp.abs(off[:, None, :] - zc[None, :, None]) / width, 0.0, 1.0)  # (S, Z, K)
+        if smooth:
+            share = jnp.exp(-0.5 * ((off[:, None, :] - zc[None, :, None]) / (0.6 * width)) ** 2)  # (S, Z, K)
+        else:
+            share = jnp.clip(1.0 - jnp.abs(off[:, None, :] - zc[None, :, None]) / width, 0.0, 1.0)
         rb = jnp.sqrt(dx**2 + dy**2) * to_bins  # (S, K)
         behind = 1 / (1 + jnp.exp(-(b[None, :, None] - rb[:, None, :]) / 0.7)) * (b < EDGE_BIN)[None, :, None]
         lost = 150.0 * jnp.exp(-0.5 * ((b - EDGE_BIN) / 1.5) ** 2)[None, :, None] + 15.0 * behind  # (S, B, K)
@@ -47,18 +51,17 @@ def _stand_in_change(scene, K):
     return change
 
 
-@pytest.fixture()
-def stand_in(monkeypatch):
+def _patch_stand_in(monkeypatch, smooth=False):
     import tofjax.invert.greedy as greedy
     import tofjax.invert.reconstruct as rec
 
     sc = _small_scene()
 
     def fake_change(scene, optical, K, radius_m):
-        return _stand_in_change(scene, K), jnp.float64
+        return _stand_in_change(scene, K, smooth), jnp.float64
 
     def fake_response(scene, optical, centres, radius_m, chunk=128, *, shadow=False, signed=False):
-        one = jax.vmap(_stand_in_change(scene, 1))
+        one = jax.vmap(_stand_in_change(scene, 1, smooth))
         c = np.asarray(centres, float)
         return np.asarray(one(jnp.asarray(np.c_[c, np.ones(len(c))]))).reshape(len(c), *scene.shape)
 
@@ -67,6 +70,16 @@ def stand_in(monkeypatch):
     base = np.broadcast_to(20.0 + 600.0 * np.exp(-0.5 * ((np.arange(BINS) - EDGE_BIN) / 1.5) ** 2), sc.shape).copy()
     optical = dataclasses.replace(OpticalParams.from_scene(sc), optics="guided")
     return sc, base, optical
+
+
+@pytest.fixture()
+def stand_in(monkeypatch):
+    return _patch_stand_in(monkeypatch)
+
+
+@pytest.fixture()
+def smooth_stand_in(monkeypatch):
+    return _patch_stand_in(monkeypatch, smooth=True)
 
 
 def test_fast_two_contacts_found_within_1cm_none_without_touch(stand_in):
@@ -114,6 +127,71 @@ def test_fast_threshold_is_in_noise_units(stand_in):
         det.with_options(dataclasses.replace(opts, cell_m=0.01))
 
 
+def test_fast_contact_beyond_the_strength_cap(stand_in):
+    """A contact twice as strong as the strength cap allows is fitted as duplicates at the cap (ghosts) with
+    ``max_strength`` 1, as one contact at about its strength with ``max_strength`` 2.5."""
+    sc, base, optical = stand_in
+    base = base + 40.0  # room for the strong contact's removed light
+    one = _stand_in_change(sc, 1)
+    truth = np.array([[0.06, 0.10, 2.0], [0.11, 0.05, 0.7]])
+    signal = sum(np.asarray(one(jnp.asarray(c))).reshape(sc.shape) for c in truth)
+    frame = np.random.default_rng(0).poisson(base + signal).astype(float)
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=3, iterations=4, relocate_candidates=2)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=10**9)
+    capped = det.process(frame[None]).detections[0]
+    assert len(capped.touches) == 3 and max(t["strength"] for t in capped.touches) == 1.0, capped.touches
+    free = det.with_options(dataclasses.replace(opts, max_strength=2.5)).process(frame[None]).detections[0]
+    pos = free.positions()
+    assert len(pos) == 2 and match(pos, truth[:, :2], 0.01)[0] == 2, free.touches
+    strong = max(t["strength"] for t in free.touches)
+    assert 1.7 < strong < 2.3, free.touches
+
+
+def test_fast_pruning_variants_share_one_search(stand_in):
+    """process_variants gives what process gives for each variant of the pruning's options, and refuses
+    variants that change the search (naming the options)."""
+    sc, base, optical = stand_in
+    one = _stand_in_change(sc, 1)
+    frame = np.random.default_rng(1).poisson(
+        base + np.asarray(one(jnp.asarray([0.07, 0.09, 0.8]))).reshape(sc.shape)).astype(float)
+    opts = FitDetectOptions(cell_m=0.02, max_contacts=2, iterations=3, relocate_candidates=2)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=100)
+    variants = [opts, dataclasses.replace(opts, model_error=0.2), dataclasses.replace(opts, n_sigma=40.0)]
+    together = det.process_variants(frame[None], variants)
+    for v, r in zip(variants, together):
+        alone = det.with_options(v).process(frame[None])
+        assert r.detections[0].touches == alone.detections[0].touches
+        np.testing.assert_allclose(r.chi2, alone.chi2, rtol=1e-12)
+    assert len(together[0].detections[0].touches) == 1 and together[2].detections[0].touches == []
+    with pytest.raises(ConfigError, match="iterations, max_strength change the search"):
+        det.process_variants(frame[None], [dataclasses.replace(opts, iterations=4, max_strength=2.0)])
+    for bad in ({"model_error": -0.1}, {"max_strength": 0.0}, {"model_error": float("nan")}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            FitDetectOptions(**bad)
+
+
+def test_fast_contact_standard_errors_match_the_scatter(smooth_stand_in):
+    """Each contact's standard errors (Laplace, at the fit) agree with the scatter of the fitted position and
+    strength over noise draws (a stand-in without kinks), and are reported in the JSON."""
+    sc, base, optical = smooth_stand_in
+    truth = np.array([0.05, 0.08, 0.8])
+    sig = np.asarray(_stand_in_change(sc, 1, smooth=True)(jnp.asarray(truth))).reshape(sc.shape)
+    frames = np.random.default_rng(2).poisson(base + sig, size=(40, *sc.shape)).astype(float)
+    # the stand-in is the data's model: no model error to count as noise
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=1, iterations=6, relocate=False, rebirth=False, split=False,
+                            model_error=0.0)
+    res = build_fit_detector(sc, base, optical, opts, n_baseline=10**6).process(frames)
+    t = [d.touches[0] for d in res.detections if len(d.touches) == 1]
+    assert len(t) >= 38
+    for k, i in (("x_m", 0), ("y_m", 1), ("strength", 2)):
+        vals = np.array([u[k] for u in t])
+        err = np.median([u[k.replace("_m", "") + ("_stderr_m" if k.endswith("_m") else "_stderr")] for u in t])
+        assert abs(np.mean(vals) - truth[i]) < 4 * err / np.sqrt(len(t)) + 1e-3, k
+        assert 0.7 < np.std(vals) / err < 1.4, (k, np.std(vals), err)
+    js = res.touches_json()["frames"][0]["touches"][0]
+    assert {"x_stderr_m", "y_stderr_m", "strength_stderr"} <= set(js) and js["x_stderr_m"] > 0
+
+
 def test_fast_options_and_inputs_rejected(stand_in):
     sc, base, optical = stand_in
     with pytest.raises(ConfigError, match="n_sigma"):
@@ -136,6 +214,10 @@ def test_cli_fit_rejects_options_it_would_ignore(tmp_path):
     r = subprocess.run([sys.executable, "-m", "tofjax.cli", "detect", "t.h5", "--baseline", "b.h5", "--method", "fit",
                         "--relative", "0.3", "--json", str(tmp_path / "o.json")], capture_output=True, text=True)
     assert r.returncode != 0 and "--relative does not apply to --method fit" in r.stderr
+    assert "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "tofjax.cli", "detect", "t.h5", "--baseline", "b.h5", "--method", "full",
+                        "--model-error", "0.1", "--json", str(tmp_path / "o.json")], capture_output=True, text=True)
+    assert r.returncode != 0 and "--model-error applies to --method fit only" in r.stderr
     assert "Traceback" not in r.stderr
 
 

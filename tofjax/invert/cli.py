@@ -37,6 +37,9 @@ def _options(a):
         return _fit_options(a)
     model = a.method == "model"
     # Reject what the chosen method would ignore instead of dropping it silently.
+    for flag, given in (("--model-error", a.model_error), ("--max-strength", a.max_strength)):
+        if given is not None:
+            raise InversionError(f"{flag} applies to --method fit only")
     if a.dynamic_baseline and a.method not in ("baseline", "full"):
         raise InversionError(f"--dynamic-baseline works with --method baseline or full, not {a.method}")
     if model and a.no_cfar:
@@ -70,7 +73,8 @@ def _fit_options(a):
                         ("--relative", a.relative is not None), ("--contact-response", a.contact_response is not None)):
         if given:
             raise InversionError(f"{flag} does not apply to --method fit")
-    changes = {"n_sigma": a.n_sigma, "min_strength": a.min_strength}
+    changes = {"n_sigma": a.n_sigma, "min_strength": a.min_strength, "model_error": a.model_error,
+               "max_strength": a.max_strength}
     return FitDetectOptions(**{k: v for k, v in changes.items() if v is not None})
 
 
@@ -261,6 +265,20 @@ def _common(s):
         "added otherwise)",
     )
     s.add_argument(
+        "--model-error",
+        type=float,
+        help="--method fit: the forward model's relative error of a contact's signal, counted as noise when pruning "
+        "(each bin's variance plus (model-error x the fitted contacts' change)^2): fewer ghosts explaining what the "
+        "model gets wrong of strong contacts, at long exposures where that exceeds photon noise (default 0.1; 0: photon "
+        "noise only)",
+    )
+    s.add_argument(
+        "--max-strength",
+        type=float,
+        help="--method fit: the largest fitted strength, in units of the skin model's coupling (default 1; above 1: "
+        "contacts that couple more, up to full optical contact at 1 / coupling)",
+    )
+    s.add_argument(
         "--dynamic-baseline",
         action="store_true",
         help="update the baseline online from frames classified no-touch (slow drift; frames in order)",
@@ -324,7 +342,8 @@ def register(sub) -> None:
 
     s = sub.add_parser("detect", help="detect touches (positions, strengths) and write them as JSON")
     _common(s)
-    s.add_argument("--json", required=True, help="output JSON: {frames: [{index, touches: [{x_m, y_m, strength}]}]}")
+    s.add_argument("--json", required=True, help="output JSON: {frames: [{index, touches: [{x_m, y_m, strength}]}]}; --method fit "
+                   "adds each contact's standard errors (x_stderr_m, y_stderr_m, strength_stderr)")
     s.set_defaults(func=_cmd_detect)
 
     s = sub.add_parser(

@@ -11,13 +11,14 @@ included, not a sum of single-contact responses):
    with ``B`` the baseline mean, ``sigma^2 = B (1 + 1/N)`` (photon noise of the frame and the
    N-frame baseline) and ``Delta(theta)`` the guided model's change of the histograms caused by
    the contacts ``theta`` (their added and removed light, with signs: each contact's signed
-   response, strength clipped to [0, 1] as the model's coupling is).
+   response, strength in [0, ``max_strength``], in units of the skin model's coupling).
 2. **Proposal**: for every cell of a fine grid (``cell_m``), the chi-square drop of adding one
-   contact there with the best strength in [0, 1], from the precomputed signed response of a
+   contact there with the best strength in [0, ``max_strength``], from the precomputed signed response of a
    unit contact there (a matched filter). The best cell at least ``min_separation_m`` from the
    contacts already found is added.
 3. **Joint refit**: Levenberg-Marquardt on every contact's position and strength (the Jacobian
-   by forward differentiation of the model), positions kept inside the guide, strengths in [0, 1].
+   by forward differentiation of the model), positions kept inside the guide, strengths in
+   [0, ``max_strength``].
 4. **Moves of several contacts** after the forward selection: relocation, splits, and a death-and-birth
    sweep (``rebirth``: a contact removed, the others refitted jointly without it, the forward selection
    resumed; kept when chi-square plus ``n_sigma_forward^2`` per contact falls), which frees a weak contact
@@ -25,7 +26,10 @@ included, not a sum of single-contact responses):
    contact, or a contact and its neighbour, by the best pair of cells for the residual without them.
 5. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
    in noise units: the drop is ``z^2`` of the new contact's evidence); then **backward pruning**:
-   a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes.
+   a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes. The
+   pruning's chi-square counts the model's own error as noise (``model_error``, default 0.1: each bin's
+   variance plus ``(0.1 Delta)^2``), so what the model gets wrong of a strong contact is not evidence of
+   another one; each contact kept gets standard errors of its position and strength (Laplace, at the fit).
 
 Everything is in noise units, none in tofjax's amplitude scale: a rig whose contacts couple at a
 tenth of the model's strength is thresholded the same way. ``overdispersion`` (default on) divides
@@ -56,7 +60,12 @@ from .correction import InversionError, OpticalParams
 from .detect import Detection
 from .maps import Grid
 
-__all__ = ["FitDetectOptions", "FitDetector", "ProposalResponses", "build_fit_detector", "proposal_responses"]
+__all__ = ["PRUNE_OPTIONS", "FitDetectOptions", "FitDetector", "ProposalResponses", "build_fit_detector",
+           "proposal_responses"]
+
+#: the options of the backward pruning only (:meth:`FitDetector.finish_frame`): variants that differ in these
+#: share one search (:meth:`FitDetector.process_variants`)
+PRUNE_OPTIONS = ("n_sigma", "overdispersion", "prune", "n_sigma_absorbed", "min_strength", "model_error")
 
 
 @dataclass(frozen=True)
@@ -109,8 +118,18 @@ class FitDetectOptions:
       replaced by the best pair for the residual without both, kept when the chi-square falls.
     - ``n_sigma_absorbed``: prune a contact at this threshold instead of ``n_sigma`` where its removal lets another
       contact move into its place (by more than half ``min_separation_m``) (default None: ``n_sigma``).
-    - ``min_strength``: an extra floor on a contact's fitted strength (the model's coupling, 0-1;
-      default 0: none)."""
+    - ``min_strength``: an extra floor on a contact's fitted strength (in units of the skin model's coupling;
+      default 0: none).
+    - ``model_error``: the forward model's relative error of a contact's signal, as a noise term of the
+      backward pruning: each bin's variance becomes ``sigma^2 + (model_error * Delta)^2``, with ``Delta`` the
+      fitted contacts' change of that bin (``Delta`` of the fit before pruning). What the model gets wrong of a
+      strong contact's signal is then not evidence of another contact (a ghost explaining it), while a contact
+      whose evidence lies in bins the others hardly change keeps its full weight. It matters only where a bin's
+      change is several noise sd (long exposures); default 0.1, the guided model's measured error of a contact's
+      signal against the Monte Carlo (relative L2 0.055 mid-guide to 0.24 in a corner; 0 counts photon noise only).
+    - ``max_strength``: the largest fitted strength, in units of the skin model's coupling (default 1; above 1 a
+      contact couples more than the skin model's typical share, up to full optical contact at ``1 / coupling``:
+      without it, such a contact is fitted as duplicates at the bound)."""
 
     n_sigma: float = 6.0
     n_sigma_forward: float = 4.0
@@ -137,13 +156,15 @@ class FitDetectOptions:
     n_sigma_absorbed: float | None = None
     pair_candidates: int = 2
     pair_pool: int = 400
+    model_error: float = 0.1
+    max_strength: float = 1.0
 
     def __post_init__(self):
-        for k in ("n_sigma", "n_sigma_forward", "min_strength", "min_separation_m", "edge_margin_m"):
+        for k in ("n_sigma", "n_sigma_forward", "min_strength", "min_separation_m", "edge_margin_m", "model_error"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"{k}: must be a finite number >= 0, got {v!r}")
-        for k in ("cell_m", "contact_radius_m"):
+        for k in ("cell_m", "contact_radius_m", "max_strength"):
             v = getattr(self, k)
             if not (v > 0 and math.isfinite(v)):
                 raise ConfigError(f"{k}: must be a finite number > 0, got {v!r}")
@@ -176,7 +197,11 @@ class FitResult:
     dof: int = 0
 
     def touches_json(self) -> dict:
-        return {"frames": [{"index": i, "touches": [{k: t[k] for k in ("x_m", "y_m", "strength")} for t in d.touches]}
+        """Each frame's contacts: position, strength and their standard errors (null where the data do not
+        constrain a direction)."""
+        keys = ("x_m", "y_m", "strength", "x_stderr_m", "y_stderr_m", "strength_stderr")
+        return {"frames": [{"index": i, "touches": [{k: (t[k] if math.isfinite(t[k]) else None) for k in keys if k in t}
+                                                    for t in d.touches]}
                            for i, d in enumerate(self.detections or [])]}
 
 
@@ -270,8 +295,12 @@ class FitDetector:
         return new
 
     # -- one frame -------------------------------------------------------------------------------
-    def _chi2(self, theta, y):
+    def _chi2(self, theta, y, w=None):
+        """Chi-square and weighted residual of ``theta`` for the frame ``y`` (noise units); ``w`` per-bin weights
+        (``sigma / sigma_eff``, see ``model_error``), default 1."""
         r = y - np.asarray(self._change(jnp.asarray(theta, self._dtype)), float)
+        if w is not None:
+            r = r * w
         return float(r @ r), r
 
     def _clip(self, theta):
@@ -279,17 +308,20 @@ class FitDetector:
         theta = theta.copy()
         theta[:K] = np.clip(theta[:K], *self.bounds[0])
         theta[K : 2 * K] = np.clip(theta[K : 2 * K], *self.bounds[1])
-        theta[2 * K :] = np.clip(theta[2 * K :], 0.0, 1.0)
+        theta[2 * K :] = np.clip(theta[2 * K :], 0.0, self.options.max_strength)
         return theta
 
-    def _refit(self, theta, active, y, iterations=None):
-        """Levenberg-Marquardt on the active contacts' x, y, strength (box-constrained by clipping)."""
+    def _refit(self, theta, active, y, iterations=None, w=None):
+        """Levenberg-Marquardt on the active contacts' x, y, strength (box-constrained by clipping); ``w`` per-bin
+        weights of the residual (default 1)."""
         K = self.K
         cols = np.concatenate([active, active + K, active + 2 * K])
-        chi, r = self._chi2(theta, y)
+        chi, r = self._chi2(theta, y, w)
         lam = 1e-3
         for _ in range(self.options.iterations if iterations is None else iterations):
             J = np.asarray(self._jac(jnp.asarray(theta, self._dtype)), float)[:, cols]
+            if w is not None:
+                J = J * w[:, None]
             JtJ, g = J.T @ J, J.T @ r
             d = np.maximum(np.diag(JtJ), 1e-30)
             improved = False
@@ -298,7 +330,7 @@ class FitDetector:
                 t2 = theta.copy()
                 t2[cols] += step
                 t2 = self._clip(t2)
-                chi2, r2 = self._chi2(t2, y)
+                chi2, r2 = self._chi2(t2, y, w)
                 if chi2 < chi:
                     theta, r, improved = t2, r2, True
                     drop = chi - chi2
@@ -313,7 +345,7 @@ class FitDetector:
     def _propose(self, r, theta, active):
         """The best new contact on the grid for residual ``r`` (weighted): (cell, strength, drop)."""
         c = self._A @ r.astype(np.float32)
-        s = np.clip(c / np.maximum(self._gdiag, 1e-30), 0.0, 1.0)
+        s = np.clip(c / np.maximum(self._gdiag, 1e-30), 0.0, self.options.max_strength)
         gain = 2.0 * s * c - s * s * self._gdiag
         K = self.K
         for k in active:
@@ -360,21 +392,52 @@ class FitDetector:
             _, theta, active, chi, r = best
         return theta, active, chi, y, first[0]
 
-    def finish_frame(self, state, n_sigma: float) -> tuple[np.ndarray, float]:
-        """The backward pruning at ``n_sigma`` of a :meth:`search_frame` state: contacts (n, 3) and chi-square."""
-        o, K = self.options, self.K
+    def finish_frame(self, state, n_sigma: float, options: FitDetectOptions | None = None, *, stderr: bool = False):
+        """The backward pruning at ``n_sigma`` of a :meth:`search_frame` state: contacts (n, 3) and chi-square
+        (weighted by ``model_error`` when that is set); with ``stderr`` also each contact's standard errors (n, 3:
+        x, y in m, strength; see :meth:`_stderr`). ``options`` (default the detector's) may differ from the
+        detector's in the pruning's options only (:data:`PRUNE_OPTIONS`): the search does not depend on them."""
+        o, K = (self.options if options is None else options), self.K
         theta, active, chi, y, _ = state
         thr = n_sigma**2
+        w = None
+        if o.model_error > 0 and len(active):
+            delta = np.asarray(self._change(jnp.asarray(theta, self._dtype)), float)
+            w = 1.0 / np.sqrt(1.0 + (o.model_error * delta) ** 2)
+            chi, _ = self._chi2(theta, y, w)
         if len(active) and o.overdispersion:
             phi = max(1.0, chi / max(len(y) - 3 * len(active), 1))
             thr = thr * phi
         if o.prune and len(active):
             thr_abs = None if o.n_sigma_absorbed is None else thr * (o.n_sigma_absorbed / max(n_sigma, 1e-9)) ** 2
-            theta, active, chi = self._prune(theta, active, chi, y, thr, thr_abs)
+            theta, active, chi = self._prune(theta, active, chi, y, thr, thr_abs, w)
         out = np.stack([theta[active], theta[K + active], theta[2 * K + active]], -1) if len(active) else np.zeros((0, 3))
+        err = self._stderr(theta, active, y, chi, w) if stderr else None
         if o.min_strength > 0:
-            out = out[out[:, 2] >= o.min_strength]
-        return out, chi
+            keep = out[:, 2] >= o.min_strength
+            out, err = out[keep], (err[keep] if stderr else None)
+        return (out, chi, err) if stderr else (out, chi)
+
+    def _stderr(self, theta, active, y, chi, w=None) -> np.ndarray:
+        """Standard errors (n, 3: x, y [m], strength) of the active contacts: the Laplace approximation at the fit,
+        ``inv(J^T J)`` of the weighted Jacobian in every active contact's x, y and strength jointly, times the
+        reduced chi-square when above 1 (as the overdispersion's). A contact at a strength bound, or one the data
+        cannot place (seen by one sensor only: the guide's coverage holes), shows as a large error; a direction
+        the data do not constrain at all as ``inf``."""
+        K, n = self.K, len(active)
+        if not n:
+            return np.zeros((0, 3))
+        cols = np.concatenate([active, active + K, active + 2 * K])
+        J = np.asarray(self._jac(jnp.asarray(theta, self._dtype)), float)[:, cols]
+        if w is not None:
+            J = J * w[:, None]
+        phi = max(1.0, chi / max(len(y) - 3 * n, 1))
+        F = J.T @ J
+        scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
+        cov = np.linalg.pinv(F / np.outer(scale, scale), rcond=1e-12, hermitian=True) / np.outer(scale, scale)
+        var = np.diag(cov) * phi
+        sd = np.where((np.diag(F) > 0) & (var > 0), np.sqrt(np.abs(var)), np.inf)
+        return sd.reshape(3, n).T
 
     def _search(self, theta, active, chi, r, y, thr_add, first):
         """Forward selection, relocation and splits from the current fit, in rounds (see ``rounds``)."""
@@ -507,12 +570,12 @@ class FitDetector:
         """The ``n`` best pairs of new contacts for the weighted residual ``r`` by the linear model: for every pair
         of cells among the ``pair_pool`` best single proposals (at least ``min_separation_m`` apart, and from
         ``others``), the chi-square drop of both contacts at their joint best strengths (the 2 x 2 normal
-        equations, clipped to [0, 1]). Unlike pairs of local maxima of the single-contact map, this finds two
+        equations, clipped to [0, max_strength]). Unlike pairs of local maxima of the single-contact map, this finds two
         contacts whose evidence one contact between them explains best (the merged pair). Returns
         ``[(a, b, s_a, s_b, drop)]`` (distinct pairs, best first) and the best single drop."""
         o = self.options
         c = self._A @ r.astype(np.float32)
-        s1 = np.clip(c / np.maximum(self._gdiag, 1e-30), 0.0, 1.0)
+        s1 = np.clip(c / np.maximum(self._gdiag, 1e-30), 0.0, o.max_strength)
         gain = 2.0 * s1 * c - s1 * s1 * self._gdiag
         K = self.K
         for k in others:
@@ -528,8 +591,8 @@ class FitDetector:
         det = g[:, None] * g[None, :] - G**2
         ok = det > 1e-9 * g[:, None] * g[None, :]
         det = np.where(ok, det, 1.0)
-        sa = np.clip((cp[:, None] * g[None, :] - G * cp[None, :]) / det, 0.0, 1.0)
-        sb = np.clip((cp[None, :] * g[:, None] - G * cp[:, None]) / det, 0.0, 1.0)
+        sa = np.clip((cp[:, None] * g[None, :] - G * cp[None, :]) / det, 0.0, o.max_strength)
+        sb = np.clip((cp[None, :] * g[:, None] - G * cp[:, None]) / det, 0.0, o.max_strength)
         drop = 2 * (sa * cp[:, None] + sb * cp[None, :]) - (sa**2 * g[:, None] + sb**2 * g[None, :] + 2 * sa * sb * G)
         xy = self.centres[pool]
         far = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]) >= o.min_separation_m
@@ -643,10 +706,11 @@ class FitDetector:
 
     def _place(self, theta, slot, j, gain) -> None:
         """Put contact ``slot`` of ``theta`` (in place) at cell ``j`` with the strength the proposal's
-        evidence ``gain[j]`` implies there (``sqrt(gain / G_jj)``, within [0, 1])."""
+        evidence ``gain[j]`` implies there (``sqrt(gain / G_jj)``, within [0, max_strength])."""
         K = self.K
         theta[slot], theta[K + slot] = self.centres[j]
-        theta[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0, 1.0))
+        theta[2 * K + slot] = float(np.clip(np.sqrt(max(gain[j], 0.0) / max(self._gdiag[j], 1e-30)), 0.0,
+                                           self.options.max_strength))
 
     def _pairs(self, peaks) -> list:
         """Pairs of the cells ``peaks`` (best first) at least ``min_separation_m`` apart, in the order of the peaks."""
@@ -665,7 +729,7 @@ class FitDetector:
         idx = idx[np.argsort(-full[idx])][:n]
         return [int(i) for i in np.searchsorted(self.cells, idx)]
 
-    def _prune(self, theta, active, chi, y, thr, thr_absorbed=None):
+    def _prune(self, theta, active, chi, y, thr, thr_absorbed=None, w=None):
         """Backward pruning: the contact whose removal (with refit) raises the chi-square least goes while that is
         at most ``thr``; at most ``thr_absorbed`` (when given) where the refit moved another contact by more than
         half ``min_separation_m`` (it absorbs the removed one: a pair fitted as one contact between them; the question
@@ -678,10 +742,10 @@ class FitDetector:
                 t = theta.copy()
                 t[2 * K + k] = 0.0
                 rest = active[active != k]
-                c0, _ = self._chi2(t, y)
+                c0, _ = self._chi2(t, y, w)
                 if c0 - chi > max(thr, thr_absorbed):  # plainly needed even before refitting the others
                     continue
-                t, c, _ = self._refit(t, rest, y) if len(rest) else (t, c0, None)
+                t, c, _ = self._refit(t, rest, y, w=w) if len(rest) else (t, c0, None)
                 moved = len(rest) and np.max(np.hypot(t[rest] - theta[rest], t[K + rest] - theta[K + rest])) > (
                     0.5 * self.options.min_separation_m)
                 limit = thr_absorbed if moved else thr
@@ -700,10 +764,23 @@ class FitDetector:
     def process_levels(self, histograms, n_sigmas, *, detect: bool = True) -> list[FitResult]:
         """:meth:`process` at several thresholds ``n_sigmas`` at the cost of one: the search (forward selection,
         relocation, splits, starts) does not depend on ``n_sigma``, only the final pruning does."""
+        return self.process_variants(histograms, [dataclasses.replace(self.options, n_sigma=float(n)) for n in n_sigmas],
+                                     detect=detect)
+
+    def process_variants(self, histograms, variants, *, detect: bool = True) -> list[FitResult]:
+        """:meth:`process` with each of ``variants`` (:class:`FitDetectOptions` that differ from the detector's in
+        the pruning's options only, :data:`PRUNE_OPTIONS`: thresholds, ``model_error``, ...) at the cost of one
+        search per frame."""
+        variants = list(variants)
+        for v in variants:
+            other = [f.name for f in dataclasses.fields(FitDetectOptions)
+                     if f.name not in PRUNE_OPTIONS and getattr(v, f.name) != getattr(self.options, f.name)]
+            if other:
+                raise ConfigError(f"process_variants: {', '.join(other)} change the search; use with_options")
         h = np.asarray(histograms, float)
         if h.ndim != 4 or h.shape[1:] != self.scene.shape:
             raise InversionError(f"histograms have shape {h.shape[1:]} per frame, the scene {self.scene.shape}")
-        F, L = len(h), len(n_sigmas)
+        F, L = len(h), len(variants)
         maps = np.zeros((F, self.grid.ny * self.grid.nx))
         ok = np.ones(F, bool)
         chi2 = np.full((L, F), np.nan)
@@ -717,10 +794,12 @@ class FitDetector:
                 continue
             state = self.search_frame(h[i])
             maps[i, self.cells] = state[4]
-            for lv, n in enumerate(n_sigmas):
-                contacts, chi2[lv, i] = self.finish_frame(state, n)
+            for lv, v in enumerate(variants):
+                contacts, chi2[lv, i], err = self.finish_frame(state, v.n_sigma, v, stderr=True)
                 dets[lv].append(Detection(touches=[{"x_m": float(x), "y_m": float(yy), "strength": float(s),
-                                                    "component": 0} for x, yy, s in contacts]))
+                                                    "x_stderr_m": float(ex), "y_stderr_m": float(ey),
+                                                    "strength_stderr": float(es), "component": 0}
+                                                   for (x, yy, s), (ex, ey, es) in zip(contacts, err)]))
         m = maps.reshape(F, self.grid.ny, self.grid.nx)
         return [FitResult(m, ok, self.grid, "fit", dets[lv] if detect else None, None, chi2[lv], int(self.sigma.size))
                 for lv in range(L)]
