@@ -35,6 +35,11 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    counts), with the touch signal (touch minus baseline) of both; and the first-order contact return
    alone (one contact, absorbing edges), Monte Carlo against the guided optics.
 
+``--config-seed`` draws another set of configurations (a held-out set: 6 is the one the fit method's options were
+developed on); ``--true-optics`` detects with the scene's own optics instead of the calibration (how much of the
+detectors' error is the calibration's); ``--fit-options`` sets the fit method's options and ``--fit-variants`` scores
+variants of them, those that change only the pruning (``tofjax.invert.greedy.PRUNE_OPTIONS``) from the same search.
+
 ``--exposure K`` multiplies every count (the sensor's iterations per frame relative to the scene's): the
 photon noise of a frame falls as 1/sqrt(K), as a longer exposure (or K frames of a held contact summed) gives.
 
@@ -124,14 +129,15 @@ def contact_configs(scene, configs: int, seed: int = 6) -> np.ndarray:
     return random_contacts(scene, configs, 6, seed=seed, min_separation_m=0.04, strength=(0.7, 1.0))
 
 
-def generate(photons: int, seeds_baseline: int, seeds_touch: int, configs: int, progress: bool = True) -> None:
+def generate(photons: int, seeds_baseline: int, seeds_touch: int, configs: int, progress: bool = True,
+             config_seed: int = 6) -> None:
     """Fill the cache (the slow part), baseline first."""
     base = guided_scene()
     for s in range(seeds_baseline):
         t = time.time()
         _, info = mc_expected(base, photons, s, progress)
         print(f"baseline seed {s}: {time.time() - t:.0f} s", info, flush=True)
-    for c, contacts in enumerate(contact_configs(base, configs)):
+    for c, contacts in enumerate(contact_configs(base, configs, config_seed)):
         for s in range(seeds_touch):
             t = time.time()
             _, info = mc_expected(touch_scene(base, contacts), photons, s, progress)
@@ -197,8 +203,10 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,
                   cal_json: dict, frames_per_config: int, baseline_frames: int, seed: int, progress: bool,
                   no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit"),
-                  fit_variants: dict | None = None, fit_n_sigmas=()) -> dict:
-    """Six-contact detection with the calibrated optics: full, model and fit methods."""
+                  fit_variants: dict | None = None, fit_n_sigmas=(), fit_options: dict | None = None,
+                  true_optics: bool = False) -> dict:
+    """Six-contact detection with the calibrated optics (``true_optics``: the scene's own, guided): full, model and
+    fit methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
 
@@ -206,7 +214,8 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     from tofjax.invert.pipeline import build_inverter
 
     forced = not cal_json["converged"]
-    optical = OpticalParams.from_calibration(dict(cal_json, converged=True), scene)
+    optical = (dataclasses.replace(OpticalParams.from_scene(scene), optics="guided") if true_optics
+               else OpticalParams.from_calibration(dict(cal_json, converged=True), scene))
     cfg = eval_touch.EvalConfig(methods=tuple(m for m in methods if m != "fit"))
     opts = eval_touch._options(cfg)
     base = _capture(scene, base_expected, baseline_frames, seed + 1000, "baseline")
@@ -219,7 +228,15 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
            "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
     fit_variants = dict(fit_variants or {})
     levels = [float(n) for n in (fit_n_sigmas or ())]
-    runs = [m for m in methods if m != "fit"] + (["fit", *[f"fit:{v}" for v in fit_variants]] if "fit" in methods else [])
+    from tofjax.invert.greedy import FitDetectOptions
+
+    base_opts = FitDetectOptions(**(fit_options or {}))
+    from tofjax.invert.greedy import PRUNE_OPTIONS
+
+    # variants of the pruning only (thresholds, model_error, ...) share the plain fit's search
+    prune_only = {v: o for v, o in fit_variants.items() if set(o) <= set(PRUNE_OPTIONS)}
+    runs = [m for m in methods if m != "fit"] + (
+        ["fit", *[f"fit:{v}" for v in fit_variants if v not in prune_only]] if "fit" in methods else [])
     fit_det = None
     snr = np.repeat(np.asarray(out["information_limit"]["per_contact_snr_guided_model"].pop("values")).reshape(
         len(contacts), -1), frames_per_config, axis=0).ravel()
@@ -232,15 +249,20 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
             from tofjax.invert.sensitivity import fit_sensitivity_of
 
             if fit_det is None:  # built once; the variants share its responses and compiled model
-                fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), FitDetectOptions(),
+                fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), base_opts,
                                              n_baseline=baseline_frames)
                 out["sensitivity_fit"] = fit_map_summary(fit_sensitivity_of(fit_det), contacts, exposure)
             inv = fit_det if m == "fit" else fit_det.with_options(
-                dataclasses.replace(FitDetectOptions(), **fit_variants[m[4:]]))
-            lv = [inv.options.n_sigma, *levels] if m == "fit" else [inv.options.n_sigma]
-            names = [m, *[f"fit_n_sigma_{n:g}" for n in levels]] if m == "fit" else [m]
-            results = inv.process_levels(H, lv)
-            quiets = inv.process_levels(_capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms, lv)
+                dataclasses.replace(base_opts, **fit_variants[m[4:]]))
+            bases = [(m, inv.options)] + ([(f"fit:{v}", dataclasses.replace(inv.options, **o))
+                                            for v, o in prune_only.items()] if m == "fit" else [])
+            variants, names = [], []
+            for name0, o in bases:  # each at its own n_sigma, then at the --fit-n-sigmas levels
+                variants += [o, *[dataclasses.replace(o, n_sigma=n) for n in levels]]
+                names += [name0, *[f"{name0}_n_sigma_{n:g}" for n in levels]]
+            results = inv.process_variants(H, variants)
+            quiets = inv.process_variants(
+                _capture(scene, base_expected, no_touch_frames, seed + 3000, "no touch").histograms, variants)
         else:
             inv = build_inverter(scene, base.mean(), opts[m], optical, n_baseline=baseline_frames,
                                  baseline_frames=base.histograms)
@@ -263,7 +285,7 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
             if getattr(inv, "reconstructor", None) is not None:
                 score["contact_response"] = inv.reconstructor.response
             if name.startswith("fit"):
-                score["options"] = repr(dataclasses.replace(inv.options, n_sigma=lv[names.index(name)]))
+                score["options"] = repr(variants[names.index(name)])
                 score["seconds_what"] = ("building (signed responses on the 5 mm grid, compiling) and every frame, "
                                          "all n_sigma levels" if m == "fit" else "every frame (the detector built for "
                                          "'fit' reused)")
@@ -285,7 +307,8 @@ def _false_kinds(detections, truth: np.ndarray, radius: float) -> dict:
     ``duplicate`` (that contact is matched by another detection, and it is within 2 radii: a contact fitted twice),
     ``mislocated`` (that contact is unmatched, within 2 radii: found but placed more than ``radius`` off),
     ``ghost`` (no true contact within 2 radii: light explained where there is no contact, e.g. between two).
-    With every frame's detections (x, y, strength, matched) and truth, for inspection."""
+    With every frame's detections (x, y, strength, matched, and where the method gives them the standard errors
+    of x and y) and truth, for inspection."""
     from scipy.optimize import linear_sum_assignment
 
     kinds = {"duplicate": 0, "mislocated": 0, "ghost": 0}
@@ -303,12 +326,19 @@ def _false_kinds(detections, truth: np.ndarray, radius: float) -> dict:
                 j = int(np.argmin(dd[i]))
                 nearest.append(float(dd[i, j]))
                 kinds["ghost" if dd[i, j] > 2 * radius else "duplicate" if hit[j] else "mislocated"] += 1
-        frames.append({"detections": [[round(t["x_m"], 4), round(t["y_m"], 4), round(t["strength"], 3), bool(o)]
+        frames.append({"detections": [[round(t["x_m"], 4), round(t["y_m"], 4), round(t["strength"], 3), bool(o),
+                                       *([_round_finite(t["x_stderr_m"], 5), _round_finite(t["y_stderr_m"], 5)]
+                                         if "x_stderr_m" in t else [])]
                                       for t, o in zip(det.touches, ok)],
                        "missed": [[round(float(x), 4), round(float(y), 4)] for x, y, _ in c[~hit]]})
     return {"what": "false detections by the nearest true contact: duplicate (it is matched by another detection, "
                     "within 2 match radii), mislocated (unmatched, within 2 match radii), ghost (none within 2 radii)",
             **kinds, "nearest_true_contact_cm": [round(100 * d, 2) for d in nearest], "frames": frames}
+
+
+def _round_finite(v: float, digits: int):
+    """``v`` rounded, or None where it is not finite (JSON has no infinity)."""
+    return round(float(v), digits) if np.isfinite(v) else None
 
 
 def _recall_by_snr(found: np.ndarray, snr: np.ndarray) -> dict:
@@ -514,7 +544,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
         progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
         methods=("full", "model", "fit"), skip_l2: bool = False, fit_variants: dict | None = None,
-        fit_n_sigmas=(), columns=("own", "monte_carlo")) -> dict:
+        fit_n_sigmas=(), columns=("own", "monte_carlo"), fit_options: dict | None = None, config_seed: int = 6,
+        true_optics: bool = False) -> dict:
     import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
@@ -529,7 +560,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     mc_var = seeds.var(0, ddof=1) / seeds_baseline  # the Monte Carlo's own variance of that mean
     transported_noise = float(np.sqrt(mc_var.sum()) / np.linalg.norm(mc_base))
     own_base = expected_counts(scene, _own_model_options())
-    contacts = contact_configs(scene, configs)
+    contacts = contact_configs(scene, configs, config_seed)
     det_base = seeds[:seeds_touch].mean(0)  # the same seeds as the touch runs (common random numbers)
     own_touch = [expected_counts(touch_scene(scene, c), _own_model_options(True)) for c in contacts]
     # the sensor's exposure (iterations per frame) times the scene's: every count scales, ambient included
@@ -554,8 +585,10 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                         "seconds_per_run": [i["seconds"] for _, i in runs]},
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
                      "fit_variants": fit_variants or {}, "fit_n_sigmas": list(fit_n_sigmas),
+                     "fit_options": fit_options or {},
                      "skip_l2": skip_l2, "detection_columns": list(columns),
-                     "baseline_frames": baseline_frames, "configs": configs, "seed": seed,
+                     "baseline_frames": baseline_frames, "configs": configs, "seed": seed, "config_seed": config_seed,
+                     "detection_optics": "the scene's own (true), guided" if true_optics else "calibrated, guided",
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
                      "transported light, light entry and ambient) times this: the sensor's iterations per frame "
                      "relative to the scene's",
@@ -580,7 +613,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
             if progress:
                 print("  ", json.dumps({k: fig.get(k) for k in ("result", "reduced_chi2_photon_noise",
                                                                "reduced_chi2_with_mc_variance", "n1_rel_error")}), flush=True)
-    generate(photons, seeds_baseline, seeds_touch, configs, progress=False)  # cached
+    generate(photons, seeds_baseline, seeds_touch, configs, progress=False, config_seed=config_seed)  # cached
     mc_touch = [exposure * np.mean([mc_expected(touch_scene(scene, c), photons, s)[0] for s in range(seeds_touch)], 0)
                 for c in contacts]
     for col, b, tl in (("own", own_base, own_touch), ("monte_carlo", det_base, mc_touch)):
@@ -590,7 +623,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
             print(f"detecting six contacts ({col}, guided calibration) ...", flush=True)
         result["detection"][col] = detect_column(scene, b, tl, contacts, cal[col, "guided"], frames_per_config,
                                                  baseline_frames, seed, progress, exposure=exposure, methods=methods,
-                                                 fit_variants=fit_variants, fit_n_sigmas=fit_n_sigmas)
+                                                 fit_variants=fit_variants, fit_n_sigmas=fit_n_sigmas,
+                                                 fit_options=fit_options, true_optics=true_optics)
     if not skip_l2:
         if progress:
             print("touch L2: noise and model error ...", flush=True)
@@ -684,12 +718,17 @@ def main(argv=None):
     ap.add_argument("--seeds-baseline", type=int, default=8)
     ap.add_argument("--seeds-touch", type=int, default=2)
     ap.add_argument("--configs", type=int, default=12)
+    ap.add_argument("--config-seed", type=int, default=6,
+                    help="seed of the random six-contact configurations (6: the study's; another: a held-out set)")
     ap.add_argument("--calib-frames", type=int, default=10)
     ap.add_argument("--frames-per-config", type=int, default=2)
     ap.add_argument("--with-default", action="store_true", help="also calibrate the Monte Carlo data with the default optics")
     ap.add_argument("--exposure", type=float, default=1.0,
                     help="the sensor's iterations per frame relative to the scene's: every count times this")
     ap.add_argument("--methods", default="full,model,fit", help="detection methods, comma-separated")
+    ap.add_argument("--fit-options", default="{}",
+                    help='JSON: FitDetectOptions fields of the fit method (its variants start from them), e.g. '
+                         '\'{"max_strength": 2}\'')
     ap.add_argument("--fit-variants", default="{}",
                     help='JSON: name -> FitDetectOptions fields, each scored as method "fit:name" next to "fit" '
                          '(the defaults), e.g. \'{"n5": {"n_sigma": 5}}\'')
@@ -705,6 +744,8 @@ def main(argv=None):
                     help="only the fit method's sensitivity map of each detection column of a saved result (run with "
                          "the same --out: its cached calibrations) and that result's recall by the map's SNR; writes "
                          "OUT/sensitivity_check.json")
+    ap.add_argument("--true-optics", action="store_true",
+                    help="detect with the scene's own optics (guided) instead of each column's calibration")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
@@ -713,10 +754,15 @@ def main(argv=None):
     from tofjax.invert.greedy import FitDetectOptions
 
     try:
+        fit_options = json.loads(a.fit_options)
+        base_opts = FitDetectOptions(**fit_options)
+    except (ValueError, TypeError, AttributeError, ConfigError) as e:
+        ap.error(f"--fit-options: {e}")
+    try:
         variants = json.loads(a.fit_variants)
 
         for v in variants.values():
-            dataclasses.replace(FitDetectOptions(), **v)
+            dataclasses.replace(base_opts, **v)
     except (ValueError, TypeError, AttributeError, ConfigError) as e:
         ap.error(f"--fit-variants: {e}")
     try:
@@ -737,12 +783,13 @@ def main(argv=None):
         print(f"wrote {a.out}/sensitivity_check.json")
         return
     if a.generate:
-        generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False)
+        generate(a.photons, a.seeds_baseline, a.seeds_touch, a.configs, progress=False, config_seed=a.config_seed)
         return
     r = run(Path(a.out), a.photons, a.seeds_baseline, a.seeds_touch, a.configs, a.calib_frames, a.frames_per_config,
             overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
             methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2, fit_variants=variants,
-            fit_n_sigmas=levels, columns=cols)
+            fit_n_sigmas=levels, columns=cols, fit_options=fit_options, config_seed=a.config_seed,
+            true_optics=a.true_optics)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 

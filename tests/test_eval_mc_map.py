@@ -62,3 +62,20 @@ def test_mc_contact_walls_fast(tmp_path):
         assert v["relative_l2_strength_profiled"] <= v["relative_l2_unscaled"] + 1e-12
     with pytest.raises(SystemExit):
         walls.main(["--out", str(out), "--positions", "nowhere"])
+
+
+def test_false_detections_keep_the_fits_standard_errors_and_bad_fit_options_are_refused(tmp_path):
+    """A detection's standard errors (the fit method's) travel into ``false_detections`` (null where infinite);
+    an unknown field of ``--fit-options`` or ``--fit-variants`` is a usage error before anything runs."""
+    import pytest
+
+    ev = load("eval_mc_data")
+    truth = np.array([[[0.05, 0.05, 0.7], [0.15, 0.05, 0.9]]])
+    det = [Detection(touches=[{"x_m": 0.05, "y_m": 0.05, "strength": 0.8, "x_stderr_m": 0.0012, "y_stderr_m": np.inf,
+                               "strength_stderr": 0.1, "component": 0}])]
+    rows = ev._false_kinds(det, truth, 0.02)["frames"][0]["detections"]
+    assert rows == [[0.05, 0.05, 0.8, True, 0.0012, None]]
+    for flag in ("--fit-options", "--fit-variants"):
+        bad = '{"bad": 1}' if flag == "--fit-options" else '{"v": {"bad": 1}}'
+        with pytest.raises(SystemExit):
+            ev.main(["--out", str(tmp_path), flag, bad])
