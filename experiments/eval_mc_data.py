@@ -36,9 +36,10 @@ against adding-doubling and van de Hulst), each calibrated and inverted the same
    alone (one contact, absorbing edges), Monte Carlo against the guided optics.
 
 ``--config-seed`` draws another set of configurations (a held-out set: 6 is the one the fit method's options were
-developed on); ``--true-optics`` detects with the scene's own optics instead of the calibration (how much of the
-detectors' error is the calibration's); ``--fit-options`` sets the fit method's options and ``--fit-variants`` scores
-variants of them, those that change only the pruning (``tofjax.invert.greedy.PRUNE_OPTIONS``) from the same search.
+developed on); ``--true-optics`` detects with the scene's n1, mu_s and mu_a instead of the calibrated ones (the
+rest, gains and pulse, as calibrated: how much of the detectors' error is the calibrated optics');
+``--fit-options`` sets the fit method's options and ``--fit-variants`` scores variants of them, those that change
+only the pruning (``tofjax.invert.greedy.PRUNE_OPTIONS``) from the same search.
 
 ``--exposure K`` multiplies every count (the sensor's iterations per frame relative to the scene's): the
 photon noise of a frame falls as 1/sqrt(K), as a longer exposure (or K frames of a held contact summed) gives.
@@ -205,8 +206,8 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
                   no_touch_frames: int = 20, exposure: float = 1.0, methods=("full", "model", "fit"),
                   fit_variants: dict | None = None, fit_n_sigmas=(), fit_options: dict | None = None,
                   true_optics: bool = False) -> dict:
-    """Six-contact detection with the calibrated optics (``true_optics``: the scene's own, guided): full, model and
-    fit methods."""
+    """Six-contact detection with the calibrated optics (``true_optics``: the scene's n1, mu_s and mu_a, the
+    calibration's gains, pulse and the rest): full, model and fit methods."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_touch
 
@@ -214,8 +215,11 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
     from tofjax.invert.pipeline import build_inverter
 
     forced = not cal_json["converged"]
-    optical = (dataclasses.replace(OpticalParams.from_scene(scene), optics="guided") if true_optics
-               else OpticalParams.from_calibration(dict(cal_json, converged=True), scene))
+    optical = OpticalParams.from_calibration(dict(cal_json, converged=True), scene)
+    if true_optics:  # the scene's n1 and attenuation; gains, pulse and the rest as calibrated (the data's scale)
+        wg = scene.waveguide
+        optical = dataclasses.replace(optical, n1=float(wg.n1), mu_s_per_m=float(wg.mu_s_per_m),
+                                      mu_a_per_m=float(wg.mu_a_per_m))
     cfg = eval_touch.EvalConfig(methods=tuple(m for m in methods if m != "fit"))
     opts = eval_touch._options(cfg)
     base = _capture(scene, base_expected, baseline_frames, seed + 1000, "baseline")
@@ -228,11 +232,9 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
            "information_limit": information_limit(scene, base_expected, contacts, touch_expected, exposure)}
     fit_variants = dict(fit_variants or {})
     levels = [float(n) for n in (fit_n_sigmas or ())]
-    from tofjax.invert.greedy import FitDetectOptions
+    from tofjax.invert.greedy import PRUNE_OPTIONS, FitDetectOptions
 
     base_opts = FitDetectOptions(**(fit_options or {}))
-    from tofjax.invert.greedy import PRUNE_OPTIONS
-
     # variants of the pruning only (thresholds, model_error, ...) share the plain fit's search
     prune_only = {v: o for v, o in fit_variants.items() if set(o) <= set(PRUNE_OPTIONS)}
     runs = [m for m in methods if m != "fit"] + (
@@ -588,7 +590,8 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
                      "fit_options": fit_options or {},
                      "skip_l2": skip_l2, "detection_columns": list(columns),
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed, "config_seed": config_seed,
-                     "detection_optics": "the scene's own (true), guided" if true_optics else "calibrated, guided",
+                     "detection_optics": ("the scene's n1, mu_s, mu_a (true); gains, pulse and the rest calibrated"
+                                          if true_optics else "calibrated, guided"),
                      "exposure": exposure, "exposure_what": "counts of every frame (baseline, calibration, touch; "
                      "transported light, light entry and ambient) times this: the sensor's iterations per frame "
                      "relative to the scene's",
@@ -745,7 +748,8 @@ def main(argv=None):
                          "the same --out: its cached calibrations) and that result's recall by the map's SNR; writes "
                          "OUT/sensitivity_check.json")
     ap.add_argument("--true-optics", action="store_true",
-                    help="detect with the scene's own optics (guided) instead of each column's calibration")
+                    help="detect with the scene's n1, mu_s and mu_a instead of the calibrated ones (gains, pulse and "
+                         "the rest as calibrated: the data's scale)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
