@@ -79,3 +79,14 @@ def test_false_detections_keep_the_fits_standard_errors_and_bad_fit_options_are_
         bad = '{"bad": 1}' if flag == "--fit-options" else '{"v": {"bad": 1}}'
         with pytest.raises(SystemExit):
             ev.main(["--out", str(tmp_path), flag, bad])
+
+
+def test_calib_model_error_mc_refuses_bad_levels(tmp_path):
+    """experiments/calib_model_error_mc.py: levels outside [0, 1) or unparsable are usage errors before any work."""
+    import pytest
+
+    study = load("calib_model_error_mc")
+    for bad in ("1.5", "x", ""):
+        with pytest.raises(SystemExit):
+            study.main(["--out", str(tmp_path / "o.json"), "--model-errors", bad])
+    assert not (tmp_path / "o.json").exists()
