@@ -90,3 +90,13 @@ def test_calib_model_error_mc_refuses_bad_levels(tmp_path):
         with pytest.raises(SystemExit):
             study.main(["--out", str(tmp_path / "o.json"), "--model-errors", bad])
     assert not (tmp_path / "o.json").exists()
+
+
+def test_mc_baseline_time_ratio_refuses_no_windows(tmp_path):
+    """experiments/mc_baseline_time_ratio.py: --windows 0 is a usage error before any work."""
+    import pytest
+
+    study = load("mc_baseline_time_ratio")
+    with pytest.raises(SystemExit):
+        study.main(["--out", str(tmp_path / "o.json"), "--windows", "0"])
+    assert not (tmp_path / "o.json").exists()
