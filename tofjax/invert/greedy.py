@@ -193,7 +193,7 @@ class FitResult:
     method: str
     detections: list[Detection] | None = None
     noise: np.ndarray | None = None
-    chi2: np.ndarray | None = None  # (F,) final chi-square of each frame
+    chi2: np.ndarray | None = None  # (F,) final chi-square of each frame (with model_error: its weighted one)
     dof: int = 0
 
     def touches_json(self) -> dict:
