@@ -46,19 +46,6 @@ MEASURES = ("calibration_cold_s", "calibration_warm_s", "model_compile_s", "mode
             "mc_events_per_s")
 
 
-def _warm_times(fn, arg, calls: int = 20) -> list[float]:
-    """Seconds of ``calls`` warm calls of ``fn(arg)`` (one call first, to compile and warm it)."""
-    import jax
-
-    jax.block_until_ready(fn(arg))
-    times = []
-    for _ in range(calls):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        times.append(time.perf_counter() - t)
-    return times
-
-
 def worker(warm: int) -> dict:
     sys.path.insert(0, str(ROOT))
     import jax
@@ -70,6 +57,7 @@ def worker(warm: int) -> dict:
     from tofjax.model import Params
     from tofjax.scene import default_scene
     from tofjax.simulate import simulate
+    from tofjax.timing import median_seconds
 
     enable_x64()
     scene = default_scene()
@@ -93,21 +81,21 @@ def worker(warm: int) -> dict:
     t = time.perf_counter()
     compiled = f.lower(p).compile()
     m_compile = time.perf_counter() - t
-    m_times = _warm_times(compiled, p)
+    m_warm = median_seconds(compiled, p, 20)  # one call first, then the median of 20
     from tofjax.fit.posterior import log_density
 
     ld = log_density(cal, cap, res)
     vg = jax.jit(jax.value_and_grad(ld.fn))
     f0 = jnp.asarray(ld.flat0)
-    g_times = _warm_times(vg, f0)
+    g_warm = median_seconds(vg, f0, 20)
     from tofjax.mc import MCOptions, run_mc
 
     run_mc(scene, MCOptions(photons=10_000))  # compile; then the median rate of three runs
     mc_rate = statistics.median(run_mc(scene, MCOptions(photons=10_000, seed=s)).events_per_second for s in range(3))
     return {
-        "mc_events_per_s": mc_rate, "posterior_gradient_s": statistics.median(g_times),
+        "mc_events_per_s": mc_rate, "posterior_gradient_s": g_warm,
         "calibration_cold_s": cold, "calibration_warm_s": statistics.median(times),
-        "model_compile_s": m_compile, "model_warm_s": statistics.median(m_times),
+        "model_compile_s": m_compile, "model_warm_s": m_warm,
         "n1": float(res.params.n1), "mu_t": float(np.asarray(res.params.mu_s_per_m) + np.asarray(res.params.mu_a_per_m)), "steps": int(res.steps),
         "result": res.result, "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
