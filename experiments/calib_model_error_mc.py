@@ -35,8 +35,6 @@ def main(argv=None) -> int:
     if not levels or not all(0 <= x < 1 for x in levels) or not a.exposure > 0:
         ap.error("--model-errors: each in [0, 1); --exposure > 0")
     sys.path.insert(0, str(ROOT / "experiments"))
-    import numpy as np
-
     import tofjax
 
     tofjax.use_fast_cpu_compiler()
@@ -47,8 +45,7 @@ def main(argv=None) -> int:
     from tofjax.outputs import atomic_write_text
 
     scene = E.guided_scene()
-    E.generate(25_000, 8, 0, 0, progress=False)  # cached
-    base = a.exposure * np.stack([E.mc_expected(scene, 25_000, s)[0] for s in range(8)]).mean(0)
+    base = a.exposure * E.mc_baseline_mean(scene)
     cap = E._capture(scene, base, 10, 0, "simulated (monte carlo)")
     wg = scene.waveguide
     rows = []

@@ -118,6 +118,11 @@ def mc_source_hash() -> str:
     return h.hexdigest()[:12]
 
 
+def mc_baseline_mean(scene, photons: int = 25_000, seeds: int = 8) -> np.ndarray:
+    """The Monte Carlo baseline this study calibrates: the mean expected counts of ``seeds`` runs (cached)."""
+    return np.stack([mc_expected(scene, photons, s)[0] for s in range(seeds)]).mean(0)
+
+
 def touch_scene(base, contacts: np.ndarray, radius_m: float = 0.006):
     from tofjax.scene import Touch
 

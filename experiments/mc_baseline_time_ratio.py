@@ -42,8 +42,7 @@ def main(argv=None) -> int:
     from tofjax.outputs import atomic_write_text
 
     sc = E.guided_scene()
-    E.generate(25_000, 8, 0, 0, progress=False)  # cached
-    mc = np.stack([E.mc_expected(sc, 25_000, s)[0] for s in range(8)]).mean(0)
+    mc = E.mc_baseline_mean(sc)
     o = ModelOptions(quadrature=4, dtype="float32")  # as mc_expected_counts adds them
     transported = mc - np.asarray(build_model(sc, o, ANALYTIC_EXTRAS)(Params.from_scene(sc, o.jnp_dtype)), float)
     comps = tuple(c for c in sc.components() if c not in NOT_TRANSPORTED)
