@@ -82,6 +82,15 @@ EDGE_SECOND_STRIDE = 4
 #: recall 88.7 / 93.1% against 88.3 / 94.4% on the same data, experiments/eval_mc_data.py), and it
 #: costs the guided model 1.45x on touch-six and the detection 1.55x.
 EDGE_SECOND_SHADOW = False
+#: Add the reverberant field (:func:`_reverb`): the guided light the walls reflect diffusely (beyond the
+#: returns modelled one by one) and the launched beam scatters, mixed over the guide and decaying as the walls,
+#: the faces and absorption take it, seen by each zone through its far wall's return.
+EDGE_REVERB = True
+#: The reverberant field's wall segments per wall (a radiosity of 4 x this many patches), and the most time nodes
+#: it is solved on (a coarser grid than the model's where it has more: the field is smooth in time).
+REVERB_SEGMENTS_PER_WALL = 4
+REVERB_NODES = 64
+REVERB_DOUBLINGS = 6
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
@@ -123,6 +132,12 @@ class GuidedGeometry(eqx.Module):
     thickness_m: float = eqx.field(static=True)
     aperture_m: float = eqx.field(static=True)
     skin: object = eqx.field(static=True)  # SkinContact or None
+    area_m2: float = eqx.field(static=True, default=0.0)  # the guide's face area
+    perimeter_m: float = eqx.field(static=True, default=0.0)  # and its walls' length
+    seg_len: jax.Array = None  # (M,) wall segments of the reverberant field (:func:`_reverb`): their lengths
+    seg_r: jax.Array = None  # (M, M) centre-to-centre distances (the thickness added in quadrature)
+    seg_cc: jax.Array = None  # (M, M) cos at the source times cos at the receiver (0 on one wall)
+    ray_seg: jax.Array = None  # (S, Z, A) the segment each ray's far wall point lies in
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
@@ -163,7 +178,32 @@ class GuidedGeometry(eqx.Module):
             thickness_m=float(scene.waveguide.thickness_m),
             aperture_m=float(aperture_m),
             skin=skin,
+            area_m2=float(lx * ly),
+            perimeter_m=float(2.0 * (lx + ly)),
+            **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
+               for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
+                                          float(scene.waveguide.thickness_m)).items()},
         )
+
+
+def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
+    """The guide's four walls cut into ``REVERB_SEGMENTS_PER_WALL`` segments each (counter-clockwise from the
+    origin): lengths, the centre-to-centre distances and cosine products of every pair, and the segment each ray's
+    wall point ``(wx, wy)`` lies in (the nearest centre)."""
+    m = int(REVERB_SEGMENTS_PER_WALL)
+    u = (np.arange(m) + 0.5) / m
+    walls = [  # (centres, inward normal, length)
+        (np.stack([u * lx, 0 * u], -1), (0.0, 1.0), lx), (np.stack([0 * u + lx, u * ly], -1), (-1.0, 0.0), ly),
+        (np.stack([(1 - u) * lx, 0 * u + ly], -1), (0.0, -1.0), lx), (np.stack([0 * u, (1 - u) * ly], -1), (1.0, 0.0), ly)]
+    centres = np.concatenate([w[0] for w in walls])
+    normals = np.concatenate([np.tile(w[1], (m, 1)) for w in walls])
+    lengths = np.concatenate([np.full(m, w[2] / m) for w in walls])
+    d = centres[None, :, :] - centres[:, None, :]  # from k to l
+    r = np.sqrt(np.sum(d**2, -1) + thickness**2)
+    cc = np.clip(np.sum(d * normals[:, None], -1) / r, 0, 1) * np.clip(-np.sum(d * normals[None], -1) / r, 0, 1)
+    pts = np.stack([np.asarray(wx, float), np.asarray(wy, float)], -1)
+    near = np.argmin(np.sum((pts[..., None, :] - centres) ** 2, -1), axis=-1)
+    return {"seg_len": lengths, "seg_r": r, "seg_cc": cc, "ray_seg": near.astype(np.int32)}
 
 
 def inward_normals(scene: Scene) -> np.ndarray:
@@ -270,25 +310,32 @@ def _edge(ctx, gg, el, frus):
     # Params.end_incidence_power: cos^p on top of this optics' Lambertian edge (p = 0: as before)
     from .components import edge_law
 
-    amp = (p.end_reflectance * edge_law(gg.cos_wall, p.end_incidence_power)[..., None] * gg.cos_wall[..., None] * gg.cos_sensor[..., None] * gg.dphi[None, :, None, None]
-           / (math.pi * gg.fov * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
-           * jnp.exp(-mu_t * L / el.c_out) * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
-    amp = jnp.where(L > 0, amp, 0.0)
-    amp_ret = amp  # the second bounce's receiving rays (with skin contacts: their return leg only)
+    # per unit power reaching the wall (P1, the beam's share dphi / fov after the outbound attenuation)
+    ret = (p.end_reflectance * edge_law(gg.cos_wall, p.end_incidence_power)[..., None] * gg.cos_wall[..., None] * gg.cos_sensor[..., None]
+           / (math.pi * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
+           * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
+    ret = jnp.where(L > 0, ret, 0.0)
+    P1 = gg.dphi[None, :, None, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out)
     if frus is not None:
         P_out, P_ret, _ = frus
-        amp_ret = amp * jnp.prod(1.0 - P_ret, axis=-2)
+        ret = ret * jnp.prod(1.0 - P_ret, axis=-2)
+        amp_ret = ret * P1  # the second bounce's receiving rays (with skin contacts: their return leg only)
         amp = amp_ret * jnp.prod(1.0 - P_out, axis=-1)[..., None]
     elif ctx.contacts is not None:
         from .components import shadow
 
-        amp = amp_ret = amp * shadow(geom.ray_length, ctx.contacts, p)[..., None]
+        ret = ret * shadow(geom.ray_length, ctx.contacts, p)[..., None]
+        amp = amp_ret = ret * P1
+    else:
+        amp = amp_ret = ret * P1
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
     out = deposit(t, amp.reshape(S, Z, -1), nodes)
     if EDGE_SECOND:
         out = out + _edge_second(ctx, gg, el, amp_ret, frus)
+    if EDGE_REVERB:
+        out = out + _reverb(ctx, gg, el, ret, frus)
     return p.gain[:, None, None] * out
 
 
@@ -331,6 +378,134 @@ def _edge_second(ctx, gg, el, amp1, frus):
     amp = a1[..., None] * ratio
     t = p.emission_time_s + (Ls[:, None, None, :] / el.c_out + r * inv_c + L[..., None] * inv_c) / nodes.c1
     return deposit(t.reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+
+
+def _phases(tau, df, F: int):
+    """``exp(-2 pi i k df tau)`` for ``k = 0 .. F-1`` (a new leading axis): one complex exponential per ``tau``, then
+    powers by its binary squares (complex exponentials cost the CPU far more than products)."""
+    z = jnp.exp(-2j * math.pi * df * tau)
+    k = np.arange(F)
+    out = jnp.ones((F,) + tau.shape, z.dtype)
+    b = 0
+    while (1 << b) < F:
+        bit = ((k >> b) & 1).astype(bool).reshape((F,) + (1,) * tau.ndim)
+        out = jnp.where(bit, out * z, out)
+        z = z * z
+        b += 1
+    return out
+
+
+def _reverb(ctx, gg, el, ret, frus):
+    """The walls' later diffuse bounces (before the gain): a time-resolved radiosity of the guide's walls.
+
+    The walls are cut into segments (``REVERB_SEGMENTS_PER_WALL`` each). Segment ``k`` reflecting power ``R H``
+    diffusely sends segment ``l`` the share ``F_kl = G cos_k cos_l len_l / (2 r_kl) exp(-mu_t r_kl <1/cos>)``
+    (the guided share ``G`` of a Lambertian wall spread in the plane as ``cos / 2`` per radian, as in
+    :func:`_edge_second`) after ``r_kl <1/cos> / c1``. The beam lights its rays' segments (``P_i = dphi / fov
+    exp(-mu_t L / c_out)`` at ``L / (c_out c1)``, past any contact's frustration); the first bounce's return is
+    :func:`_edge`'s and the second's, inside the lit footprint, :func:`_edge_second`'s, so the field counts the
+    irradiance of the third bounce on: ``(I - T)^-1 T^2 H1`` with ``T = R F`` (all orders, solved per frequency,
+    where the delays are phases). The beam's light scattered on the way out (share ``cg`` of it into the guided
+    band, isotropic) lights the walls evenly when the beam reaches its wall, from the first bounce on; on the
+    wall-to-wall legs scattering only redirects light, so they attenuate at ``mu_a + mu_s (1 - cg)``. Each ray's wall segment
+    (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first bounce: ``ret``, the
+    first bounce's counts per unit power on the wall, per return elevation and delay. Contacts frustrate the
+    beam's light before it reaches the walls, not the wall-to-wall legs (as :data:`EDGE_SECOND_SHADOW`)."""
+    p, geom, fine = ctx.params, ctx.geom, ctx.nodes
+    L = geom.ray_length  # (S, Z, A)
+    S, Z, A = L.shape
+    K_fine = fine.t.shape[0]
+    step = max(1, K_fine // int(REVERB_NODES))
+    while K_fine % step:
+        step -= 1
+    K = K_fine // step  # the coarse grid: every step-th node's span
+    nodes = Nodes(t=(jnp.arange(K, dtype=fine.t.dtype) + 0.5) * (fine.h * step), h=fine.h * step, r=None, dr=None,
+                  c1=fine.c1)
+    n = 2 * K  # zero-padded: light older than the histogram's window wraps after another window
+    M = gg.seg_len.shape[0]
+    dtype = nodes.t.dtype
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    cg = launch_band(p.n1, gg.fov)[0]  # the guided band's edge
+    R = p.end_reflectance
+    G = jnp.sum(el.dmu * el.c) * (2.0 / math.pi)  # guided share of a Lambertian wall's emission
+    inv_c = jnp.sum(el.dmu * el.c / el.c) / jnp.sum(el.dmu * el.c)  # its mean 1 / cos (flux-weighted)
+    P1 = jnp.where(L > 0, gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 0.0)  # (S, Z, A)
+    Pw = P1 if frus is None else P1 * jnp.prod(1.0 - frus[0], axis=-1)
+    t_out = p.emission_time_s + L / (el.c_out * nodes.c1)
+    onehot = jax.nn.one_hot(gg.ray_seg.reshape(S, -1), M, dtype=dtype)  # (S, ZA, M)
+    # the beam's light scattered into the guided band on its way out (share cg of the scattered, isotropic):
+    # on the walls evenly, when the beam reaches its wall (none of it sooner: a path that scattered is no shorter)
+    path = L / el.c_out
+    y = mu_t * path
+    y_safe = jnp.where(y > 1e-6, y, 1.0)
+    share = jnp.where(y > 1e-6, -jnp.expm1(-y_safe) / y_safe, 1.0 - 0.5 * y)  # (1 - e^-y) / y, finite at y = 0
+    scat = gg.dphi[None, :, None] / gg.fov * cg * p.mu_s_per_m * path * share
+    Hs = deposit(t_out.reshape(S, 1, -1), jnp.where(L > 0, scat, 0.0).reshape(S, 1, -1), nodes)  # (S, 1, K)
+    Hs = Hs * (gg.seg_len / gg.perimeter_m)[None, :, None]  # (S, M, K)
+    # transfer per frequency; each leg blurred like a deposit (quadratic B-spline: sinc^3), no ringing from the phases
+    f = jnp.arange(K + 1, dtype=dtype) / (n * nodes.h)  # (F,)
+    # scattering inside the guided band only redirects the field's light between walls: it is lost at mu_a and at
+    # mu_s times the share scattered out of the band
+    mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
+    F = G * gg.seg_cc * gg.seg_len[None, :] / (2.0 * gg.seg_r) * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
+    delay = gg.seg_r * inv_c / nodes.c1
+    nf = K + 1
+    df = 1.0 / (n * nodes.h)
+    blur = (jnp.sinc(f * nodes.h) ** 3).astype(dtype)
+    T = (R * F)[None] * _phases(delay, df, nf) * blur[:, None, None]
+    Tt = jnp.swapaxes(T, 1, 2)  # (F, l, k): H_next[l] = sum_k T[k, l] H[k]
+    # the power on each segment, transformed directly (a deposit's blur, sinc^3, as on every leg)
+    ph = _phases(t_out.reshape(S, -1) - 0.5 * nodes.h, df, nf) * blur[:, None, None]
+    h1 = jnp.einsum("fsi,si,sim->fsm", ph, Pw.reshape(S, -1), onehot)  # (F, S, M)
+    hs = jnp.moveaxis(jnp.fft.rfft(Hs, n), -1, 0)
+    h2 = jnp.einsum("flk,fsk->fsl", Tt, h1)
+    rhs = jnp.einsum("flk,fsk->fsl", Tt, h2) + hs
+    # all the later orders, (I - T)^-1 rhs, as prod_k (I + T^(2^k)) rhs: matrix products only (no LAPACK call in
+    # the fit's loops), 2^REVERB_DOUBLINGS orders (each keeps at most R G of the light: 0.81^64 = 1e-6 for white walls)
+    x, P = rhs, Tt
+    for _ in range(int(REVERB_DOUBLINGS)):
+        x = x + jnp.einsum("flk,fsk->fsl", P, x)
+        P = jnp.einsum("flm,fmk->flk", P, P)  # (F, S, M) irradiance, third bounce on
+    # seen through each ray's first-bounce return, per metre of its segment
+    seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1) / gg.seg_len[gg.ray_seg]  # (S, Z, A)
+    # one return per ray at its elevations' mean delay (the field is smooth on the band's spread of delays)
+    w = jnp.sum(ret, axis=-1)
+    lag = L / nodes.c1 * jnp.sum(ret / el.c, axis=-1) / jnp.where(w > 0, w, 1.0)
+    kf = jnp.moveaxis((w * seg) * _phases(lag, df, nf), 0, -1) * blur  # (S, Z, A, F)
+    xs = jnp.take_along_axis(jnp.moveaxis(x, 0, -1), gg.ray_seg.reshape(S, -1, 1), axis=1).reshape(S, Z, A, -1)
+    out = jnp.sum(kf * xs, axis=2)  # (S, Z, F) on the coarse grid
+    # the field's light scattered towards the sensor inside its zone (``mu_s pi q / cbar`` per unit area from
+    # an in-plane isotropic field whose walls receive q per metre; isotropic, 1 / (4 pi) per steradian; over
+    # each ray's wedge r dphi dr the 1 / r falloff cancels): the mean irradiance of the second bounce on
+    vol = _reverb_volume(p, gg, el, nodes, L)  # (S, Z, K) per unit irradiance per metre
+    qbar = jnp.sum(x + h2, axis=-1) / gg.perimeter_m  # (F, S)
+    out = out + jnp.fft.rfft(vol, n) * jnp.moveaxis(qbar, 0, -1)[:, None, :]
+    # back in time (the phases' ringing, where a kernel is sharper than the coarse grid, clipped at 0), each coarse
+    # node's mass shared by the fine nodes it spans and then a box as wide (linear between the coarse nodes:
+    # mass kept, never negative)
+    coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0)
+    rep = jnp.repeat(coarse / step, step, axis=-1)
+    if step == 1:
+        return rep
+    c = jnp.cumsum(jnp.pad(rep, [(0, 0)] * (rep.ndim - 1) + [(step, step)]), axis=-1)
+    a = step // 2
+    idx = jnp.arange(K_fine) + step
+    return (c[..., idx + a] - c[..., idx + a - step]) / step
+
+
+def _reverb_volume(p, gg, el, nodes, L):
+    """Counts per unit wall irradiance (per metre) of the reverberant field scattered towards the sensor along
+    each zone's rays, by delay (S, Z, K): ``mu_s dphi cos_s / (4 h cbar) exp(-mu_t c1 t) c1 h sum_j dmu_j c_j``
+    over the elevations whose return from the ray's range ``t c_j c1`` is still inside the guide."""
+    S, Z, A = L.shape
+    cbar = jnp.sum(el.dmu * el.c) / jnp.sum(el.dmu)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    w = (gg.dphi[None, :, None] * gg.cos_sensor)[..., None] * (el.dmu * el.c)  # (S, Z, A, J)
+    end = L[..., None] / (el.c * nodes.c1) + 0.5 * nodes.h  # the lag each elevation's return leaves the guide
+    ended = _weighted_step(end.reshape(S, Z, -1), w.reshape(S, Z, -1), nodes)  # (S, Z, K)
+    cover = jnp.maximum(jnp.sum(w, axis=(2, 3))[..., None] - ended, 0.0)
+    lag = nodes.t - 0.5 * nodes.h
+    return (p.mu_s_per_m / (4.0 * gg.thickness_m * cbar) * nodes.c1 * nodes.h) * cover * jnp.exp(-mu_t * nodes.c1 * lag)
 
 
 def _leg_transmission(ctx, gg, el, src, d):
