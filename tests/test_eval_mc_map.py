@@ -100,3 +100,18 @@ def test_mc_baseline_time_ratio_refuses_no_windows(tmp_path):
     with pytest.raises(SystemExit):
         study.main(["--out", str(tmp_path / "o.json"), "--windows", "0"])
     assert not (tmp_path / "o.json").exists()
+
+
+def test_calib_mc_late_light_oracle_refuses_bad_arguments(tmp_path):
+    """experiments/calib_mc_late_light_oracle.py: a non-positive exposure or a negative start is a usage error
+    before any work (the model's EDGE_REVERB switch, which the study turns off for its run, untouched)."""
+    import pytest
+
+    import tofjax.model.guided as guided
+
+    study = load("calib_mc_late_light_oracle")
+    for flag, bad in (("--exposure", "0"), ("--after", "-1")):
+        with pytest.raises(SystemExit):
+            study.main(["--out", str(tmp_path / "o.json"), flag, bad])
+    assert not (tmp_path / "o.json").exists()
+    assert guided.EDGE_REVERB is True

@@ -93,8 +93,8 @@ EDGE_SECOND_SHADOW = False
 #: each zone through its rays' wall segments and the volume in front of them. Against the Monte Carlo in a clear
 #: square guide the light after the first return goes from 41% of the Monte Carlo's to 99.7% (tests/test_guided.py);
 #: on OptoSkin the Monte Carlo's light where the model had none from 2.0-2.4% to 0.1%
-#: (experiments/mc_baseline_time_ratio.py). It costs the guided baseline about 1.5 ms per evaluation on the 2-core
-#: VM (docs/tradeoff.md).
+#: (experiments/mc_baseline_time_ratio.py). It makes the guided model 3.5-3.8x the default optics' cost instead of
+#: 1.3x (`tofjax bench tradeoff`, docs/tradeoff.md).
 EDGE_REVERB = True
 #: The radiosity's wall segments per wall (4: the same figures as 8 and 16 within 0.002 relative L2, at a quarter
 #: of the cost of 8), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
@@ -144,8 +144,7 @@ class GuidedGeometry(eqx.Module):
     thickness_m: float = eqx.field(static=True)
     aperture_m: float = eqx.field(static=True)
     skin: object = eqx.field(static=True)  # SkinContact or None
-    area_m2: float = eqx.field(static=True, default=0.0)  # the guide's face area
-    perimeter_m: float = eqx.field(static=True, default=0.0)  # and its walls' length
+    perimeter_m: float = eqx.field(static=True, default=0.0)  # the walls' length
     seg_len: jax.Array = None  # (M,) wall segments of the reverberant field (:func:`_reverb`): their lengths
     seg_r: jax.Array = None  # (M, M) centre-to-centre distances (the thickness added in quadrature)
     seg_cc: jax.Array = None  # (M, M) cos at the source times cos at the receiver (0 on one wall)
@@ -190,7 +189,6 @@ class GuidedGeometry(eqx.Module):
             thickness_m=float(scene.waveguide.thickness_m),
             aperture_m=float(aperture_m),
             skin=skin,
-            area_m2=float(lx * ly),
             perimeter_m=float(2.0 * (lx + ly)),
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
                for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
@@ -411,18 +409,21 @@ def _reverb(ctx, gg, el, ret, frus):
     """The walls' later diffuse bounces (before the gain): a time-resolved radiosity of the guide's walls.
 
     The walls are cut into segments (``REVERB_SEGMENTS_PER_WALL`` each). Segment ``k`` reflecting power ``R H``
-    diffusely sends segment ``l`` the share ``F_kl = G cos_k cos_l len_l / (2 r_kl) exp(-mu_t r_kl <1/cos>)``
+    diffusely sends segment ``l`` the share ``F_kl = G cos_k cos_l len_l / (2 r_kl) exp(-mu_eff r_kl <1/cos>)``
     (the guided share ``G`` of a Lambertian wall spread in the plane as ``cos / 2`` per radian, as in
-    :func:`_edge_second`) after ``r_kl <1/cos> / c1``. The beam lights its rays' segments (``P_i = dphi / fov
-    exp(-mu_t L / c_out)`` at ``L / (c_out c1)``, past any contact's frustration); the first bounce's return is
-    :func:`_edge`'s and the second's, inside the lit footprint, :func:`_edge_second`'s, so the field counts the
-    irradiance of the third bounce on: ``(I - T)^-1 T^2 H1`` with ``T = R F``, per frequency (where the delays
-    are phases; each leg blurred like a deposit), summed by doubling (``prod_k (I + T^(2^k))``: matrix products only). The beam's light scattered on the way out (share ``cg`` of it into the guided
-    band, isotropic) lights the walls evenly when the beam reaches its wall, from the first bounce on; on the
-    wall-to-wall legs scattering only redirects light, so they attenuate at ``mu_a + mu_s (1 - cg)``. Each ray's wall segment
-    (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first bounce: ``ret``, the
-    first bounce's counts per unit power on the wall, per return elevation and delay. Contacts frustrate the
-    beam's light before it reaches the walls, not the wall-to-wall legs (as :data:`EDGE_SECOND_SHADOW`)."""
+    :func:`_edge_second`) after ``r_kl <1/cos> / c1``; scattering inside the guided band only redirects the field's
+    light between walls, so the legs lose ``mu_eff = mu_a + mu_s (1 - cg)``. The beam lights its rays' segments
+    (``P_i = dphi / fov exp(-mu_t L / c_out)`` at ``L / (c_out c1)``, past any contact's frustration); the first
+    bounce's return is :func:`_edge`'s and the second's, inside the lit footprint, :func:`_edge_second`'s, so the
+    field counts the irradiance of the third bounce on: ``(I - T)^-1 T^2 H1`` with ``T = R F``, per frequency
+    (the delays are phases, each leg blurred like a deposit), summed by doubling (``prod_k (I + T^(2^k))``:
+    matrix products only). The beam's light scattered on its way out (share ``cg`` of it into the guided band,
+    isotropic) lights the walls evenly when the beam reaches its wall. Each ray's wall segment (``L dphi /
+    cos_wall`` of its segment's irradiance per metre) reflects it like its first bounce: ``ret`` (S, Z, A, J), the
+    first bounce's counts per unit power on the wall, at its elevations' mean delay; the volume in front of the
+    walls scatters the field back too (:func:`_reverb_volume`). Contacts frustrate the beam's light before it
+    reaches the walls, not the wall-to-wall legs (as :data:`EDGE_SECOND_SHADOW`). Solved on a grid of at most
+    ``REVERB_NODES`` nodes, then shared out on the model's."""
     p, geom, fine = ctx.params, ctx.geom, ctx.nodes
     L = geom.ray_length  # (S, Z, A)
     S, Z, A = L.shape
@@ -455,14 +456,12 @@ def _reverb(ctx, gg, el, ret, frus):
     Hs = deposit(t_out.reshape(S, 1, -1), jnp.where(L > 0, scat, 0.0).reshape(S, 1, -1), nodes)  # (S, 1, K)
     Hs = Hs * (gg.seg_len / gg.perimeter_m)[None, :, None]  # (S, M, K)
     # transfer per frequency; each leg blurred like a deposit (quadratic B-spline: sinc^3), no ringing from the phases
-    f = jnp.arange(K + 1, dtype=dtype) / (n * nodes.h)  # (F,)
-    # scattering inside the guided band only redirects the field's light between walls: it is lost at mu_a and at
-    # mu_s times the share scattered out of the band
+    nf = K + 1
+    df = 1.0 / (n * nodes.h)
+    f = jnp.arange(nf, dtype=dtype) * df  # (F,)
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
     F = G * gg.seg_cc * gg.seg_len[None, :] / (2.0 * gg.seg_r) * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
     delay = gg.seg_r * inv_c / nodes.c1
-    nf = K + 1
-    df = 1.0 / (n * nodes.h)
     blur = (jnp.sinc(f * nodes.h) ** 3).astype(dtype)
     T = (R * F)[None] * _phases(delay, df, nf) * blur[:, None, None]
     Tt = jnp.swapaxes(T, 1, 2)  # (F, l, k): H_next[l] = sum_k T[k, l] H[k]
@@ -474,10 +473,10 @@ def _reverb(ctx, gg, el, ret, frus):
     rhs = jnp.einsum("flk,fsk->fsl", Tt, h2) + hs
     # all the later orders, (I - T)^-1 rhs, as prod_k (I + T^(2^k)) rhs: matrix products only (no LAPACK call in
     # the fit's loops), 2^REVERB_DOUBLINGS orders (each keeps at most R G of the light: 0.81^64 = 1e-6 for white walls)
-    x, P = rhs, Tt
+    x, P = rhs, Tt  # x: (F, S, M) irradiance, third bounce on
     for _ in range(int(REVERB_DOUBLINGS)):
         x = x + jnp.einsum("flk,fsk->fsl", P, x)
-        P = jnp.einsum("flm,fmk->flk", P, P)  # (F, S, M) irradiance, third bounce on
+        P = jnp.einsum("flm,fmk->flk", P, P)
     # seen through each ray's first-bounce return, per metre of its segment
     seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1) / gg.seg_len[gg.ray_seg]  # (S, Z, A)
     # one return per ray at its elevations' mean delay (the field is smooth on the band's spread of delays)
