@@ -41,9 +41,7 @@ def main(argv=None) -> int:
     import eval_mc_data as E
 
     from tofjax.fit import Calibrator, FitConfig
-    from tofjax.mc.bench import NOT_TRANSPORTED
-    from tofjax.mc.capture import ANALYTIC_EXTRAS
-    from tofjax.model import ModelOptions, Params, build_model, guided
+    from tofjax.model import guided
     from tofjax.outputs import atomic_write_text
 
     saved = guided.EDGE_REVERB
@@ -52,11 +50,7 @@ def main(argv=None) -> int:
         scene = E.guided_scene()
         wg = scene.waveguide
         mc = E.mc_baseline_mean(scene)
-        o = ModelOptions(quadrature=4, dtype="float32")
-        transported = mc - np.asarray(build_model(scene, o, ANALYTIC_EXTRAS)(Params.from_scene(scene, o.jnp_dtype)), float)
-        comps = tuple(c for c in scene.components() if c not in NOT_TRANSPORTED)
-        parts = {k: np.asarray(v, float) for k, v in
-                 build_model(scene, ModelOptions(optics="guided"), comps).breakdown(Params.from_scene(scene)).items()}
+        transported, parts = E.mc_baseline_against_guided(scene)
         model = sum(parts.values())
         k = np.arange(mc.shape[-1])
         late = k >= parts["end"].argmax(-1)[..., None] + a.after

@@ -123,6 +123,22 @@ def mc_baseline_mean(scene, photons: int = 25_000, seeds: int = 8) -> np.ndarray
     return np.stack([mc_expected(scene, photons, s)[0] for s in range(seeds)]).mean(0)
 
 
+def mc_baseline_against_guided(scene) -> tuple[np.ndarray, dict]:
+    """The Monte Carlo baseline's transported light (:func:`mc_baseline_mean` less the analytic light entry and
+    ambient it adds) and the guided model's transported components at the scene's own optics (a dict by
+    component), both (sensors, zones, bins): what the studies of where the guided model departs compare."""
+    from tofjax.mc.bench import NOT_TRANSPORTED
+    from tofjax.mc.capture import ANALYTIC_EXTRAS
+    from tofjax.model import ModelOptions, Params, build_model
+
+    o = ModelOptions(quadrature=4, dtype="float32")  # as mc_expected_counts adds them
+    extras = np.asarray(build_model(scene, o, ANALYTIC_EXTRAS)(Params.from_scene(scene, o.jnp_dtype)), float)
+    comps = tuple(c for c in scene.components() if c not in NOT_TRANSPORTED)
+    model = build_model(scene, ModelOptions(optics="guided"), comps)
+    parts = {k: np.asarray(v, float) for k, v in model.breakdown(Params.from_scene(scene)).items()}
+    return mc_baseline_mean(scene) - extras, parts
+
+
 def touch_scene(base, contacts: np.ndarray, radius_m: float = 0.006):
     from tofjax.scene import Touch
 

@@ -36,18 +36,10 @@ def main(argv=None) -> int:
     tofjax.enable_x64()
     import eval_mc_data as E
 
-    from tofjax.mc.bench import NOT_TRANSPORTED
-    from tofjax.mc.capture import ANALYTIC_EXTRAS
-    from tofjax.model import ModelOptions, Params, build_model
     from tofjax.outputs import atomic_write_text
 
     sc = E.guided_scene()
-    mc = E.mc_baseline_mean(sc)
-    o = ModelOptions(quadrature=4, dtype="float32")  # as mc_expected_counts adds them
-    transported = mc - np.asarray(build_model(sc, o, ANALYTIC_EXTRAS)(Params.from_scene(sc, o.jnp_dtype)), float)
-    comps = tuple(c for c in sc.components() if c not in NOT_TRANSPORTED)
-    model = build_model(sc, ModelOptions(optics="guided"), comps)
-    parts = {k: np.asarray(v, float) for k, v in model.breakdown(Params.from_scene(sc)).items()}
+    transported, parts = E.mc_baseline_against_guided(sc)
     g = sum(parts.values())
     sensors = []
     for s, sp in enumerate(sc.sensors):
