@@ -258,6 +258,19 @@ def _elevations(gg: GuidedGeometry, n1, distributed: bool = False) -> _Elev:
     return _Elev(mu=mu, c=jnp.sqrt(1.0 - mu**2), dmu=2.0 * cg * wx, c_out=c_out, mu_out=0.5 * launch)
 
 
+def _beam_at_wall(gg: "GuidedGeometry", el: _Elev, L, mu_t):
+    """The share of the launched light each ray (S, Z, A) carries to its far wall: ``dphi / fov exp(-mu_t L /
+    c_out)``."""
+    return gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out)
+
+
+def _wall_band(el: _Elev):
+    """A Lambertian wall's guided emission: the share ``G = (2/pi) int sqrt(1 - mu^2) dmu`` of it the band guides,
+    and its flux-weighted mean ``1 / cos``."""
+    flux = jnp.sum(el.dmu * el.c)
+    return flux * (2.0 / math.pi), jnp.sum(el.dmu * el.c / el.c) / flux
+
+
 def _weighted_step(times, weights, nodes: Nodes):
     """Running share of ``weights`` of events at ``times`` (S, Z', E) before each node (cf. step_on)."""
     w = deposit(times, weights, nodes)
@@ -325,7 +338,7 @@ def _edge(ctx, gg, el, frus):
            / (math.pi * gg.thickness_m * jnp.sqrt(Lsafe**2 + (0.5 * gg.aperture_m) ** 2))
            * el.dmu * el.c * jnp.exp(-mu_t * L / el.c))  # (S, Z, A, J)
     ret = jnp.where(L > 0, ret, 0.0)
-    P1 = gg.dphi[None, :, None, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out)
+    P1 = _beam_at_wall(gg, el, geom.ray_length, mu_t)[..., None]
     if frus is not None:
         P_out, P_ret, _ = frus
         ret = ret * jnp.prod(1.0 - P_ret, axis=-2)
@@ -367,7 +380,8 @@ def _edge_second(ctx, gg, el, amp1, frus):
     W = geom.sensor_xy[:, None, None, :] + L[..., None] * u  # (S, Z, A, 2) wall points
     k = max(1, min(int(EDGE_SECOND_STRIDE), A))
     Ws, ns, Ls = W[:, :, ::k].reshape(S, -1, 2), gg.wall_normal[:, :, ::k].reshape(S, -1, 2), L[:, :, ::k].reshape(S, -1)
-    Ps = (k * gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out))[:, :, ::k]  # (S, Z, A/k)
+    beam = _beam_at_wall(gg, el, L, mu_t)  # (S, Z, A)
+    Ps = (k * beam)[:, :, ::k]  # (S, Z, A/k)
     if frus is not None:
         Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, ::k]
     Ps = Ps.reshape(S, -1)
@@ -376,10 +390,9 @@ def _edge_second(ctx, gg, el, amp1, frus):
     r = jnp.sqrt(r2)
     cos_i = jnp.clip(jnp.sum(d * ns[:, None, None], -1) / r, 0.0, 1.0)
     cos_j = jnp.clip(-jnp.sum(d * gg.wall_normal[:, :, :, None, :], -1) / r, 0.0, 1.0)
-    G = jnp.sum(el.dmu * el.c) * (2.0 / math.pi)  # guided share of a Lambertian wall's emission
-    inv_c = jnp.sum(el.dmu * el.c / el.c) / jnp.sum(el.dmu * el.c)  # mean 1 / cos of it (flux-weighted)
+    G, inv_c = _wall_band(el)  # guided share of a Lambertian wall's emission, its mean 1 / cos
     seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1)  # (S, Z, A) receiving segment length
-    P1 = jnp.maximum(gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 1e-300)
+    P1 = jnp.maximum(beam, 1e-300)
     ratio = (p.end_reflectance * G * 0.5 * Ps[:, None, None, :] * cos_i * cos_j * (seg / P1)[..., None] / r
              * jnp.exp(-mu_t * r * inv_c))  # (S, Z, A, I)
     if frus is not None and EDGE_SECOND_SHADOW:
@@ -440,9 +453,8 @@ def _reverb(ctx, gg, el, ret, frus):
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     cg = launch_band(p.n1, gg.fov)[0]  # the guided band's edge
     R = p.end_reflectance
-    G = jnp.sum(el.dmu * el.c) * (2.0 / math.pi)  # guided share of a Lambertian wall's emission
-    inv_c = jnp.sum(el.dmu * el.c / el.c) / jnp.sum(el.dmu * el.c)  # its mean 1 / cos (flux-weighted)
-    P1 = jnp.where(L > 0, gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 0.0)  # (S, Z, A)
+    G, inv_c = _wall_band(el)  # guided share of a Lambertian wall's emission, its mean 1 / cos
+    P1 = jnp.where(L > 0, _beam_at_wall(gg, el, L, mu_t), 0.0)  # (S, Z, A)
     Pw = P1 if frus is None else P1 * jnp.prod(1.0 - frus[0], axis=-1)
     t_out = p.emission_time_s + L / (el.c_out * nodes.c1)
     onehot = jax.nn.one_hot(gg.ray_seg.reshape(S, -1), M, dtype=dtype)  # (S, ZA, M)
@@ -611,7 +623,7 @@ def _touch_diffuse(ctx, gg, el):
     # frustrated share per unit power leaving the wall point, summed over the band
     band = jnp.sum(el.dmu * el.mu * (1.0 - Rs) * jnp.exp(-mu_t * rho[..., None] / el.c), -1)  # (S, Z, A, N)
     frus = p.end_reflectance * cos_w * p.touch_radius_m**2 / (2.0 * gg.thickness_m * rho) * fc * band
-    reach = jnp.where(L > 0, gg.dphi[None, :, None] / gg.fov * jnp.exp(-mu_t * L / el.c_out), 0.0)  # (S, Z, A)
+    reach = jnp.where(L > 0, _beam_at_wall(gg, el, L, mu_t), 0.0)  # (S, Z, A)
     src = reach[..., None] * frus * skin.diffuse_albedo_jax(p.n1)  # (S, Z, A, N)
     # back to the sensor from the contact (distance D, Lambertian from the face)
     D = jnp.maximum(cg.distance, p.touch_radius_m)  # (S, N)
