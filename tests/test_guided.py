@@ -528,6 +528,23 @@ def test_reverberant_field_starts_at_the_third_bounce(monkeypatch):
     assert rev[0.8] / rev[0.4] > 8.0 * 1.2
 
 
+def test_reverberant_field_tail_agrees_with_its_orders_summed(monkeypatch):
+    """The field's orders after the fifth bounce are a geometric train (guided._geometric_tail); summed one by one
+    (512 of them) they give the same field: within 0.2% for grey walls, 2% for near-white ones (measured 0.1% /
+    0.4% / 0.9% for R = 0.3 / 0.6 / 0.9, 3.8% at R = 1, where the train's ratio from the fifth bounce is a little
+    low)."""
+    import tofjax.model.guided as guided
+
+    sc = _square()
+    for R, tol in ((0.3, 0.003), (0.6, 0.01), (0.9, 0.02)):
+        rev, _ = _reverb_part(monkeypatch, sc, end_reflectance=R)
+        monkeypatch.setattr(guided, "REVERB_EXACT_ORDERS", 512)
+        exact, _ = _reverb_part(monkeypatch, sc, end_reflectance=R)
+        monkeypatch.setattr(guided, "REVERB_EXACT_ORDERS", 0)
+        assert rev.sum() == pytest.approx(exact.sum(), rel=tol), R
+        assert np.linalg.norm(rev - exact) / np.linalg.norm(exact) < 2 * tol, R
+
+
 def test_reverberant_field_is_finite_and_differentiable_at_the_extremes():
     """No NaN or inf in the guided model with its reverberant field, nor in its gradients, from a clear guide to a
     strongly attenuating one, walls from black to white; the gradients in mu_a and R agree with central
