@@ -93,8 +93,9 @@ EDGE_SECOND_SHADOW = False
 #: each zone through its rays' wall segments and the volume in front of them. Against the Monte Carlo in a clear
 #: square guide the light after the first return goes from 41% of the Monte Carlo's to 99.7% (tests/test_guided.py);
 #: on OptoSkin the Monte Carlo's light where the model had none from 2.0-2.4% to 0.1%
-#: (experiments/mc_baseline_time_ratio.py). It makes the guided model 3.5-3.8x the default optics' cost instead of
-#: 1.3x (`tofjax bench tradeoff`, docs/tradeoff.md).
+#: (experiments/mc_baseline_time_ratio.py). With it the guided model costs 1.84x / 1.97x the default optics' on the
+#: bench's baseline / touch scene (1.3x without it; 3.5-3.8x with the term's first form, which summed 64 orders by
+#: doubling and took each delay's phases by complex exponentials; `tofjax bench tradeoff`, docs/tradeoff.md).
 EDGE_REVERB = True
 #: The radiosity's wall segments per wall (4: the same figures as 8 and 16 within 0.002 relative L2, at a quarter
 #: of the cost of 8), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
@@ -457,13 +458,14 @@ def _reverb(ctx, gg, el, ret, frus):
     bounce's return is :func:`_edge`'s and the second's, inside the lit footprint, :func:`_edge_second`'s, so the
     field counts the irradiance of the third bounce on: ``(I - T)^-1 T^2 H1`` with ``T = R F``, per frequency
     (each leg's delay spread on the grid like a deposit, :func:`_shifts`): the third, fourth and fifth bounces
-    explicitly, the later ones as a geometric train (:func:`_geometric_tail`). The beam's light scattered on its way out (share ``cg`` of it into the guided band,
-    isotropic) lights the walls evenly when the beam reaches its wall. Each ray's wall segment (``L dphi /
-    cos_wall`` of its segment's irradiance per metre) reflects it like its first bounce: ``ret`` (S, Z, A, J), the
-    first bounce's counts per unit power on the wall, at its elevations' mean delay; the volume in front of the
-    walls scatters the field back too (:func:`_reverb_volume`). Contacts frustrate the beam's light before it
-    reaches the walls, not the wall-to-wall legs (as :data:`EDGE_SECOND_SHADOW`). Solved on a grid of at most
-    ``REVERB_NODES`` nodes, then shared out on the model's."""
+    explicitly, the later ones as a geometric train (:func:`_geometric_tail`). The beam's light scattered on its way
+    out (share ``cg`` of it into the guided band, isotropic) lights the walls evenly when the beam reaches its wall.
+    Each ray's wall segment (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first
+    bounce: ``ret`` (S, Z, A, J), the first bounce's counts per unit power on the wall, at its elevations' mean
+    delay; the volume in front of the walls scatters the field back too (:func:`_reverb_volume`). Contacts
+    frustrate the beam's light before it reaches the walls, not the wall-to-wall legs (as
+    :data:`EDGE_SECOND_SHADOW`). Solved on a grid of at most ``REVERB_NODES`` nodes, then shared out on the
+    model's."""
     p, geom, fine = ctx.params, ctx.geom, ctx.nodes
     L = geom.ray_length  # (S, Z, A)
     S, Z, A = L.shape
