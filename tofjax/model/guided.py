@@ -37,7 +37,7 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   (``REVERB_SEGMENTS_PER_WALL`` segments each, solved per frequency) from the third bounce on, with the beam's
   scattered light; each zone sees it through its rays' wall segments and the volume in front of them. No free
   parameter: against the Monte Carlo in a clear square guide the light after the first return goes from 41% of
-  the Monte Carlo's (relative L2 0.51) to 99.7% (0.09).
+  the Monte Carlo's (relative L2 0.51) to 99.1% (0.097).
 
 Multiple scattering keeps its phenomenological coupling (``multiple_scattering``) with the
 guided falloff and timing. See docs/tradeoff.md for the comparison with the Monte Carlo.
@@ -91,7 +91,7 @@ EDGE_SECOND_SHADOW = False
 #: Add the walls' later diffuse bounces (:func:`_reverb`): a time-resolved radiosity of the walls from the third
 #: bounce on (the first two are :func:`_edge` and :func:`_edge_second`), with the beam's scattered light, seen by
 #: each zone through its rays' wall segments and the volume in front of them. Against the Monte Carlo in a clear
-#: square guide the light after the first return goes from 41% of the Monte Carlo's to 99.7% (tests/test_guided.py);
+#: square guide the light after the first return goes from 41% of the Monte Carlo's to 99.1% (tests/test_guided.py);
 #: on OptoSkin the Monte Carlo's light where the model had none from 2.0-2.4% to 0.1%
 #: (experiments/mc_baseline_time_ratio.py). With it the guided model costs 1.84x / 1.97x the default optics' on the
 #: bench's baseline / touch scene (1.3x without it; 3.5-3.8x with the term's first form, which summed 64 orders by
