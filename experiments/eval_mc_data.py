@@ -563,12 +563,40 @@ def touch_l2(scene, contacts, photons: int, seeds: int, base_seeds: np.ndarray) 
                          "model_error_noise_subtracted": float(np.sqrt(max(eb**2 - nb**2, 0.0)))}}
 
 
+def set_guided_switches(items) -> dict:
+    """Set ``NAME=VALUE`` module switches of :mod:`tofjax.model.guided` (upper-case names it defines; the value
+    parsed as the switch's type: bool as true/false/1/0); returns them as set. Unknown names or bad values raise
+    ValueError naming them."""
+    import tofjax.model.guided as guided
+
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name, text = name.strip(), text.strip()
+        if not sep or not name.isupper() or not hasattr(guided, name):
+            known = sorted(k for k in vars(guided) if k.isupper() and not k.startswith("_"))
+            raise ValueError(f"{item!r}: expected NAME=VALUE with NAME one of {', '.join(known)}")
+        old = getattr(guided, name)
+        if isinstance(old, bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"{name}: expected true or false, got {text!r}")
+            value = text.lower() in ("true", "1")
+        else:
+            try:
+                value = type(old)(text)
+            except ValueError:
+                raise ValueError(f"{name}: expected a {type(old).__name__}, got {text!r}") from None
+        setattr(guided, name, value)
+        out[name] = value
+    return out
+
+
 def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: int = 2, configs: int = 12,
         calib_frames: int = 10, frames_per_config: int = 2, baseline_frames: int = 100, seed: int = 0,
         progress: bool = True, overwrite: bool = False, with_default: bool = False, exposure: float = 1.0,
         methods=("full", "model", "fit"), skip_l2: bool = False, fit_variants: dict | None = None,
         fit_n_sigmas=(), columns=("own", "monte_carlo"), fit_options: dict | None = None, config_seed: int = 6,
-        true_optics: bool = False) -> dict:
+        true_optics: bool = False, guided_switches: dict | None = None) -> dict:
     import tofjax.invert.greedy  # noqa: F401  (loaded now: the code a long run uses is the code it started with)
     from tofjax.outputs import atomic_write_text, check_output
     from tofjax.simulate import expected_counts
@@ -609,6 +637,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
         "settings": {"calib_frames": calib_frames, "frames_per_config": frames_per_config, "methods": list(methods),
                      "fit_variants": fit_variants or {}, "fit_n_sigmas": list(fit_n_sigmas),
                      "fit_options": fit_options or {},
+                     "guided_switches": guided_switches or {},
                      "skip_l2": skip_l2, "detection_columns": list(columns),
                      "baseline_frames": baseline_frames, "configs": configs, "seed": seed, "config_seed": config_seed,
                      "detection_optics": ("the scene's n1, mu_s, mu_a (true); gains, pulse and the rest calibrated"
@@ -771,8 +800,14 @@ def main(argv=None):
     ap.add_argument("--true-optics", action="store_true",
                     help="detect with the scene's n1, mu_s and mu_a instead of the calibrated ones (gains, pulse and "
                          "the rest as calibrated: the data's scale)")
+    ap.add_argument("--guided-switch", action="append", default=[], metavar="NAME=VALUE",
+                    help="set a module switch of tofjax.model.guided for this run (e.g. REVERB_LEGS=true; repeatable)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
+    try:
+        switches = set_guided_switches(a.guided_switch)
+    except ValueError as e:
+        ap.error(f"--guided-switch: {e}")
     if not (a.exposure > 0 and np.isfinite(a.exposure)):
         ap.error(f"--exposure: must be a finite number > 0, got {a.exposure!r}")
     from tofjax.config import ConfigError
@@ -814,7 +849,7 @@ def main(argv=None):
             overwrite=a.overwrite, with_default=a.with_default, exposure=a.exposure,
             methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()), skip_l2=a.skip_l2, fit_variants=variants,
             fit_n_sigmas=levels, columns=cols, fit_options=fit_options, config_seed=a.config_seed,
-            true_optics=a.true_optics)
+            true_optics=a.true_optics, guided_switches=switches)
     print(json.dumps(r["targets"], indent=1))
     print(f"wrote {a.out}/eval_mc_data.json")
 

@@ -40,8 +40,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 #: (SECOND_ORDER, SECOND_ORDER_RECIPROCAL, EDGE_SECOND_SHADOW) of tofjax.model.guided
-VARIANTS = {"first_order": (False, False, False), "first_order_legs_shadowed": (False, False, True),
-            "second_order_forward": (True, False, False), "second_order_both": (True, True, False)}
+VARIANTS = {"first_order": (False, False, False, False), "first_order_legs_shadowed": (False, False, True, False),
+            "field_legs_shadowed": (False, False, False, True),
+            "second_order_forward": (True, False, False, False), "second_order_both": (True, True, False, False)}
 
 
 def main(argv=None) -> int:
@@ -50,12 +51,16 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=int, default=25_000, help="Monte Carlo packets per sensor and seed")
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--positions", default="", help="comma-separated position names (default: all)")
+    ap.add_argument("--variants", default="", help=f"comma-separated model variants (default: all; {', '.join(VARIANTS)})")
     ap.add_argument("--cache", default=None, help="folder caching the Monte Carlo runs (default: eval_mc_data.py's)")
     ap.add_argument("--end-reflectance", type=float, default=None,
                     help="the edges' reflectance in both (default: the scene's); 0: absorbing edges")
     a = ap.parse_args(argv)
     if a.seeds < 2 or a.photons < 1:
         ap.error("--seeds must be >= 2 and --photons >= 1")
+    unknown = [v for v in a.variants.split(",") if v.strip() and v.strip() not in VARIANTS]
+    if unknown:
+        ap.error(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "experiments"))
     from tofjax.compile_cache import use_fast_cpu_compiler
@@ -129,13 +134,17 @@ def _run(a, ap, E) -> int:
         noise = float(np.sqrt(np.var(d, 0, ddof=1).sum() / a.seeds) / np.linalg.norm(dm))
         row = {"xy_m": [x, y], "mc_signal_added": float(dm.clip(0).sum()), "mc_signal_removed": float(dm.clip(None, 0).sum()),
                "mc_noise_relative": noise, "variants": {}}
-        for v, (second, recip, legs) in VARIANTS.items():
-            saved = guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW
-            guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW = second, recip, legs
+        for v, (second, recip, legs, field_legs) in VARIANTS.items():
+            if a.variants and v not in [x.strip() for x in a.variants.split(",")]:
+                continue
+            saved = guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW, guided.REVERB_LEGS
+            (guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW,
+             guided.REVERB_LEGS) = second, recip, legs, field_legs
             try:
                 g = guided_counts(ts) - guided_counts(scene)
             finally:
-                guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW = saved
+                (guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW,
+                 guided.REVERB_LEGS) = saved
             s = float(np.vdot(dm, g) / np.vdot(g, g))
             res = dm - s * g
             row["variants"][v] = {"relative_l2_strength_profiled": float(np.linalg.norm(res) / np.linalg.norm(dm)),

@@ -567,6 +567,32 @@ def test_reverberant_field_is_finite_and_differentiable_at_the_extremes():
         assert float(getattr(gp, name)) == pytest.approx(float(fd), rel=1e-5), name
 
 
+def test_contacts_frustrate_the_fields_wall_to_wall_legs(monkeypatch):
+    """With guided.REVERB_LEGS a contact also frustrates the field's wall-to-wall legs it sits on (a contact in a
+    corner sits on the legs across it): a corner contact off the beam takes light from the field only with the legs,
+    nothing changes without contacts or at zero strength, and the model's gradient in the contact's position and
+    strength stays finite."""
+    import tofjax.model.guided as guided
+
+    skin = ModelOptions(optics="guided", skin=SkinContact())
+    comps = ("end", "shadowing")
+    free, _ = _reverb_part(monkeypatch, _square(), skin, comps)
+    corner = _square(touches=[{"position_m": [0.012, 0.012], "radius_m": 0.006, "strength": 1.0}])
+    drop = {}
+    for legs in (False, True):
+        monkeypatch.setattr(guided, "REVERB_LEGS", legs)
+        drop[legs] = free.sum() - _reverb_part(monkeypatch, corner, skin, comps)[0].sum()
+        assert np.array_equal(_reverb_part(monkeypatch, _square(), skin, comps)[0], free)
+    # the sensor's beam does not reach the corner: without the legs the contact takes nothing from the field
+    assert drop[False] == pytest.approx(0.0, abs=1e-9 * free.sum()) and drop[True] > 1e-3 * free.sum()
+    zero = _square(touches=[{"position_m": [0.012, 0.012], "radius_m": 0.006, "strength": 0.0}])
+    assert np.allclose(_reverb_part(monkeypatch, zero, skin, comps)[0], free, rtol=1e-6, atol=1e-9 * free.max())
+    model = build_model(corner, skin, comps)
+    p = Params.from_scene(corner)
+    g = jax.grad(lambda q: jnp.sum(model(q)))(p)
+    assert np.isfinite(np.asarray(g.touch_xy_m)).all() and np.isfinite(np.asarray(g.touch_strength)).all()
+
+
 def test_contacts_drain_the_reverberant_field(monkeypatch):
     """A skin contact frustrates the field's light under it: the field is weaker with a contact than without, more
     so for a larger one, and never negative."""

@@ -104,6 +104,7 @@ EDGE_REVERB = True
 REVERB_SEGMENTS_PER_WALL = 4
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
+REVERB_LEGS = False
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
@@ -150,6 +151,8 @@ class GuidedGeometry(eqx.Module):
     seg_r: jax.Array = None  # (M, M) centre-to-centre distances (the thickness added in quadrature)
     seg_cc: jax.Array = None  # (M, M) cos at the source times cos at the receiver (0 on one wall)
     ray_seg: jax.Array = None  # (S, Z, A) the segment each ray's far wall point lies in
+    seg_xy: jax.Array = None  # (M, 2) segment centres
+    seg_tan: jax.Array = None  # (M, 2) unit vectors along each segment
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
@@ -214,7 +217,9 @@ def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
     cc = np.clip(np.sum(d * normals[:, None], -1) / r, 0, 1) * np.clip(-np.sum(d * normals[None], -1) / r, 0, 1)
     pts = np.stack([np.asarray(wx, float), np.asarray(wy, float)], -1)
     near = np.argmin(np.sum((pts[..., None, :] - centres) ** 2, -1), axis=-1)
-    return {"seg_len": lengths, "seg_r": r, "seg_cc": cc, "ray_seg": near.astype(np.int32)}
+    tangents = np.stack([normals[:, 1], -normals[:, 0]], -1)
+    return {"seg_len": lengths, "seg_r": r, "seg_cc": cc, "ray_seg": near.astype(np.int32), "seg_xy": centres,
+            "seg_tan": tangents}
 
 
 def inward_normals(scene: Scene) -> np.ndarray:
@@ -446,6 +451,39 @@ def _geometric_tail(ar, ai, br, bi):
     return (br * qr + bi * qi) / q2, (bi * qr - br * qi) / q2
 
 
+def _field_leg_transmission(ctx, gg, el):
+    """Share of each wall-to-wall leg of the reverberant field (segment k -> l, (M, M)) that crosses every contact
+    unfrustrated. A leg is a bundle of rays from segment k's length to segment l's, as wide across its direction as
+    their projections (interpolated along it); a contact of radius ``a`` at distance ``e`` across the leg's line
+    is crossed by the share ``2 a / w`` of it (while ``|e| < w / 2``, a smooth step one radius wide; beyond either
+    end of the leg, nothing), each such ray frustrated over the mean chord ``pi a / 2`` (its top-face hits per
+    guided elevation, averaged with a Lambertian wall's guided weights, as :func:`_leg_transmission`)."""
+    p = ctx.params
+    skin = gg.skin
+    rad = p.touch_radius_m  # (N,)
+    src, dst = gg.seg_xy[:, None, :], gg.seg_xy[None, :, :]
+    d = dst - src  # (M, M, 2)
+    length = jnp.sqrt(jnp.sum(d**2, -1) + 1e-30)
+    u = d / length[..., None]
+    rel = p.touch_xy_m[None, None] - src[..., None, :]  # (M, M, N, 2)
+    along = jnp.sum(rel * u[..., None, :], -1)  # (M, M, N)
+    across = rel[..., 0] * u[..., None, 1] - rel[..., 1] * u[..., None, 0]
+    s = jnp.clip(along / length[..., None], 0.0, 1.0)
+    proj = lambda t: jnp.abs(t[..., 0] * u[..., 1] - t[..., 1] * u[..., 0])  # noqa: E731  width across the leg
+    wk = (gg.seg_len[:, None] * proj(gg.seg_tan[:, None, :]))[..., None]
+    wl = (gg.seg_len[None, :] * proj(gg.seg_tan[None, :, :]))[..., None]
+    width = jnp.maximum((1.0 - s) * wk + s * wl, 2.0 * rad)  # (M, M, N)
+    inside = (jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
+              * jax.nn.sigmoid((0.5 * width - jnp.abs(across)) / rad))
+    fc = _coupling(skin, p.touch_strength)  # (N,)
+    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    hits = (0.5 * math.pi * rad)[:, None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (N, J)
+    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
+    w = el.dmu * el.c / jnp.sum(el.dmu * el.c)
+    lost = jnp.sum(P * w, -1) * 2.0 * rad / width * inside  # (M, M, N)
+    return jnp.prod(1.0 - jnp.minimum(lost, 1.0), axis=-1)
+
+
 def _reverb(ctx, gg, el, ret, frus):
     """The walls' later diffuse bounces (before the gain): a time-resolved radiosity of the guide's walls.
 
@@ -506,6 +544,8 @@ def _reverb(ctx, gg, el, ret, frus):
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
     F = G * gg.seg_cc * gg.seg_len[None, :] / (2.0 * gg.seg_r) * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
     dr, di = _shifts(gg.seg_r * inv_c / (nodes.c1 * nodes.h), n)  # (k, l, F)
+    if REVERB_LEGS and frus is not None:
+        F = F * _field_leg_transmission(ctx, gg, el)
     RF = (R * F).T[None]  # (1, l, k): H_next[l] = sum_k T[k, l] H[k]
     Tr, Ti = RF * jnp.moveaxis(dr, -1, 0).swapaxes(1, 2), RF * jnp.moveaxis(di, -1, 0).swapaxes(1, 2)  # (F, l, k)
     mv = "flk,fsk->fsl"
