@@ -104,6 +104,10 @@ EDGE_REVERB = True
 REVERB_SEGMENTS_PER_WALL = 4
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
+#: Contacts frustrate the field's wall-to-wall legs too (:func:`_field_leg_transmission`). Off: near a corner it
+#: brings one contact's removed light to the Monte Carlo's (40-54 -> 70-81 counts against 65-75, relative L2 0.23
+#: -> 0.195 at 2 cm; experiments/mc_contact_walls.py) but six-contact detection at 64x no better (pooled precision /
+#: recall 91.9 / 90.3% against 92.3 / 92.0%; experiments/eval_mc_data.py --guided-switch REVERB_LEGS=true).
 REVERB_LEGS = False
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
