@@ -505,8 +505,7 @@ def _reverb(ctx, gg, el, ret, frus):
     Each ray's wall segment (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first
     bounce: ``ret`` (S, Z, A, J), the first bounce's counts per unit power on the wall, at its elevations' mean
     delay; the volume in front of the walls scatters the field back too (:func:`_reverb_volume`). Contacts
-    frustrate the beam's light before it reaches the walls, not the wall-to-wall legs (as
-    :data:`EDGE_SECOND_SHADOW`). Solved on a grid of at most ``REVERB_NODES`` nodes, then shared out on the
+    frustrate the beam's light before it reaches the walls; the wall-to-wall legs only with :data:`REVERB_LEGS`. Solved on a grid of at most ``REVERB_NODES`` nodes, then shared out on the
     model's."""
     p, geom, fine = ctx.params, ctx.geom, ctx.nodes
     L = geom.ray_length  # (S, Z, A)
@@ -577,6 +576,12 @@ def _reverb(ctx, gg, el, ret, frus):
     sidx = np.arange(S)[:, None, None]
     gr, gi = jnp.moveaxis(xr, 0, -1)[sidx, gg.ray_seg], jnp.moveaxis(xi, 0, -1)[sidx, gg.ray_seg]  # (S, Z, A, F)
     out = jnp.sum(ws * (kr * gr - ki * gi), axis=2) + 1j * jnp.sum(ws * (kr * gi + ki * gr), axis=2)  # (S, Z, F)
+    # the field's light scattered towards the sensor inside its zone (``mu_s pi q / cbar`` per unit area from
+    # an in-plane isotropic field whose walls receive q per metre; isotropic, 1 / (4 pi) per steradian; over
+    # each ray's wedge r dphi dr the 1 / r falloff cancels), from the third bounce on, the walls' mean. (The second
+    # bounce's light is still on its way from the lit footprint: what of it a ray's volume scatters back arrives
+    # with the first return, not a range's delay after it; with it here the tail after the return came out 10-30%
+    # above the Monte Carlo's and the 64x calibration's mu_s + mu_a 22% high, against 3% low without.)
     vol = _reverb_volume(p, gg, el, nodes, L)  # (S, Z, K) per unit irradiance per metre
     qbar = (jnp.sum(xr, axis=-1) + 1j * jnp.sum(xi, axis=-1)) / gg.perimeter_m  # (F, S)
     out = out + jnp.fft.rfft(vol, n) * jnp.moveaxis(qbar, 0, -1)[:, None, :]
