@@ -461,17 +461,11 @@ def _field_leg_transmission(ctx, gg, el):
     their projections (interpolated along it); a contact of radius ``a`` at distance ``e`` across the leg's line
     is crossed by the share ``2 a / w`` of it (while ``|e| < w / 2``, a smooth step one radius wide; beyond either
     end of the leg, nothing), each such ray frustrated over the mean chord ``pi a / 2`` (its top-face hits per
-    guided elevation, averaged with a Lambertian wall's guided weights, as :func:`_leg_transmission`)."""
+    guided elevation, averaged with a Lambertian wall's guided weights: :func:`_wall_light_frustrated`)."""
     p = ctx.params
-    skin = gg.skin
     rad = p.touch_radius_m  # (N,)
-    src, dst = gg.seg_xy[:, None, :], gg.seg_xy[None, :, :]
-    d = dst - src  # (M, M, 2)
-    length = jnp.sqrt(jnp.sum(d**2, -1) + 1e-30)
-    u = d / length[..., None]
-    rel = p.touch_xy_m[None, None] - src[..., None, :]  # (M, M, N, 2)
-    along = jnp.sum(rel * u[..., None, :], -1)  # (M, M, N)
-    across = rel[..., 0] * u[..., None, 1] - rel[..., 1] * u[..., None, 0]
+    src = gg.seg_xy[:, None, :]
+    length, u, along, across = _leg_frame(p, src, gg.seg_xy[None, :, :] - src)  # (M, M), (M, M, N)
     s = jnp.clip(along / length[..., None], 0.0, 1.0)
     proj = lambda t: jnp.abs(t[..., 0] * u[..., 1] - t[..., 1] * u[..., 0])  # noqa: E731  width across the leg
     wk = (gg.seg_len[:, None] * proj(gg.seg_tan[:, None, :]))[..., None]
@@ -479,12 +473,7 @@ def _field_leg_transmission(ctx, gg, el):
     width = jnp.maximum((1.0 - s) * wk + s * wl, 2.0 * rad)  # (M, M, N)
     inside = (jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
               * jax.nn.sigmoid((0.5 * width - jnp.abs(across)) / rad))
-    fc = _coupling(skin, p.touch_strength)  # (N,)
-    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    hits = (0.5 * math.pi * rad)[:, None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (N, J)
-    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
-    w = el.dmu * el.c / jnp.sum(el.dmu * el.c)
-    lost = jnp.sum(P * w, -1) * 2.0 * rad / width * inside  # (M, M, N)
+    lost = _wall_light_frustrated(p, gg, el, 0.5 * math.pi * rad) * 2.0 * rad / width * inside  # (M, M, N)
     return jnp.prod(1.0 - jnp.minimum(lost, 1.0), axis=-1)
 
 
@@ -612,30 +601,42 @@ def _reverb_volume(p, gg, el, nodes, L):
     return (p.mu_s_per_m / (4.0 * gg.thickness_m * cbar) * nodes.c1 * nodes.h) * cover * jnp.exp(-mu_t * nodes.c1 * lag)
 
 
+def _leg_frame(p, src, d):
+    """Each contact against legs from ``src`` along ``d`` (``src`` broadcast like ``d``, (..., 2)): the legs'
+    lengths (...) and unit directions (..., 2), the contacts' distances along and across them (..., N)."""
+    length = jnp.sqrt(jnp.sum(d**2, -1) + 1e-30)  # in-plane
+    u = d / length[..., None]
+    rel = p.touch_xy_m - src[..., None, :]  # (..., N, 2)
+    along = jnp.sum(rel * u[..., None, :], -1)
+    across = rel[..., 0] * u[..., None, 1] - rel[..., 1] * u[..., None, 0]
+    return length, u, along, across
+
+
+def _wall_light_frustrated(p, gg, el, chord):
+    """Share of a Lambertian wall's guided light frustrated over ``chord`` (..., N) of each contact: its top-face
+    hits per guided elevation (``chord |mu| / (2 h cos)``), averaged over the band with the wall's guided weights
+    (``dmu cos``)."""
+    fc = _coupling(gg.skin, p.touch_strength)  # (N,)
+    Rs = _fresnel(p.n1, gg.skin.n, el.mu)  # (J,)
+    hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (..., N, J)
+    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
+    w = el.dmu * el.c / jnp.sum(el.dmu * el.c)  # a Lambertian wall's guided emission per elevation
+    return jnp.sum(P * w, -1)
+
+
 def _leg_transmission(ctx, gg, el, src, d):
     """Share of the wall-to-wall light of :func:`_edge_second` (from ``src`` (S, I, 2) along ``d``
     (S, Z, A, I, 2) to the receiving wall point) that crosses every contact unfrustrated: each
-    contact's chord of the leg, its top-face hits per guided elevation (``chord |mu| / (2 h cos)``),
-    averaged over the band with a Lambertian wall's guided weights (``dmu cos``), the product over
-    the contacts; a contact beyond either end of the leg does nothing (a smooth step one radius wide)."""
+    contact's chord of the leg (:func:`_wall_light_frustrated`), the product over the contacts; a
+    contact beyond either end of the leg does nothing (a smooth step one radius wide)."""
     p = ctx.params
-    skin = gg.skin
     rad = p.touch_radius_m  # (N,)
-    length = jnp.sqrt(jnp.sum(d**2, -1) + 1e-30)  # (S, Z, A, I) in-plane
-    u = d / length[..., None]
-    rel = p.touch_xy_m[None, None, None, None] - src[:, None, None, :, None, :]  # (S, 1, 1, I, N, 2)
-    along = jnp.sum(rel * u[..., None, :], -1)  # (S, Z, A, I, N)
-    across = rel[..., 0] * u[..., None, 1] - rel[..., 1] * u[..., None, 0]
+    length, _, along, across = _leg_frame(p, src[:, None, None], d)  # (S, Z, A, I), (S, Z, A, I, N)
     half2 = rad**2 - across**2
     chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
     chord = jnp.where(half2 > 0, chord, 0.0)
     inside = jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
-    fc = _coupling(skin, p.touch_strength)  # (N,)
-    Rs = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (S, Z, A, I, N, J)
-    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
-    w = el.dmu * el.c / jnp.sum(el.dmu * el.c)  # a Lambertian wall's guided emission per elevation
-    return jnp.prod(1.0 - jnp.sum(P * w, -1) * inside, axis=-1)  # (S, Z, A, I)
+    return jnp.prod(1.0 - _wall_light_frustrated(p, gg, el, chord) * inside, axis=-1)  # (S, Z, A, I)
 
 
 def _touch(ctx, gg, el):
