@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-#: (SECOND_ORDER, SECOND_ORDER_RECIPROCAL, EDGE_SECOND_SHADOW) of tofjax.model.guided
+#: (SECOND_ORDER, SECOND_ORDER_RECIPROCAL, EDGE_SECOND_SHADOW, REVERB_LEGS) of tofjax.model.guided
 VARIANTS = {"first_order": (False, False, False, False), "first_order_legs_shadowed": (False, False, True, False),
             "field_legs_shadowed": (False, False, False, True),
             "second_order_forward": (True, False, False, False), "second_order_both": (True, True, False, False)}
@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.seeds < 2 or a.photons < 1:
         ap.error("--seeds must be >= 2 and --photons >= 1")
-    unknown = [v for v in a.variants.split(",") if v.strip() and v.strip() not in VARIANTS]
+    a.variants = [v.strip() for v in a.variants.split(",") if v.strip()] or list(VARIANTS)
+    unknown = [v for v in a.variants if v not in VARIANTS]
     if unknown:
         ap.error(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
     sys.path.insert(0, str(ROOT))
@@ -135,7 +136,7 @@ def _run(a, ap, E) -> int:
         row = {"xy_m": [x, y], "mc_signal_added": float(dm.clip(0).sum()), "mc_signal_removed": float(dm.clip(None, 0).sum()),
                "mc_noise_relative": noise, "variants": {}}
         for v, (second, recip, legs, field_legs) in VARIANTS.items():
-            if a.variants and v not in [x.strip() for x in a.variants.split(",")]:
+            if v not in a.variants:
                 continue
             saved = guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW, guided.REVERB_LEGS
             (guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL, guided.EDGE_SECOND_SHADOW,
