@@ -115,3 +115,25 @@ def test_calib_mc_late_light_oracle_refuses_bad_arguments(tmp_path):
             study.main(["--out", str(tmp_path / "o.json"), flag, bad])
     assert not (tmp_path / "o.json").exists()
     assert guided.EDGE_REVERB is True
+
+
+def test_eval_mc_data_guided_switches(monkeypatch):
+    """experiments/eval_mc_data.py --guided-switch: a known switch is set with its own type (bool from true/false,
+    int from digits), an unknown name, a bare name or a value of the wrong type is refused with the name in the
+    message (and sets nothing), and the command line stops with a usage error."""
+    import pytest
+
+    import tofjax.model.guided as guided
+
+    ev = load("eval_mc_data")
+    monkeypatch.setattr(guided, "REVERB_LEGS", False)
+    monkeypatch.setattr(guided, "REVERB_NODES", 64)
+    assert ev.set_guided_switches(["REVERB_LEGS=true", " REVERB_NODES = 32"]) == {"REVERB_LEGS": True, "REVERB_NODES": 32}
+    assert guided.REVERB_LEGS is True and guided.REVERB_NODES == 32
+    for bad, word in (("NOPE=1", "REVERB_LEGS"), ("REVERB_LEGS", "NAME=VALUE"), ("REVERB_LEGS=maybe", "true or false"),
+                      ("REVERB_NODES=1.5", "int"), ("_reverb=1", "NAME=VALUE")):
+        with pytest.raises(ValueError, match=word):
+            ev.set_guided_switches([bad])
+    assert guided.REVERB_LEGS is True and guided.REVERB_NODES == 32
+    with pytest.raises(SystemExit):
+        ev.main(["--guided-switch", "NOPE=1", "--out", "unused"])
