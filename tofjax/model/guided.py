@@ -77,13 +77,14 @@ SECOND_ORDER = False
 #: alone; experiments/mc_contact_walls.py, docs/results/mc_contact_walls.json).
 SECOND_ORDER_RECIPROCAL = False
 #: Add the far edge's second diffuse bounce (:func:`_edge_second`: light the lit wall footprint sends to
-#: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE``: every how
-#: many-th ray of a zone is a source (its power times the stride).
+#: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE``: one ray in
+#: every this many of a zone is a source (the middle one; its power times the stride). 8: one per zone at
+#: the default 8 rays per zone (as close to the Monte Carlo as 4 and 2 in a 30 cm square seen towards a corner).
 EDGE_SECOND = True
-EDGE_SECOND_STRIDE = 4
+EDGE_SECOND_STRIDE = 8
 #: The second bounce's return leg spread in time as the first bounce's: its return elevations cut into this many
 #: groups of neighbours, each at its own amplitude-weighted delay (0: all at the band's mean ``1 / cos``).
-EDGE_SECOND_SPREAD = 2
+EDGE_SECOND_SPREAD = 3
 #: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
 #: its first leg and its return (a contact in a corner sits on the legs across it). Off: against the
 #: Monte Carlo it brings one contact's signal 2 cm from a corner closer (relative L2 0.235 -> 0.188,
@@ -367,9 +368,11 @@ def _edge(ctx, gg, el, frus):
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
-    out = deposit(t, amp.reshape(S, Z, -1), nodes)
-    if EDGE_SECOND:
-        out = out + _edge_second(ctx, gg, el, amp_ret, frus)
+    amp = amp.reshape(S, Z, -1)
+    if EDGE_SECOND:  # one deposit for both bounces
+        t2, a2 = _edge_second(ctx, gg, el, amp_ret, frus)
+        t, amp = jnp.concatenate([t, t2], -1), jnp.concatenate([amp, a2], -1)
+    out = deposit(t, amp, nodes)
     if EDGE_REVERB:
         out = out + _reverb(ctx, gg, el, ret, frus)
     return p.gain[:, None, None] * out
@@ -384,7 +387,9 @@ def _edge_second(ctx, gg, el, amp1, frus):
     so segment ``j`` receives ``R P_i G cos_i cos_j len_j / (2 r_ij)`` (attenuated over ``r_ij`` at
     the band's mean ``1 / cos``) and returns it like its first bounce: the first-bounce amplitude
     ``amp1_j`` times ``P2_j / P_j``, delayed by the middle leg. The same wall exchanges nothing
-    (``cos = 0``); near a corner it is the main part. Sources: every ``EDGE_SECOND_STRIDE``-th ray."""
+    (``cos = 0``); near a corner it is the main part. Sources: the middle ray of every ``EDGE_SECOND_STRIDE``.
+    The return leg travels at each return elevation's speed (``EDGE_SECOND_SPREAD`` groups of them, weighted as
+    the first bounce's return), so it spreads in time as the first bounce does."""
     p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
     L = geom.ray_length  # (S, Z, A)
     S, Z, A = L.shape
@@ -392,11 +397,12 @@ def _edge_second(ctx, gg, el, amp1, frus):
     u = jnp.stack([jnp.cos(geom.ray_angle), jnp.sin(geom.ray_angle)], -1)
     W = geom.sensor_xy[:, None, None, :] + L[..., None] * u  # (S, Z, A, 2) wall points
     k = max(1, min(int(EDGE_SECOND_STRIDE), A))
-    Ws, ns, Ls = W[:, :, ::k].reshape(S, -1, 2), gg.wall_normal[:, :, ::k].reshape(S, -1, 2), L[:, :, ::k].reshape(S, -1)
+    sel = slice(k // 2, None, k)  # the middle ray of every k (a zone's middle one at k = A)
+    Ws, ns, Ls = W[:, :, sel].reshape(S, -1, 2), gg.wall_normal[:, :, sel].reshape(S, -1, 2), L[:, :, sel].reshape(S, -1)
     beam = _beam_at_wall(gg, el, L, mu_t)  # (S, Z, A)
-    Ps = (k * beam)[:, :, ::k]  # (S, Z, A/k)
+    Ps = (A / len(range(A)[sel]) * beam)[:, :, sel]  # (S, Z, A/k): each source stands for its k rays
     if frus is not None:
-        Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, ::k]
+        Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, sel]
     Ps = Ps.reshape(S, -1)
     d = W[:, :, :, None, :] - Ws[:, None, None, :, :]  # (S, Z, A, I, 2): from source i to receiver j
     r2 = jnp.sum(d**2, -1) + gg.thickness_m**2
@@ -421,7 +427,7 @@ def _edge_second(ctx, gg, el, amp1, frus):
         a1 = jnp.sum(amp1, -1)  # (S, Z, A) first-bounce amplitude, all return elevations
         amp = a1[..., None] * ratio
         t = p.emission_time_s + (Ls[:, None, None, :] / el.c_out + r * inv_c + L[..., None] * inv_c) / nodes.c1
-    return deposit(t.reshape(S, Z, -1), amp.reshape(S, Z, -1), nodes)
+    return t.reshape(S, Z, -1), amp.reshape(S, Z, -1)
 
 
 def _shifts(u, n: int):
