@@ -82,13 +82,17 @@ def test_false_detections_keep_the_fits_standard_errors_and_bad_fit_options_are_
 
 
 def test_calib_model_error_mc_refuses_bad_levels(tmp_path):
-    """experiments/calib_model_error_mc.py: levels outside [0, 1) or unparsable are usage errors before any work."""
+    """experiments/calib_model_error_mc.py: levels outside [0, 1) or unparsable, and fewer than two Monte Carlo
+    runs, are usage errors before any work."""
     import pytest
 
     study = load("calib_model_error_mc")
     for bad in ("1.5", "x", ""):
         with pytest.raises(SystemExit):
             study.main(["--out", str(tmp_path / "o.json"), "--model-errors", bad])
+    for bad in ("1", "0", "x"):  # the Monte Carlo's own variance needs two runs at least
+        with pytest.raises(SystemExit):
+            study.main(["--out", str(tmp_path / "o.json"), "--seeds", bad])
     assert not (tmp_path / "o.json").exists()
 
 
