@@ -589,6 +589,49 @@ def test_reverberant_field_tail_agrees_with_its_orders_summed(monkeypatch):
         assert np.linalg.norm(rev - exact) / np.linalg.norm(exact) < 2 * tol, R
 
 
+def test_mean_forward_distance_and_the_fields_volume_lead(monkeypatch):
+    """guided.mean_forward_distance (midpoint rule) agrees with random sampling and scales with the guide; with
+    guided.REVERB_VOLUME_LEAD the field's volume view is the same light (to the grid's rounding) arriving that
+    distance's flight earlier at the band's mean in-plane speed."""
+    import tofjax.model.guided as guided
+    from tofjax.model.guided import launch_band, mean_forward_distance
+
+    rng = np.random.default_rng(0)
+    n = 400_000
+    lx, ly = 0.3, 0.2
+    x, y, th = rng.uniform(0, lx, n), rng.uniform(0, ly, n), rng.uniform(0, 2 * np.pi, n)
+    c, s = np.cos(th), np.sin(th)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (lx - x) / c, np.where(c < 0, -x / c, np.inf))
+        ty = np.where(s > 0, (ly - y) / s, np.where(s < 0, -y / s, np.inf))
+    d = mean_forward_distance(lx, ly)
+    assert d == pytest.approx(float(np.mean(np.minimum(tx, ty))), rel=5e-3)
+    assert mean_forward_distance(2 * lx, 2 * ly) == pytest.approx(2 * d, rel=1e-9)
+    sc = _square(size=0.3, mu_s=0.6, mu_a=0.14)
+    field = {}
+    for lead in (False, True):
+        monkeypatch.setattr(guided, "REVERB_VOLUME_LEAD", lead)
+        field[lead] = _reverb_part(monkeypatch, sc)[0]
+    import tofjax.model.forward as forward
+
+    real, keys = guided._reverb_volume, forward._trace_switches
+    with monkeypatch.context() as m:
+        m.setattr(guided, "_reverb_volume", lambda *a: 0.0 * real(*a))
+        m.setattr(forward, "_trace_switches", lambda: keys() + ("no volume view",))  # a key of its own program
+        walls = _reverb_part(m, sc)[0]
+    view = {k: v - walls for k, v in field.items()}  # the field's volume view alone
+    t = np.arange(walls.size) + 0.5
+    assert view[False].sum() > 0.05 * walls.sum()
+    assert view[True].sum() == pytest.approx(view[False].sum(), rel=1e-3)
+    mean = {k: (v * t).sum() / v.sum() for k, v in view.items()}
+    cg = float(launch_band(1.4, math.radians(20.0))[0])
+    x, w = np.polynomial.legendre.leggauss(8)
+    c = np.sqrt(1 - (cg * 0.5 * (x + 1)) ** 2)
+    cbar = float(np.sum(w * c) / np.sum(w))  # the band's mean in-plane cosine (8 elevation nodes)
+    lead_bins = mean_forward_distance(0.3, 0.3) * 1.4 / (cbar * SPEED_OF_LIGHT_M_PER_S * SQUARE_BIN)
+    assert mean[False] - mean[True] == pytest.approx(lead_bins, rel=0.05)  # 7.3 bins
+
+
 def test_reverberant_field_is_finite_and_differentiable_at_the_extremes():
     """No NaN or inf in the guided model with its reverberant field, nor in its gradients, from a clear guide to a
     strongly attenuating one, walls from black to white; the gradients in mu_a and R agree with central
