@@ -141,3 +141,32 @@ def test_eval_mc_data_guided_switches(monkeypatch):
     assert guided.REVERB_LEGS is True and guided.REVERB_NODES == 32
     with pytest.raises(SystemExit):
         ev.main(["--guided-switch", "NOPE=1", "--out", "unused"])
+
+
+def test_false_detections_summary(tmp_path):
+    """experiments/false_detections.py: counts, standard errors, the strength cap, the missed contact a false
+    detection shares its frame with, and the precision / recall trade of dropping by standard error; unreadable
+    input is a usage error."""
+    import json
+
+    import pytest
+
+    study = load("false_detections")
+    frames = [{"detections": [[0.1, 0.1, 0.8, True, 0.001, 0.0], [0.25, 0.2, 1.0, False, 0.012, 0.016]],
+               "missed": [[0.25, 0.25]]},
+              {"detections": [[0.1, 0.1, 0.9, True, 0.0006, 0.0008]], "missed": []}]
+    res = {"detection": {"monte_carlo": {"methods": {"fit": {"contacts": 4, "false_detections": {"frames": frames}}}}}}
+    r = study.summarize([res])["monte_carlo"]
+    assert (r["matched"], r["false"], r["false_sharing_a_frame_with_a_missed_contact"]) == (2, 1, 1)
+    assert r["stderr_cm_median_false"] == pytest.approx(2.0) and r["stderr_cm_median_matched"] == pytest.approx(0.1)
+    assert r["at_strength_cap_false"] == 1.0 and r["at_strength_cap_matched"] == 0.0
+    assert r["their_distance_to_it_cm_median"] == pytest.approx(5.0)
+    assert r["dropping_by_stderr"]["all"] == {"precision": 2 / 3, "recall": 0.5}
+    assert r["dropping_by_stderr"]["<= 1 cm"] == {"precision": 1.0, "recall": 0.5}
+    src = tmp_path / "r.json"
+    src.write_text(json.dumps(res))
+    assert study.main([str(src), "--out", str(tmp_path / "o.json")]) == 0
+    assert json.loads((tmp_path / "o.json").read_text())["columns"]["monte_carlo"]["false"] == 1
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(SystemExit):
+        study.main([str(tmp_path / "bad.json"), "--out", str(tmp_path / "o2.json")])
