@@ -183,9 +183,7 @@ class GuidedGeometry(eqx.Module):
         cos_sensor = np.clip(c * normals[:, None, None, 0] + s * normals[:, None, None, 1], 0.0, 1.0)
         # which wall each ray ends on: the nearer of the x and y walls along it
         xy = np.array([sp.position_m for sp in scene.sensors], float)[:, None, None, :]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tx = np.where(c > 1e-12, (lx - xy[..., 0]) / c, np.where(c < -1e-12, -xy[..., 0] / c, np.inf))
-            ty = np.where(s > 1e-12, (ly - xy[..., 1]) / s, np.where(s < -1e-12, -xy[..., 1] / s, np.inf))
+        tx, ty = _to_walls(lx, ly, xy[..., 0], xy[..., 1], c, s)
         cos_wall = np.where(tx <= ty, np.abs(c), np.abs(s))
         wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
         width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
@@ -245,11 +243,16 @@ def mean_forward_distance(lx: float, ly: float, n: int = 64) -> float:
     u = (np.arange(n) + 0.5) / n
     x, y = np.meshgrid(u * lx, u * ly, indexing="ij")
     th = 2.0 * np.pi * u
-    c, s = np.cos(th)[:, None, None], np.sin(th)[:, None, None]
-    with np.errstate(divide="ignore"):
-        tx = np.where(c > 0, (lx - x) / c, np.where(c < 0, -x / c, np.inf))
-        ty = np.where(s > 0, (ly - y) / s, np.where(s < 0, -y / s, np.inf))
-    return float(np.mean(np.minimum(tx, ty)))
+    return float(np.mean(np.minimum(*_to_walls(lx, ly, x, y, np.cos(th)[:, None, None], np.sin(th)[:, None, None]))))
+
+
+def _to_walls(lx: float, ly: float, x, y, c, s):
+    """Distances from ``(x, y)`` inside an ``lx`` x ``ly`` rectangle along the direction ``(c, s)`` to its x walls
+    and to its y walls (inf along the other axis); NumPy, broadcast."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(c > 1e-12, (lx - x) / c, np.where(c < -1e-12, -x / c, np.inf))
+        ty = np.where(s > 1e-12, (ly - y) / s, np.where(s < -1e-12, -y / s, np.inf))
+    return tx, ty
 
 
 def inward_normals(scene: Scene) -> np.ndarray:
