@@ -50,23 +50,17 @@ def main(argv=None) -> int:
     from tofjax.outputs import atomic_write_text
 
     scene = E.guided_scene()
-    runs = np.stack([E.mc_expected(scene, 25_000, s)[0] for s in range(a.seeds)])
-    base = a.exposure * runs.mean(0)
-    mc_var = a.exposure**2 * runs.var(0, ddof=1) / a.seeds  # the Monte Carlo's own variance of that mean
+    mean, mc_var = E.mc_mean_and_variance(np.stack([E.mc_expected(scene, 25_000, s)[0] for s in range(a.seeds)]))
+    base, mc_var = a.exposure * mean, a.exposure**2 * mc_var
     cap = E._capture(scene, base, 10, 0, "simulated (monte carlo)")
-    var_p = np.maximum(cap.mean(), 1.0) / 10
     wg = scene.waveguide
     rows = []
     for me in levels:
         t = time.perf_counter()
         res = Calibrator(scene, FitConfig(optics="guided", model_error=me)).fit(cap)
         p = res.params
-        r = np.asarray(res.residuals, np.float64)
-        dof = float(np.sum(r**2)) / res.reduced_chi2
-        diff = r * np.sqrt(var_p)  # model - data (at model_error 0; approximate otherwise)
         rows.append({"model_error": me, "result": res.result, "reduced_chi2": float(res.reduced_chi2),
-                     "reduced_chi2_with_mc_variance": float(np.sum(diff**2 / (var_p + mc_var)) / dof),
-                     "mc_variance_share_of_photon_weighted_chi2": float(np.sum(mc_var / var_p) / dof),
+                     **E.chi2_with_mc_variance(res, cap.mean(), 10, mc_var),
                      "n1_rel_error": float(p.n1) / wg.n1 - 1,
                      "mu_t_rel_error": float(p.mu_s_per_m + p.mu_a_per_m) / (wg.mu_s_per_m + wg.mu_a_per_m) - 1,
                      "seconds": time.perf_counter() - t})

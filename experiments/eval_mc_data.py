@@ -120,7 +120,26 @@ def mc_source_hash() -> str:
 
 def mc_baseline_mean(scene, photons: int = 25_000, seeds: int = 8) -> np.ndarray:
     """The Monte Carlo baseline this study calibrates: the mean expected counts of ``seeds`` runs (cached)."""
-    return np.stack([mc_expected(scene, photons, s)[0] for s in range(seeds)]).mean(0)
+    return mc_mean_and_variance(np.stack([mc_expected(scene, photons, s)[0] for s in range(seeds)]))[0]
+
+
+def mc_mean_and_variance(runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of Monte Carlo runs (runs first) and the Monte Carlo's own variance of that mean."""
+    return runs.mean(0), runs.var(0, ddof=1) / runs.shape[0]
+
+
+def chi2_with_mc_variance(res, data_mean: np.ndarray, frames: int, mc_var: np.ndarray) -> dict:
+    """A calibration's reduced chi-square with the Monte Carlo's own variance (``mc_var``, of the expected counts the
+    ``frames``-frame capture of mean ``data_mean`` was drawn around) added to the photon noise, and that variance's
+    share of the photon-weighted chi-square (what it adds when left out). From ``res.residuals`` (photon-weighted,
+    model - data) at ``model_error`` 0; approximate otherwise."""
+    r = np.asarray(res.residuals, np.float64)
+    dof = float(np.sum(r**2)) / res.reduced_chi2
+    var_p = np.maximum(data_mean, 1.0) / frames
+    diff = r * np.sqrt(var_p)  # model - data
+    return {"reduced_chi2_with_mc_variance": float(np.sum(diff**2 / (var_p + mc_var)) / dof),
+            "mc_variance_over_photon_variance_median": float(np.median(mc_var / var_p)),
+            "mc_variance_share_of_photon_weighted_chi2": float(np.sum(mc_var / var_p) / dof)}
 
 
 def mc_baseline_against_guided(scene) -> tuple[np.ndarray, dict]:
@@ -199,9 +218,6 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
     secs = time.perf_counter() - t
     wg = scene.waveguide
     p = res.params
-    r = np.asarray(res.residuals, np.float64)
-    chi2 = float(np.sum(r**2))
-    dof = chi2 / res.reduced_chi2
     out = {
         "optics": optics, "frames": frames, "result": res.result, "converged": bool(res.converged),
         "reduced_chi2_photon_noise": res.reduced_chi2,
@@ -213,12 +229,7 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
         "stages": [{k: v for k, v in st.items() if k != "starts"} for st in res.stages],
     }
     if mc_var is not None:
-        mean = cap.mean()
-        var_p = np.maximum(mean, 1.0) / frames
-        diff = r * np.sqrt(var_p)  # model - data
-        out["reduced_chi2_with_mc_variance"] = float(np.sum(diff**2 / (var_p + mc_var)) / dof)
-        out["mc_variance_over_photon_variance_median"] = float(np.median(mc_var / var_p))
-        out["mc_variance_share_of_photon_weighted_chi2"] = float(np.sum(mc_var / var_p) / dof)
+        out.update(chi2_with_mc_variance(res, cap.mean(), frames, mc_var))
     return out, res.to_json()
 
 
@@ -607,8 +618,7 @@ def run(out: Path, photons: int = 25_000, seeds_baseline: int = 8, seeds_touch: 
     generate(photons, seeds_baseline, 0, 0, progress=False)  # cached; the touch runs after the calibrations
     runs = [mc_expected(scene, photons, s) for s in range(seeds_baseline)]
     seeds = np.stack([e for e, _ in runs])
-    mc_base = seeds.mean(0)
-    mc_var = seeds.var(0, ddof=1) / seeds_baseline  # the Monte Carlo's own variance of that mean
+    mc_base, mc_var = mc_mean_and_variance(seeds)
     transported_noise = float(np.sqrt(mc_var.sum()) / np.linalg.norm(mc_base))
     own_base = expected_counts(scene, _own_model_options())
     contacts = contact_configs(scene, configs, config_seed)
