@@ -388,7 +388,7 @@ def step_on(times, nodes: Nodes):
 
 class ContactGeometry(NamedTuple):
     distance: jax.Array  # (S, N) sensor-to-centre distance, m
-    fraction: jax.Array  # (S, Z, N) fraction of the contact's angular width inside each zone
+    fraction: jax.Array  # (S, Z, N) share of the contact (its area: chord-weighted angles) inside each zone
     zone_cover: jax.Array  # (S, Z, N) fraction of each zone's angular width the contact covers
 
 
@@ -406,7 +406,18 @@ def contact_geometry(geom: Geometry, params: Params) -> ContactGeometry:
     hi = jnp.minimum(geom.zone_hi[None, :, None], (rel + half)[:, None, :])
     overlap = jnp.maximum(hi - lo, 0.0)  # (S, Z, N)
     zone_width = (geom.zone_hi - geom.zone_lo)[None, :, None]
-    return ContactGeometry(dist, overlap / (2.0 * half[:, None, :]), overlap / zone_width)
+    # the contact's light per angle follows its chord there (a disk: the semicircle law), not its angular width
+    x_lo = (lo - rel[:, None, :]) / half[:, None, :]
+    x_hi = (hi - rel[:, None, :]) / half[:, None, :]
+    fraction = jnp.where(overlap > 0, _semicircle_cdf(x_hi) - _semicircle_cdf(x_lo), 0.0)
+    return ContactGeometry(dist, fraction, overlap / zone_width)
+
+
+def _semicircle_cdf(x):
+    """Share of a disk's area on the near side of a chord at ``x`` radii from its centre (``x`` in [-1, 1]):
+    ``1/2 + (x sqrt(1 - x^2) + asin x) / pi``; kept a hair inside +-1, where asin's slope is infinite."""
+    x = jnp.clip(x, -1.0 + 1e-6, 1.0 - 1e-6)
+    return 0.5 + (x * jnp.sqrt(1.0 - x * x) + jnp.arcsin(x)) / math.pi
 
 
 def shadow(r, cg: ContactGeometry, params: Params, exclude_self: bool = False):
