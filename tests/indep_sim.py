@@ -34,7 +34,7 @@ may break):
 * **Far edge**: reflectance ``end_reflectance x |cos(incidence)|`` per ray (tofjax: constant),
   on ``end_rays`` rays per zone spread uniformly with jitter.
 * **Contacts** are sampled as ``touch_points`` points over the disk (tofjax: a chord density
-  in range and an angular fraction per zone); a point belongs to the zone whose angle holds it.
+  in range and its area in each zone's wedge); a point belongs to the zone whose angle holds it.
   Their backscatter is ``touch_coupling x strength`` (default 0.6: the strength scale is not
   tofjax's).
 * **Shadowing** is geometric: light to a point (background, far edge or another contact) is

@@ -540,7 +540,7 @@ def touch(ctx) -> jax.Array:
     """Q_touch: each contact seen by every zone whose angular window overlaps it.
 
     ``beta_touch`` of contact ``j`` in a zone is its strength times the
-    fraction of its angular width inside the zone, so over the zones that see
+    share of its area inside the zone's wedge, so over the zones that see
     all of it the decay-corrected signal sums to its strength, at any
     distance. Its range spread is that of a disk (a semicircle around ``D``).
     """

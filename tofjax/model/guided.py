@@ -694,7 +694,7 @@ def _touch(ctx, gg, el):
     """Light the skin returns: the share of each contact's light frustrated into the skin (its area over
     ``D``, the hits per metre of chord) times the albedo, Lambertian from the face (``|mu| / pi`` per
     steradian), back over the in-plane angle ``a cos / D``; spread over the disk's range like the default
-    touch, and shared among the zones by the contact's angular fraction in each (times depend on the
+    touch, and shared among the zones by the contact's area in each zone's wedge (times depend on the
     sensor, contact, range sample and elevation only, so they are deposited once per sensor)."""
     from .components import contact_ranges
 
