@@ -828,12 +828,12 @@ def _distributed(ctx, gg, el, frus, names):
     coverage = jnp.maximum(emitted * total - ended, 0.0)  # (S, Z, J, K)
     if frus is not None:
         # beyond a skin contact, the zone loses what its rays lose out and back (the far edge's
-        # factors, averaged over the zone's rays and the return elevations), from its distance on
+        # factors, averaged over the zone's rays, per return elevation), from its distance on
         P_out, P_ret, along = frus
-        loss = 1.0 - jnp.mean((1.0 - P_out) * (1.0 - jnp.mean(P_ret, axis=-1)), axis=2)  # (S, Z, N)
+        loss = 1.0 - jnp.mean((1.0 - P_out)[..., None] * (1.0 - P_ret), axis=2)  # (S, Z, N, J)
         dist = ctx.contacts.distance  # (S, N)
         step = jax.nn.sigmoid((rp[None, :, :, None] - dist[:, None, None, :]) / p.touch_radius_m)  # (S, J, K, N)
-        coverage = coverage * jnp.prod(1.0 - loss[:, :, None, None, :] * step[:, None], axis=-1)
+        coverage = coverage * jnp.prod(1.0 - jnp.moveaxis(loss, 2, 3)[:, :, :, None, :] * step[:, None], axis=-1)
     elif ctx.contacts is not None and ctx.shadowing:
         from .components import shadow
 
@@ -862,7 +862,8 @@ def guided_node_masses(ctx, gg: GuidedGeometry, components, separate: bool) -> d
     g_dist = [n for n in dist if n != "interface"]
     if g_dist:
         eld = _elevations(gg, p.n1, distributed=True)
-        frus_d = frus_shadow
+        # the contacts' losses at the distributed terms' own return elevations (lost per elevation)
+        frus_d = None if frus_shadow is None else _frustration(ctx, gg, eld)
         if separate:
             for n in g_dist:
                 out[n] = _distributed(ctx, gg, eld, frus_d, (n,))
