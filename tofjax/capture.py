@@ -12,6 +12,7 @@ import datetime as _dt
 import fcntl
 import json
 import os
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -436,15 +437,24 @@ def read_capture(path: str | Path) -> Capture:
         raise CaptureError(f"{path}: cannot be read: {_oserror(e)}") from None
     if not is_hdf5:
         raise CaptureError(f"{path}: not an HDF5 file (truncated, or not a tofjax capture)")
-    try:
-        # No lock: a recording in progress (which holds the writer's lock) can be read; the
-        # committed-frame count says which frames are whole.
+    # No lock: a recording in progress (which holds the writer's lock) can be read; the
+    # committed-frame count says which frames are whole. A recording caught mid-flush can fail to
+    # open for a moment: a few tries, 0.5 s in all, before the file is called bad.
+    f = None
+    for attempt in range(5):
         try:
             f = h5py.File(path, "r", locking=False)
+            break
         except OSError:
-            f = h5py.File(path, "r")  # already open in this process (with its lock): share that
-    except OSError as e:
-        raise CaptureError(f"{path}: cannot be opened as HDF5 (truncated?): {e}") from None
+            try:
+                f = h5py.File(path, "r")  # already open in this process (with its lock): share that
+                break
+            except OSError as e:
+                err = e
+                if attempt < 4:
+                    time.sleep(0.05 * (attempt + 1))
+    if f is None:
+        raise CaptureError(f"{path}: cannot be opened as HDF5 (truncated?): {err}") from None
     with f:
         try:
             fmt = f.attrs.get("format")
