@@ -309,7 +309,8 @@ def _trace_switches() -> tuple:
     return (guided.DIST_DIVISOR, guided.NEAR_FIELD_PER_THICKNESS, guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL,
             guided.EDGE_SECOND, guided.EDGE_SECOND_STRIDE, guided.EDGE_SECOND_SPREAD, guided.EDGE_SECOND_SHADOW,
             guided.DISCRETE_HITS, guided.EDGE_REVERB, guided.REVERB_SEGMENTS_PER_WALL, guided.REVERB_NODES,
-            guided.REVERB_EXACT_ORDERS, guided.REVERB_LEGS, guided.REVERB_VOLUME_LEAD)
+            guided.REVERB_EXACT_ORDERS, guided.REVERB_LEGS, guided.REVERB_VOLUME_LEAD, guided.CONTACT_SHADOW,
+            guided.CONTACT_LINES)
 
 
 def build_model(

@@ -24,8 +24,8 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   contact disk is in optical contact with skin; each top-face hit under it (``|mu| / (2 h c)``
   per metre of chord) sends ``1 - R_Fresnel(n1 -> n_skin)`` into the skin, which returns its
   diffuse albedo (diffusion theory) as a Lambertian source on the face. The touch amplitude
-  and the shadow it casts on the far edge (outbound and, per elevation, on the way back)
-  follow; ``touch_strength`` scales the coupling (the Monte Carlo's convention). Without a
+  and the shadow it casts on the far edge and on the other contacts' returns behind it (outbound
+  and, per elevation, on the way back) follow; ``touch_strength`` scales the coupling (the Monte Carlo's convention). Without a
   skin model the guided optics keep the free touch strength and shadow opacity, with the
   guided timing and ``1/D^2`` falloff.
 
@@ -122,6 +122,10 @@ REVERB_LEGS = False
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
 DISCRETE_HITS = False
+#: A contact's return crosses the other contacts between it and the sensor (:func:`_contacts_between`), out and
+#: back, over ``CONTACT_LINES`` lines across its disk. Off: every contact returns as if alone.
+CONTACT_SHADOW = True
+CONTACT_LINES = 5
 
 
 def hg_backward_fraction(g: float) -> float:
@@ -690,6 +694,42 @@ def _leg_transmission(ctx, gg, el, src, d):
     return jnp.prod(1.0 - _wall_light_frustrated(p, gg, el, chord) * inside, axis=-1)  # (S, Z, A, I)
 
 
+def _contacts_between(ctx, gg, el):
+    """Transmission (S, N, J) of each contact's light through the other contacts between it and each sensor:
+    out at the launched beam's elevation and back at each return elevation, each other contact frustrating
+    its chord along the line (like :func:`_frustration`). The line is taken to the points across the contact's
+    disk (``CONTACT_LINES`` of them, Chebyshev-weighted like the disk's chords): a contact half hidden behind
+    another is half shadowed. Behind one contact 6 cm ahead of S4 a second 4 cm further on returns 18% less
+    light in the Monte Carlo (0.5% more in the model without this)."""
+    p, cg = ctx.params, ctx.contacts
+    skin = gg.skin
+    d = p.touch_xy_m[None, :, :] - ctx.geom.sensor_xy[:, None, :]  # (S, N, 2)
+    D = jnp.maximum(cg.distance, 1e-6)  # (S, N)
+    ux, uy = d[..., 0] / D, d[..., 1] / D  # (S, N) towards each target contact
+    # the blockers (index m) in each target's (index n) frame: along and across the line to its centre
+    along = d[:, None, :, 0] * ux[..., None] + d[:, None, :, 1] * uy[..., None]  # (S, Nt, Nb)
+    across = -d[:, None, :, 0] * uy[..., None] + d[:, None, :, 1] * ux[..., None]
+    k = jnp.arange(1, CONTACT_LINES + 1, dtype=D.dtype)
+    u = jnp.cos(k * math.pi / (CONTACT_LINES + 1))  # lines to points across the target's disk
+    wk = jnp.sin(k * math.pi / (CONTACT_LINES + 1)) ** 2
+    wk = wk / jnp.sum(wk)
+    rad = p.touch_radius_m
+    off = across[..., None] - u * (rad[None, :, None] / D[..., None])[..., None] * along[..., None]  # (S, Nt, Nb, K)
+    half2 = rad[None, None, :, None] ** 2 - off**2
+    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad[None, None, :, None]) ** 2) - 2e-3 * rad[None, None, :, None]
+    other = 1.0 - jnp.eye(p.n_touches, dtype=D.dtype)
+    before = jax.nn.sigmoid((D[..., None] - along) / rad[None, None, :]) * other  # blocker before the target
+    chord = jnp.where((along[..., None] > 0) & (half2 > 0), chord, 0.0) * before[..., None]
+    fc = _coupling(skin, p.touch_strength)[None, None, :, None]  # the blocker's coupling
+    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
+    T_out = 1.0 - _frustrated(chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out), fc * (1.0 - Rs_out))
+    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
+    hits_ret = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
+    T_ret = 1.0 - _frustrated(hits_ret, fc[..., None] * (1.0 - Rs_ret))  # (S, Nt, Nb, K, J)
+    T = jnp.sum(wk[:, None] * T_out[..., None] * T_ret, axis=-2)  # (S, Nt, Nb, J)
+    return jnp.prod(T, axis=2)
+
+
 def _touch(ctx, gg, el):
     """Light the skin returns: the share of each contact's light frustrated into the skin (its area over
     ``D``, the hits per metre of chord) times the albedo, Lambertian from the face (``|mu| / pi`` per
@@ -726,6 +766,8 @@ def _touch(ctx, gg, el):
     # scattering: experiments/eval_mc_data.py, first_order_touch); now 0.9-1.0x.
     amp = base[..., None] * (0.5 * el.dmu) * el.mu * jnp.exp(-mu_t * D[..., None] / el.c)
     amp = amp * (1.0 - 0.5 * P_ret[None, :, None, :])
+    if CONTACT_SHADOW and ctx.shadowing and p.n_touches > 1:
+        amp = amp * _contacts_between(ctx, gg, el)[:, :, None, :]
     t = p.emission_time_s + D[..., None] * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1  # (S, N, M, J)
     S, N = amp.shape[:2]
     per_contact = deposit(t.reshape(S, N, -1), amp.reshape(S, N, -1), nodes)  # (S, N, K)
