@@ -24,10 +24,10 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   contact disk is in optical contact with skin; each top-face hit under it (``|mu| / (2 h c)``
   per metre of chord) sends ``1 - R_Fresnel(n1 -> n_skin)`` into the skin, which returns its
   diffuse albedo (diffusion theory) as a Lambertian source on the face. The touch amplitude
-  and the shadow it casts on the far edge and on the other contacts' returns behind it (outbound
-  and, per elevation, on the way back) follow; ``touch_strength`` scales the coupling (the Monte Carlo's convention). Without a
-  skin model the guided optics keep the free touch strength and shadow opacity, with the
-  guided timing and ``1/D^2`` falloff.
+  and the shadow it casts on the far edge and on the other contacts' returns behind it
+  (outbound and, per elevation, on the way back) follow; ``touch_strength`` scales the coupling
+  (the Monte Carlo's convention). Without a skin model the guided optics keep the free touch
+  strength and shadow opacity, with the guided timing and ``1/D^2`` falloff.
 
 * **second far-edge bounce** (``EDGE_SECOND``): light the lit wall footprint sends diffusely to another
   part of it (across a corner) and that part returns, from the same Lambertian law, no free
@@ -699,8 +699,9 @@ def _contacts_between(ctx, gg, el):
     out at the launched beam's elevation and back at each return elevation, each other contact frustrating
     its chord along the line (like :func:`_frustration`). The line is taken to the points across the contact's
     disk (``CONTACT_LINES`` of them, Chebyshev-weighted like the disk's chords): a contact half hidden behind
-    another is half shadowed. Behind one contact 6 cm ahead of S4 a second 4 cm further on returns 18% less
-    light in the Monte Carlo (0.5% more in the model without this)."""
+    another is half shadowed. Behind one contact 6 cm ahead of OptoSkin's S4 a second 4 cm further on returns
+    17% less light in the Monte Carlo, 21% less in the model, 3.5% more without this (the shadows' overlap;
+    experiments/contact_behind_contact_mc.py)."""
     p, cg = ctx.params, ctx.contacts
     skin = gg.skin
     d = p.touch_xy_m[None, :, :] - ctx.geom.sensor_xy[:, None, :]  # (S, N, 2)
