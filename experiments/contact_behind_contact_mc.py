@@ -9,7 +9,9 @@ strength 0.9) are placed on lines of sight of OptoSkin's corner sensor S4 and ed
 ahead, a far one 4-6 cm behind it, 0-8 mm off the near one's line. For each pair the far contact's return (the
 bins where it alone adds light) is taken with and without the near one, ``(both - near) / (far - bare)``, in the
 Monte Carlo (``eval_mc_data.py``'s runs: 16 of 25,000 packets per sensor, cached, common random numbers), in the
-model and in the model without the crossing (patched off). Writes JSON. **Simulated**.
+model, in the model without the crossing (patched off) and in the model with 16 elevation nodes instead of 8 (the
+distributed terms then get two nodes instead of one: the far contact's shadow on the volume light falls in the same
+bins). Writes JSON. **Simulated**.
 
     python experiments/contact_behind_contact_mc.py --out docs/results/contact_behind_contact_mc.json
 """
@@ -71,11 +73,17 @@ def main(argv=None) -> int:
     base_mc = np.stack([E.mc_expected(scene, 25_000, s)[0] for s in range(a.seeds)])
     base_model = expected_counts(scene, E._own_model_options())  # no contact: the same with or without the crossing
 
+    from tofjax.model import ModelOptions
+    from tofjax.model.contact import SkinContact
+
+    fine = ModelOptions(optics="guided", skin=SkinContact(), elevations=16)
+    base_fine = expected_counts(scene, ModelOptions(optics="guided", elevations=16))
+
     def model(ts):
         with_ = expected_counts(ts, E._own_model_options(True))
         with without_crossing():
             before = expected_counts(ts, E._own_model_options(True))
-        return with_, before
+        return with_, before, expected_counts(ts, fine)
 
     rows = []
     for si, d_near, d_far, lat in PAIRS:
@@ -98,21 +106,22 @@ def main(argv=None) -> int:
         runs = 1.0 - (mc["both"] - mc["near"])[..., win].sum((-2, -1)) / (mc["far"] - base_mc[:, si])[..., win].sum((-2, -1))
         lost = {"monte_carlo": float(runs.mean()),
                 "monte_carlo_standard_error": float(runs.std(ddof=1) / np.sqrt(len(runs))) if len(runs) > 1 else None}
-        for i, name in ((0, "model"), (1, "model_without_crossing")):
+        for i, name, b in ((0, "model", base_model), (1, "model_without_crossing", base_model),
+                           (2, "model_16_elevations", base_fine)):
             lost[name] = float(1.0 - (mod["both"][i][si] - mod["near"][i][si])[..., win].sum()
-                               / (mod["far"][i][si] - base_model[si])[..., win].sum())
+                               / (mod["far"][i][si] - b[si])[..., win].sum())
         row = {"sensor": sp.name, "near_distance_m": d_near, "far_distance_m": d_far, "far_lateral_offset_m": lat,
                "return_bins": np.flatnonzero(win).tolist(), "share_of_far_return_lost": lost}
         rows.append(row)
         print(f"{sp.name} near {d_near:.2f} far {d_far:.2f} off {lat * 1e3:.0f} mm: lost MC {lost['monte_carlo']:.3f} "
               f"+- {lost['monte_carlo_standard_error'] or 0:.3f}, model {lost['model']:.3f}, "
-              f"without crossing {lost['model_without_crossing']:.3f}", flush=True)
+              f"without crossing {lost['model_without_crossing']:.3f}, 16 elevations {lost['model_16_elevations']:.3f}", flush=True)
 
     def err(name):
         return [abs(r["share_of_far_return_lost"][name] - r["share_of_far_return_lost"]["monte_carlo"]) for r in rows]
 
     summary = {name: {"mean_abs_error_of_share_lost": float(np.mean(err(name))), "max_abs_error": float(np.max(err(name)))}
-               for name in ("model", "model_without_crossing")}
+               for name in ("model", "model_without_crossing", "model_16_elevations")}
     summary["monte_carlo_share_lost_range"] = [min(r["share_of_far_return_lost"]["monte_carlo"] for r in rows),
                                                max(r["share_of_far_return_lost"]["monte_carlo"] for r in rows)]
     result = {
