@@ -598,11 +598,13 @@ def _reverb(ctx, gg, el, ret, frus):
     # the fourth and fifth bounces
     ar, ai = _cmv(Tr, Ti, xr, xi, mv)
     br, bi = _cmv(Tr, Ti, ar, ai, mv)
-    if REVERB_EXACT_ORDERS:  # the later ones summed one by one (a reference for the tests)
-        tr, ti = br, bi
-        for _ in range(int(REVERB_EXACT_ORDERS)):
+    if REVERB_EXACT_ORDERS:  # the later ones summed one by one (a reference for the tests; a loop, not unrolled)
+        def order(_, c):
+            tr, ti, br, bi = c
             tr, ti = _cmv(Tr, Ti, tr, ti, mv)
-            br, bi = br + tr, bi + ti
+            return tr, ti, br + tr, bi + ti
+
+        _, _, br, bi = jax.lax.fori_loop(0, int(REVERB_EXACT_ORDERS), order, (br, bi, br, bi))
     else:
         br, bi = _geometric_tail(ar, ai, br, bi)
     xr, xi = xr + ar + br, xi + ai + bi
