@@ -348,6 +348,28 @@ def _frustrated(hits, q):
     return 1.0 - jnp.exp(k * lq) * (1.0 - (hits - k) * q)
 
 
+def _disk_chord(rad, across):
+    """Length of the chord a line ``across`` from a disk's centre cuts through it (0 beyond the rim), its square
+    root kept smooth at the rim (a hair of the radius) so the gradient stays finite."""
+    half2 = rad**2 - across**2
+    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
+    return jnp.where(half2 > 0, chord, 0.0)
+
+
+def _lost_out(p, gg, el, chord, fc):
+    """Share of the launched beam (its mean ``|mu|``) frustrated over ``chord`` under a contact coupling ``fc``
+    (broadcast to ``chord``)."""
+    hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
+    return _frustrated(hits, fc * (1.0 - _fresnel(p.n1, gg.skin.n, el.mu_out)))
+
+
+def _lost_back(p, gg, el, chord, fc):
+    """Share of the light at each guided elevation (a trailing axis J) frustrated over ``chord`` under a contact
+    coupling ``fc`` (broadcast to ``chord``): ``chord |mu| / (2 h cos)`` top-face hits."""
+    hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
+    return _frustrated(hits, fc[..., None] * (1.0 - _fresnel(p.n1, gg.skin.n, el.mu)))
+
+
 def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
     """Skin contacts crossed by each ray: (P_out (S, Z, A, N), P_ret (S, Z, A, N, J), behind (S, Z, A, N),
     dist (S, N)): the share of light entering the skin on the way out and back along the ray's chord,
@@ -359,16 +381,10 @@ def _frustration(ctx, gg: GuidedGeometry, el: _Elev):
     along = d[:, None, None, :, 0] * ca + d[:, None, None, :, 1] * sa  # (S, Z, A, N)
     across = -d[:, None, None, :, 0] * sa + d[:, None, None, :, 1] * ca
     rad = p.touch_radius_m
-    half2 = rad**2 - across**2
-    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
-    chord = jnp.where((along > 0) & (half2 > 0), chord, 0.0)
+    chord = jnp.where(along > 0, _disk_chord(rad, across), 0.0)
     fc = _coupling(skin, p.touch_strength)  # (N,)
-    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
-    hits_out = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
-    P_out = _frustrated(hits_out, fc * (1.0 - Rs_out))  # share frustrated over the chord
-    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    hits_ret = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
-    P_ret = _frustrated(hits_ret, fc[:, None] * (1.0 - Rs_ret))
+    P_out = _lost_out(p, gg, el, chord, fc)  # share frustrated over the chord
+    P_ret = _lost_back(p, gg, el, chord, fc)
     behind = jax.nn.sigmoid((geom.ray_length[..., None] - along) / rad)  # contact before the far edge
     return P_out * behind, P_ret * behind[..., None], along
 
@@ -673,10 +689,7 @@ def _wall_light_frustrated(p, gg, el, chord):
     """Share of a Lambertian wall's guided light frustrated over ``chord`` (..., N) of each contact: its top-face
     hits per guided elevation (``chord |mu| / (2 h cos)``), averaged over the band with the wall's guided weights
     (``dmu cos``)."""
-    fc = _coupling(gg.skin, p.touch_strength)  # (N,)
-    Rs = _fresnel(p.n1, gg.skin.n, el.mu)  # (J,)
-    hits = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))  # (..., N, J)
-    P = _frustrated(hits, fc[:, None] * (1.0 - Rs))
+    P = _lost_back(p, gg, el, chord, _coupling(gg.skin, p.touch_strength))  # (..., N, J)
     w = el.dmu * el.c / jnp.sum(el.dmu * el.c)  # a Lambertian wall's guided emission per elevation
     return jnp.sum(P * w, -1)
 
@@ -689,9 +702,7 @@ def _leg_transmission(ctx, gg, el, src, d):
     p = ctx.params
     rad = p.touch_radius_m  # (N,)
     length, _, along, across = _leg_frame(p, src[:, None, None], d)  # (S, Z, A, I), (S, Z, A, I, N)
-    half2 = rad**2 - across**2
-    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad) ** 2) - 2e-3 * rad
-    chord = jnp.where(half2 > 0, chord, 0.0)
+    chord = _disk_chord(rad, across)
     inside = jax.nn.sigmoid(along / rad) * jax.nn.sigmoid((length[..., None] - along) / rad)
     return jnp.prod(1.0 - _wall_light_frustrated(p, gg, el, chord) * inside, axis=-1)  # (S, Z, A, I)
 
@@ -705,7 +716,6 @@ def _contacts_between(ctx, gg, el):
     17% less light in the Monte Carlo, 21% less in the model, 3.5% more without this (the shadows' overlap;
     experiments/contact_behind_contact_mc.py)."""
     p, cg = ctx.params, ctx.contacts
-    skin = gg.skin
     d = p.touch_xy_m[None, :, :] - ctx.geom.sensor_xy[:, None, :]  # (S, N, 2)
     D = jnp.maximum(cg.distance, 1e-6)  # (S, N)
     ux, uy = d[..., 0] / D, d[..., 1] / D  # (S, N) towards each target contact
@@ -718,17 +728,12 @@ def _contacts_between(ctx, gg, el):
     wk = wk / jnp.sum(wk)
     rad = p.touch_radius_m
     off = across[..., None] - u * (rad[None, :, None] / D[..., None])[..., None] * along[..., None]  # (S, Nt, Nb, K)
-    half2 = rad[None, None, :, None] ** 2 - off**2
-    chord = 2.0 * jnp.sqrt(jnp.maximum(half2, 0.0) + (1e-3 * rad[None, None, :, None]) ** 2) - 2e-3 * rad[None, None, :, None]
     other = 1.0 - jnp.eye(p.n_touches, dtype=D.dtype)
     before = jax.nn.sigmoid((D[..., None] - along) / rad[None, None, :]) * other  # blocker before the target
-    chord = jnp.where((along[..., None] > 0) & (half2 > 0), chord, 0.0) * before[..., None]
-    fc = _coupling(skin, p.touch_strength)[None, None, :, None]  # the blocker's coupling
-    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
-    T_out = 1.0 - _frustrated(chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out), fc * (1.0 - Rs_out))
-    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    hits_ret = chord[..., None] * (el.mu / (2.0 * gg.thickness_m * el.c))
-    T_ret = 1.0 - _frustrated(hits_ret, fc[..., None] * (1.0 - Rs_ret))  # (S, Nt, Nb, K, J)
+    chord = jnp.where(along[..., None] > 0, _disk_chord(rad[None, None, :, None], off), 0.0) * before[..., None]
+    fc = _coupling(gg.skin, p.touch_strength)[None, None, :, None]  # the blocker's coupling
+    T_out = 1.0 - _lost_out(p, gg, el, chord, fc)
+    T_ret = 1.0 - _lost_back(p, gg, el, chord, fc)  # (S, Nt, Nb, K, J)
     T = jnp.sum(wk[:, None] * T_out[..., None] * T_ret, axis=-2)  # (S, Nt, Nb, J)
     return jnp.prod(T, axis=2)
 
@@ -747,13 +752,9 @@ def _touch(ctx, gg, el):
     D, w = contact_ranges(ctx, floor=0.5 * rad[:, None])  # (S, N, M), (M,)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     fc = _coupling(skin, p.touch_strength)  # (N,)
-    Rs_out = _fresnel(p.n1, skin.n, el.mu_out)
     chord = 0.5 * math.pi * rad  # mean chord of a disk seen from afar
-    hits = chord * el.mu_out / (2.0 * gg.thickness_m * el.c_out)
-    P_out = _frustrated(hits, fc * (1.0 - Rs_out))  # (N,)
-    Rs_ret = _fresnel(p.n1, skin.n, el.mu)  # (J,)
-    hits_ret = chord[:, None] * el.mu / (2.0 * gg.thickness_m * el.c)
-    P_ret = _frustrated(hits_ret, fc[:, None] * (1.0 - Rs_ret))  # (N, J)
+    P_out = _lost_out(p, gg, el, chord, fc)  # (N,)
+    P_ret = _lost_back(p, gg, el, chord, fc)  # (N, J)
     albedo = skin.diffuse_albedo_jax(p.n1)
     width = 2.0 * jnp.arctan(rad / cg.distance)  # (S, N) the contact's angular width
     ncos = gg.sensor_normal  # (S, 2)
