@@ -18,7 +18,6 @@ bins). Writes JSON. **Simulated**.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -47,27 +46,13 @@ def without_crossing():
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", required=True, help="JSON file to write")
-    ap.add_argument("--seeds", type=int, default=16, help="Monte Carlo runs per scene (25,000 packets per sensor each)")
-    ap.add_argument("--overwrite", action="store_true")
-    a = ap.parse_args(argv)
-    if a.seeds < 1:
-        ap.error("--seeds must be >= 1")
     sys.path.insert(0, str(ROOT / "experiments"))
-    import tofjax
-
-    tofjax.enable_x64()
     import eval_mc_data as E
 
-    from tofjax.outputs import OutputError, atomic_write_text, check_output
+    a, path = E.mc_study_cli(__doc__, argv)
+    from tofjax.outputs import atomic_write_text
     from tofjax.simulate import expected_counts
 
-    try:
-        path = check_output(Path(a.out), overwrite=a.overwrite)
-    except OutputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
     t0 = time.perf_counter()
     scene = E.guided_scene()
     base_mc = np.stack([E.mc_expected(scene, 25_000, s)[0] for s in range(a.seeds)])

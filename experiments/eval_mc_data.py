@@ -200,6 +200,28 @@ def _capture(scene, expected: np.ndarray, frames: int, seed: int, source: str):
                    source=source)
 
 
+def mc_study_cli(doc: str, argv=None) -> tuple[argparse.Namespace, Path]:
+    """The command line of the studies that hold the guided model against these Monte Carlo runs
+    (``contact_zone_share_mc.py``, ``contact_behind_contact_mc.py``): ``--out`` (checked: an existing file
+    needs ``--overwrite``; a bad one exits 2 with a one-line error), ``--seeds`` (runs per scene); turns
+    float64 on. Returns the arguments and the output path."""
+    import tofjax
+    from tofjax.outputs import OutputError, check_output
+
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--seeds", type=int, default=16, help="Monte Carlo runs per scene (25,000 packets per sensor each)")
+    ap.add_argument("--overwrite", action="store_true")
+    a = ap.parse_args(argv)
+    if a.seeds < 1:
+        ap.error("--seeds must be >= 1")
+    tofjax.enable_x64()
+    try:
+        return a, check_output(Path(a.out), overwrite=a.overwrite)
+    except OutputError as e:
+        ap.exit(2, f"error: {e}\n")
+
+
 def _own_model_options(touch: bool = False):
     from tofjax.model import ModelOptions
     from tofjax.model.contact import SkinContact
