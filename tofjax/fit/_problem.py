@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model import ForwardModel, Params
+from ..model.forward import _trace_switches
 from ..model.pulse import apply_kernels
 from .transforms import Transform
 
@@ -80,6 +81,10 @@ class CalibrationProblem(eqx.Module):
     - ``zone_gain``: gain free per (sensor, zone) instead of per sensor.
     - ``zone_end``: the far-edge reflectance free per (sensor, zone), profiled out (needs ``zone_gain``).
     - ``prior_width``: width of the weak Gaussian prior on the nonlinear coordinates (0: none).
+    - ``switches``: the guided optics' module-level switches when the problem was built
+      (:func:`tofjax.model.forward._trace_switches`): tracing reads them, so they key every program compiled on
+      the problem (``eqx.filter_jit``, the program store) as they key the model's own calls; without them a fit
+      compiled before a switch changed would run on.
     """
 
     model: ForwardModel
@@ -90,6 +95,7 @@ class CalibrationProblem(eqx.Module):
     zone_gain: bool = eqx.field(static=True)
     prior_width: float = eqx.field(static=True)
     zone_end: bool = eqx.field(static=True, default=False)
+    switches: tuple = eqx.field(static=True, default=())
 
     @classmethod
     def build(cls, model: ForwardModel, transforms: dict, free, *, zone_gain: bool, prior_width: float, zone_end: bool = False):
@@ -114,6 +120,7 @@ class CalibrationProblem(eqx.Module):
             zone_gain=zone_gain,
             prior_width=float(prior_width),
             zone_end=zone_end,
+            switches=_trace_switches(),
         )
 
     def transform(self, name: str) -> Transform:

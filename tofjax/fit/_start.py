@@ -91,8 +91,9 @@ def edge_estimates(d: np.ndarray, frames: int, scene: Scene, tau: float):
 
 
 @eqx.filter_jit
-def _model_at(model, params):
-    return model(params)
+def _model_at(problem, params):
+    """The problem's model at ``params`` (the problem, not its model, is the argument: its switches key the program)."""
+    return problem.model(params)
 
 
 def _stored(name: str, fn, args):
@@ -108,7 +109,7 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
     The same estimators run on the model at ``base`` first; their offsets from ``base``
     (the estimators' bias: a pulse's peak is not its mean) are taken out of the estimates."""
     tau = float(base.pulse_tail_s)
-    ref = np.asarray(_stored("calibration timing reference", _model_at, (problem.model, base)), np.float64)
+    ref = np.asarray(_stored("calibration timing reference", _model_at, (problem, base)), np.float64)
     ref_t_e, _, ref_n1 = edge_estimates(ref, frames, scene, tau)
     t_e, ambient, n1 = edge_estimates(np.asarray(data, np.float64), frames, scene, tau)
     t_e = max(t_e + float(base.emission_time_s) - ref_t_e, 0.0)

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model import ModelOptions, Params, build_model, sample_counts
+from ..model.forward import _trace_switches
 from ..model.geometry import zone_edges
 from ..scene import Scene, Touch
 
@@ -24,9 +25,11 @@ __all__ = ["random_contacts", "shadowed", "simulate_contacts"]
 
 
 @eqx.filter_jit
-def _contact_frames(model, p0, n_contacts, noise, poisson, saturation, contacts, keys):
-    """The frames of a batch of contact configurations: compiled once per model structure (the
-    model is an argument: a ``jax.jit`` of a closure made per call compiled on every call)."""
+def _contact_frames(model, p0, n_contacts, noise, poisson, saturation, switches, contacts, keys):
+    """The frames of a batch of contact configurations: compiled once per model structure and guided switches
+    (``switches``, only a key: tracing reads them; the model is an argument: a ``jax.jit`` of a closure made per
+    call compiled on every call)."""
+    del switches
 
     def one(c, key):
         p = p0.replace(touch_xy_m=c[:, :2], touch_strength=c[:, 2]) if n_contacts else p0
@@ -64,7 +67,8 @@ def simulate_contacts(
     model = build_model(proto, options)
     p0 = Params.from_scene(proto, options.jnp_dtype)
 
-    f = functools.partial(_contact_frames, model, p0, N, noise, scene.noise.poisson, scene.sensor.saturation_counts)
+    f = functools.partial(_contact_frames, model, p0, N, noise, scene.noise.poisson, scene.sensor.saturation_counts,
+                          _trace_switches())
     keys = jax.random.split(jax.random.key(seed), C)
     out = []
     for i in range(0, C, chunk):
