@@ -170,3 +170,27 @@ def test_false_detections_summary(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(SystemExit):
         study.main([str(tmp_path / "bad.json"), "--out", str(tmp_path / "o2.json")])
+
+
+def test_reverb_spread_grid_fast(tmp_path):
+    """experiments/reverb_spread_grid.py: the field's shape against its grid on a small guide (two node counts): the
+    reference's own L2 is 0, the others finite, the spread moves no light; a bad ``--variants`` is a usage error
+    (exit 2) before anything runs."""
+    import pytest
+
+    from tofjax.scene import scene_from_dict
+
+    rsg = load("reverb_spread_grid")
+    sc = scene_from_dict({
+        "waveguide": {"size_m": [0.1, 0.1], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.6, "mu_a_per_m": 0.14},
+        "sensor": {"bin_width_s": 1e-10, "n_bins": 64, "zones": 2, "fov_deg": 20.0},
+        "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}]})
+    out = rsg.field_shape(sc, nodes=(32, 128))
+    for spread in ("spread", "no_spread"):
+        assert out[spread]["128"]["relative_l2_vs_128_nodes"] == 0.0
+        assert 0.0 < out[spread]["32"]["relative_l2_vs_128_nodes"] < 1.0
+    assert out["spread"]["128"]["total_counts"] == pytest.approx(out["no_spread"]["128"]["total_counts"], rel=1e-3)
+    for bad in ("on:1", "maybe:64", "on64"):
+        with pytest.raises(SystemExit) as e:
+            rsg.main(["--out", str(tmp_path / "x.json"), "--variants", bad])
+        assert e.value.code == 2

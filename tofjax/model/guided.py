@@ -103,7 +103,9 @@ EDGE_SECOND_SHADOW = False
 EDGE_REVERB = True
 #: The radiosity's wall segments per wall (4: the same figures as 8 and 16 within 0.002 relative L2, at a quarter
 #: of the cost of 8), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
-#: field is smooth in time; 64 and 128 agree within 1e-4), and how its orders after the fifth bounce are summed:
+#: field is smooth in time: on OptoSkin's baseline the model at 64 and 128 nodes agrees within 5e-4 of its peak, the
+#: field itself within 0.105 / 0.049 relative L2 of its 256-node form with :data:`REVERB_SPREAD`, 0.227 / 0.109 without;
+#: experiments/reverb_spread_grid.py), and how its orders after the fifth bounce are summed:
 #: 0, a geometric train (:func:`_geometric_tail`); N, N more orders one by one (a reference for the tests).
 REVERB_SEGMENTS_PER_WALL = 4
 REVERB_NODES = 64
@@ -118,6 +120,14 @@ REVERB_VOLUME_LEAD = True
 #: -> 0.195 at 2 cm; experiments/mc_contact_walls.py) but six-contact detection at 64x no better (pooled precision /
 #: recall 91.9 / 90.3% against 92.3 / 92.0%; experiments/eval_mc_data.py --guided-switch REVERB_LEGS=true).
 REVERB_LEGS = False
+#: The field's delays spread as its elevations do: a wall-to-wall leg ``r`` long takes ``r / (c1 cos)`` at each
+#: guided elevation (a diffuse wall draws a new one for each leg), a ray's view of its wall segment each return
+#: elevation's ``L / (c1 cos)``; with it each leg's and each view's transform carries the Gaussian of that spread
+#: (its variance from the band's weights) on top of its mean delay. Without it the grid's own blur (the deposit's
+#: spline at ``REVERB_NODES``) was the only spread, and the 64x calibration of the Monte Carlo baseline moved with the
+#: grid: reduced chi-square 6.50 / 5.79 / 7.89 and mu_s + mu_a +17 / +6 / -13% at 32 / 64 / 128 nodes; with it 5.50 /
+#: 5.54 and +10 / +6% at 64 / 128 (experiments/reverb_spread_grid.py --calibrate).
+REVERB_SPREAD = True
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
 #: Monte Carlo (discrete hits) shadows less (docs/tradeoff.md).
@@ -317,6 +327,21 @@ def _wall_band(el: _Elev):
     and its flux-weighted mean ``1 / cos``."""
     flux = jnp.sum(el.dmu * el.c)
     return flux * (2.0 / math.pi), jnp.sum(el.dmu * el.c / el.c) / flux
+
+
+def _wall_band_var(el: _Elev):
+    """The variance of ``1 / cos`` over a Lambertian wall's guided emission (the weights of :func:`_wall_band`'s
+    mean): how much a wall-to-wall leg's delay spreads, relative to its length."""
+    flux = jnp.sum(el.dmu * el.c)
+    mean = jnp.sum(el.dmu) / flux
+    return jnp.maximum(jnp.sum(el.dmu / el.c) / flux - mean**2, 0.0)
+
+
+def _blur(var_nodes, n: int):
+    """The transform of a Gaussian of variance ``var_nodes`` (in nodes squared, any shape) at the ``n // 2 + 1``
+    frequencies of an ``rfft`` of ``n`` nodes: ``var_nodes.shape + (F,)``, real."""
+    w2 = jnp.asarray((2.0 * np.pi * np.arange(n // 2 + 1) / n) ** 2, var_nodes.dtype)
+    return jnp.exp(-0.5 * var_nodes[..., None] * w2)
 
 
 def _weighted_step(times, weights, nodes: Nodes):
@@ -560,7 +585,9 @@ def _reverb(ctx, gg, el, ret, frus):
     out (share ``cg`` of it into the guided band, isotropic) lights the walls evenly when the beam reaches its wall.
     Each ray's wall segment (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first
     bounce: ``ret`` (S, Z, A, J), the first bounce's counts per unit power on the wall, at its elevations' mean
-    delay; the volume in front of the walls scatters the field back too (:func:`_reverb_volume`). Contacts
+    delay; the volume in front of the walls scatters the field back too (:func:`_reverb_volume`). With
+    :data:`REVERB_SPREAD` each leg's and each view's delay also spreads as its elevations' do (a Gaussian of their
+    variance, :func:`_blur`: a leg's from :func:`_wall_band_var`, a view's from the weights in ``ret``). Contacts
     frustrate the beam's light before it reaches the walls; the wall-to-wall legs only with :data:`REVERB_LEGS`. Solved on a grid of at most ``REVERB_NODES`` nodes, then shared out on the
     model's."""
     p, geom, fine = ctx.params, ctx.geom, ctx.nodes
@@ -603,6 +630,9 @@ def _reverb(ctx, gg, el, ret, frus):
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
     F = G * gg.seg_cc * gg.seg_len[None, :] / (2.0 * gg.seg_r) * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
     dr, di = _shifts(gg.seg_r * inv_c / (nodes.c1 * nodes.h), n)  # (k, l, F)
+    if REVERB_SPREAD:  # each leg's delay spread over the band's elevations
+        b = _blur(_wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2, n)
+        dr, di = dr * b, di * b
     if REVERB_LEGS and frus is not None:
         F = F * _field_leg_transmission(ctx, gg, el)
     RF = (R * F).T[None]  # (1, l, k): H_next[l] = sum_k T[k, l] H[k]
@@ -630,6 +660,10 @@ def _reverb(ctx, gg, el, ret, frus):
     w = jnp.sum(ret, axis=-1)
     lag = L / nodes.c1 * jnp.sum(ret / el.c, axis=-1) / jnp.where(w > 0, w, 1.0)
     kr, ki = _shifts(lag / nodes.h, n)  # (S, Z, A, F)
+    if REVERB_SPREAD:  # the view's delay spread over the return elevations (their weights in ret)
+        m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / jnp.where(w > 0, w, 1.0)
+        b = _blur(jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2, n)
+        kr, ki = kr * b, ki * b
     ws = (w * seg)[..., None]
     sidx = np.arange(S)[:, None, None]
     gr, gi = jnp.moveaxis(xr, 0, -1)[sidx, gg.ray_seg], jnp.moveaxis(xi, 0, -1)[sidx, gg.ray_seg]  # (S, Z, A, F)
@@ -649,7 +683,8 @@ def _reverb(ctx, gg, el, ret, frus):
     out = out + vf * jnp.moveaxis(qbar, 0, -1)[:, None, :]
     # back in time (clipped at 0 against rounding), each coarse node's mass shared by the fine nodes it spans and
     # then a box as wide (linear between the coarse nodes: mass kept, never negative)
-    coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0)
+    # (in the model's dtype: the walls' geometry is float64, which promoted a float32 model's histograms)
+    coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0).astype(fine.t.dtype)
     rep = jnp.repeat(coarse / step, step, axis=-1)
     if step == 1:
         return rep
