@@ -627,8 +627,8 @@ def test_reverberant_field_spreads_as_its_elevations_do(monkeypatch):
 
 
 def test_a_float32_guided_model_stays_float32():
-    """The walls' later bounces run on the guide's float64 geometry; a float32 model's histograms stay float32 (they
-    came out float64) and finite."""
+    """A float32 guided model's histograms stay float32 and finite (the walls' later bounces took their transforms'
+    one-node phase as float64 NumPy constants, which promoted the whole field and the model's output)."""
     sc = _square(size=0.3, mu_s=0.6, mu_a=0.14)
     opts = ModelOptions(optics="guided", dtype="float32")
     y = build_model(sc, opts, ("end",))(Params.from_scene(sc, opts.jnp_dtype))

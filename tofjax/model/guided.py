@@ -516,7 +516,7 @@ def _shifts(u, n: int):
     centre = jnp.round(u)
     d = (u - centre)[..., None]
     i = centre.astype(jnp.int32) % n
-    c1, s1 = np.cos(ang[1]), np.sin(ang[1])  # one node's phase
+    c1, s1 = jnp.asarray(np.cos(ang[1]), u.dtype), jnp.asarray(np.sin(ang[1]), u.dtype)  # one node's phase
     br = (0.75 - d**2) + (0.25 + d**2) * c1  # b0 + b- e^{+ia} + b+ e^{-ia}: b- + b+ = 1/4 + d^2, b- - b+ = -d
     bi = -d * s1
     tr, ti = jnp.asarray(np.cos(ang), u.dtype)[i], jnp.asarray(-np.sin(ang), u.dtype)[i]
@@ -658,10 +658,11 @@ def _reverb(ctx, gg, el, ret, frus):
     seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1) / gg.seg_len[gg.ray_seg]  # (S, Z, A)
     # one return per ray at its elevations' mean delay (the field is smooth on the band's spread of delays)
     w = jnp.sum(ret, axis=-1)
-    lag = L / nodes.c1 * jnp.sum(ret / el.c, axis=-1) / jnp.where(w > 0, w, 1.0)
+    w_safe = jnp.where(w > 0, w, 1.0)
+    lag = L / nodes.c1 * jnp.sum(ret / el.c, axis=-1) / w_safe
     kr, ki = _shifts(lag / nodes.h, n)  # (S, Z, A, F)
     if REVERB_SPREAD:  # the view's delay spread over the return elevations (their weights in ret)
-        m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / jnp.where(w > 0, w, 1.0)
+        m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / w_safe
         b = _blur(jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2, n)
         kr, ki = kr * b, ki * b
     ws = (w * seg)[..., None]
@@ -683,8 +684,7 @@ def _reverb(ctx, gg, el, ret, frus):
     out = out + vf * jnp.moveaxis(qbar, 0, -1)[:, None, :]
     # back in time (clipped at 0 against rounding), each coarse node's mass shared by the fine nodes it spans and
     # then a box as wide (linear between the coarse nodes: mass kept, never negative)
-    # (in the model's dtype: the walls' geometry is float64, which promoted a float32 model's histograms)
-    coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0).astype(fine.t.dtype)
+    coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0)
     rep = jnp.repeat(coarse / step, step, axis=-1)
     if step == 1:
         return rep
