@@ -743,29 +743,23 @@ def test_a_guided_switch_keys_the_fits_programs(monkeypatch):
     """The guided optics' switches are read when the model is traced: a problem built after one changed has
     another structure (so ``eqx.filter_jit`` and the program store compile it anew instead of running the fit
     traced before), and the start's model evaluation follows the switch within one process."""
-    import equinox as eqx
     import jax
+    from test_guided import _square
 
     import tofjax.model.guided as guided
-    from tofjax.compile_cache import _program_key
+    from tofjax.compile_cache import _stored_key
     from tofjax.fit._start import _model_at
     from tofjax.fit.calibrate import build_problem
     from tofjax.model import Params
-    from tofjax.scene import scene_from_dict
 
-    sc = scene_from_dict({
-        "waveguide": {"size_m": [0.1, 0.1], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.6, "mu_a_per_m": 0.14},
-        "sensor": {"bin_width_s": 1e-10, "n_bins": 64, "zones": 2, "fov_deg": 20.0},
-        "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}]})
+    sc = _square(mu_s=0.6, mu_a=0.14)  # test_guided's small square guide, one sensor
     cfg = FitConfig(optics="guided")
     out, keys, trees = [], [], []
     for reverb in (True, False):
         monkeypatch.setattr(guided, "EDGE_REVERB", reverb)
         problem = build_problem(sc, cfg)
-        dyn, static = eqx.partition((problem,), eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(dyn)
-        keys.append(_program_key("fit", treedef, static, leaves))
+        keys.append(_stored_key("fit", (problem,)))
         trees.append(jax.tree_util.tree_structure(problem))
         out.append(np.asarray(_model_at(problem, Params.from_scene(sc))))
-    assert keys[0] != keys[1] and trees[0] != trees[1]
+    assert None not in keys and keys[0] != keys[1] and trees[0] != trees[1]
     assert out[0].sum() > out[1].sum() > 0  # the walls' later bounces add light

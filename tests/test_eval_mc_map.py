@@ -178,13 +178,10 @@ def test_reverb_spread_grid_fast(tmp_path):
     (exit 2) before anything runs."""
     import pytest
 
-    from tofjax.scene import scene_from_dict
+    from test_guided import _square
 
     rsg = load("reverb_spread_grid")
-    sc = scene_from_dict({
-        "waveguide": {"size_m": [0.1, 0.1], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.6, "mu_a_per_m": 0.14},
-        "sensor": {"bin_width_s": 1e-10, "n_bins": 64, "zones": 2, "fov_deg": 20.0},
-        "sensors": [{"position_m": [0.0, 0.05], "direction_deg": 0.0}]})
+    sc = _square(mu_s=0.6, mu_a=0.14)  # test_guided's small square guide, one sensor
     out = rsg.field_shape(sc, nodes=(32, 128))
     for spread in ("spread", "no_spread"):
         assert out[spread]["128"]["relative_l2_vs_128_nodes"] == 0.0
