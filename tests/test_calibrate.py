@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from tofjax import ConfigError
 from tofjax.capture import write_capture
 from tofjax.cli import main
-from tofjax.fit.calibrate import CalibrationError, Calibrator, FitConfig, calibrate, load_fit_config
+from tofjax.fit.calibrate import CalibrationError, Calibrator, FitConfig, build_problem, calibrate, load_fit_config
 from tofjax.fit.transforms import Transform
 from tofjax.scene import SensorModel, Touch
 from tofjax.simulate import simulate
@@ -123,6 +123,22 @@ def test_fit_config_validation(tmp_path):
         load_fit_config(p)
     p.write_text('solver = "dogleg"\nmax_steps = 50\n')
     assert load_fit_config(p).solver == "dogleg"
+    for text, msg in (("elevations = 0\n", "elevations: must be an integer >= 1, got 0"),
+                      ("angles_per_zone = 2.5\n", "angles_per_zone: expected an integer, got 2.5"),
+                      ("quadrature = true\n", "quadrature: expected an integer, got True")):
+        p.write_text(text)
+        with pytest.raises(ConfigError, match=msg):
+            load_fit_config(p)
+    with pytest.raises(ConfigError, match="elevations: must be an integer >= 1, got 2.5"):
+        FitConfig(elevations=2.5)
+
+
+def test_fit_config_fidelity_reaches_the_model(small):
+    """The calibration's model is built at the config's sampling (rays per zone, guided elevations)."""
+    pb = build_problem(small, FitConfig(optics="guided", angles_per_zone=3, elevations=5, quadrature=1))
+    o = pb.model.options
+    assert (o.angles_per_zone, o.elevations, o.quadrature, o.optics) == (3, 5, 1, "guided")
+    assert pb.model.geometry.ray_angle.shape[-1] == 3
 
 
 def test_cli_calibrate_and_touch_capture_refused(tmp_path, small, capsys):

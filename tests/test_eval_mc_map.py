@@ -191,3 +191,26 @@ def test_reverb_spread_grid_fast(tmp_path):
         with pytest.raises(SystemExit) as e:
             rsg.main(["--out", str(tmp_path / "x.json"), "--variants", bad])
         assert e.value.code == 2
+
+
+def test_guided_fidelity_calibration_fast(tmp_path):
+    """experiments/guided_fidelity_calibration.py: the forward-time ratio on a small guide (a sampling against itself
+    is ~1x, finer sampling is no cheaper than 8:8 by more than noise allows), and a bad ``--variants`` or
+    ``--repeats`` is a usage error (exit 2) before anything runs. (The calibrations need the eval's 64 cached Monte
+    Carlo runs: the study itself is not run here.)"""
+    import math
+
+    import pytest
+
+    from test_guided import _square
+
+    gfc = load("guided_fidelity_calibration")
+    sc = _square(mu_s=0.6, mu_a=0.14)
+    same = gfc.forward_ratio(sc, 8, 8, repeats=5)
+    assert math.isfinite(same["forward_ratio_to_8_8"]) and 0.2 < same["forward_ratio_to_8_8"] < 5.0
+    assert gfc._variants("8:8, 16:32") == [(8, 8), (16, 32)]
+    for args in (["--variants", "8:0"], ["--variants", "8x8"], ["--variants", "a:8"], ["--repeats", "0"]):
+        with pytest.raises(SystemExit) as e:
+            gfc.main(["--out", str(tmp_path / "x.json"), *args])
+        assert e.value.code == 2
+    assert not (tmp_path / "x.json").exists()

@@ -219,6 +219,10 @@ class FitConfig:
     - ``restarts`` apply to refused fits too (reduced chi-square above ``max_reduced_chi2``):
       another basin may describe the capture; the best result is kept.
     - ``quadrature``: model fidelity (time nodes per bin).
+    - ``angles_per_zone``, ``elevations``: model fidelity: rays per zone, and (guided optics) quadrature nodes
+      over the guided elevation band (:class:`~tofjax.model.ModelOptions`; defaults 8 and 8). On the 64x Monte
+      Carlo baseline the guided model's misfit falls with them (experiments/guided_fidelity_calibration.py,
+      docs/calibration.md, "The guided model's sampling"); the fit's time grows with them.
     - ``dtype``: ``float64`` (default) or ``float32`` for the model.
     - ``optics``: the forward model's optics, ``"default"`` (seed 000's in-plane light at
       ``c / n1``) or ``"guided"`` (:mod:`tofjax.model.guided`: elevations in the slab, ``1/r``
@@ -279,6 +283,8 @@ class FitConfig:
     model_error: float = 0.0
     timing_anchor: float = 0.02
     quadrature: int = 2
+    angles_per_zone: int = 8
+    elevations: int = 8
     dtype: str = "float64"
     max_reduced_chi2: float = 4.0
     pulse_tails: int | str = 2
@@ -328,8 +334,10 @@ class FitConfig:
             raise ConfigError(f"restarts: must be >= 0, got {self.restarts!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
-        if self.quadrature < 1:
-            raise ConfigError(f"quadrature: must be >= 1, got {self.quadrature!r}")
+        for k in ("quadrature", "angles_per_zone", "elevations"):
+            v = getattr(self, k)
+            if type(v) is not int or v < 1:
+                raise ConfigError(f"{k}: must be an integer >= 1, got {v!r}")
         for name in self.free:
             if name not in FITTABLE:
                 raise ConfigError(f"free: {name!r} cannot be fitted; fittable: {', '.join(FITTABLE)}")
@@ -422,8 +430,8 @@ def build_problem(scene: Scene, config: FitConfig = FitConfig()) -> CalibrationP
     """The calibration problem of ``scene`` (touches dropped) with ``config``'s free parameters."""
     # "auto" builds the two-tail problem (every parameter); its one-tail problem is derived from it
     tails = 2 if config.pulse_tails == "auto" else config.pulse_tails
-    options = ModelOptions(quadrature=config.quadrature, dtype=config.dtype, pulse_tails=tails,
-                           optics=config.optics)
+    options = ModelOptions(quadrature=config.quadrature, angles_per_zone=config.angles_per_zone,
+                           elevations=config.elevations, dtype=config.dtype, pulse_tails=tails, optics=config.optics)
     if scene.noise.pile_up:
         raise CalibrationError("calibration of scenes with pile-up is not supported yet: set [noise] pile_up = false")
     base = scene.without_touches()
