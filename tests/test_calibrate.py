@@ -123,13 +123,14 @@ def test_fit_config_validation(tmp_path):
         load_fit_config(p)
     p.write_text('solver = "dogleg"\nmax_steps = 50\n')
     assert load_fit_config(p).solver == "dogleg"
-    for text, msg in (("elevations = 0\n", "elevations: must be an integer >= 1, got 0"),
+    for text, msg in (("elevations = 0\n", "elevations: must be an integer in 1..64, got 0"),
+                      ("quadrature = 100000\n", "quadrature: must be an integer in 1..64, got 100000"),
                       ("angles_per_zone = 2.5\n", "angles_per_zone: expected an integer, got 2.5"),
                       ("quadrature = true\n", "quadrature: expected an integer, got True")):
         p.write_text(text)
         with pytest.raises(ConfigError, match=msg):
             load_fit_config(p)
-    with pytest.raises(ConfigError, match="elevations: must be an integer >= 1, got 2.5"):
+    with pytest.raises(ConfigError, match="elevations: must be an integer in 1..64, got 2.5"):
         FitConfig(elevations=2.5)
 
 

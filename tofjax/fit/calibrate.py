@@ -163,6 +163,11 @@ def _check_pair(solver, objective: AbstractObjective) -> None:
 # ---- configuration ----------------------------------------------------------------------------
 
 
+#: The largest ``quadrature``, ``angles_per_zone`` and ``elevations`` a fit config takes (the model's arrays and its
+#: Jacobian grow with each; the sampling converges by 16, docs/calibration.md).
+MAX_SAMPLING = 64
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Options of a calibration fit (TOML: keys at the top level of the file).
@@ -334,10 +339,10 @@ class FitConfig:
             raise ConfigError(f"restarts: must be >= 0, got {self.restarts!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
-        for k in ("quadrature", "angles_per_zone", "elevations"):
+        for k in ("quadrature", "angles_per_zone", "elevations"):  # the model's size grows with each
             v = getattr(self, k)
-            if type(v) is not int or v < 1:
-                raise ConfigError(f"{k}: must be an integer >= 1, got {v!r}")
+            if type(v) is not int or not 1 <= v <= MAX_SAMPLING:
+                raise ConfigError(f"{k}: must be an integer in 1..{MAX_SAMPLING}, got {v!r}")
         for name in self.free:
             if name not in FITTABLE:
                 raise ConfigError(f"free: {name!r} cannot be fitted; fittable: {', '.join(FITTABLE)}")
