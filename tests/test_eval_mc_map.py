@@ -194,10 +194,10 @@ def test_reverb_spread_grid_fast(tmp_path):
 
 
 def test_guided_fidelity_calibration_fast(tmp_path):
-    """experiments/guided_fidelity_calibration.py: the forward-time ratio on a small guide (a sampling against itself
-    is ~1x, finer sampling is no cheaper than 8:8 by more than noise allows), and a bad ``--variants`` or
-    ``--repeats`` is a usage error (exit 2) before anything runs. (The calibrations need the eval's 64 cached Monte
-    Carlo runs: the study itself is not run here.)"""
+    """experiments/guided_fidelity_calibration.py: the forward-time ratio on a small guide (8:8 against itself: finite,
+    about 1x within a loaded machine's noise), the variants' parser, and a bad ``--variants`` or ``--repeats`` is a
+    usage error (exit 2) before anything runs or is written. (The calibrations need the eval's 64 cached Monte Carlo
+    runs: the study itself is not run here.)"""
     import math
 
     import pytest
