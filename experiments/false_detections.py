@@ -1,7 +1,9 @@
 """What the fit method's false detections are (issue 14): read ``eval_mc_data.py`` results and report, per
-detection column, the matched and false detections' Laplace position standard errors and share at the strength cap,
-how many false ones share their frame with a missed contact (and how far it is), and precision / recall when
-detections above a standard error are dropped. Writes JSON. **Simulated** (whatever the results were).
+detection column, precision and recall per result and pooled over them with their 95% intervals (Wilson's, for a
+binomial share: how far a set of a few hundred contacts pins a precision), the matched and false detections' Laplace
+position standard errors and share at the strength cap, how many false ones share their frame with a missed contact
+(and how far it is), and precision / recall when detections above a standard error are dropped. Writes JSON.
+**Simulated** (whatever the results were).
 
     python experiments/false_detections.py RESULT.json [RESULT.json ...] --out docs/results/false_detections.json
 """
@@ -23,6 +25,21 @@ def _sd_cm(det) -> float:
     return 100.0 * float(np.hypot(det[4], det[5]))  # [x, y, strength, matched, x_stderr, y_stderr]
 
 
+def share(k: int, n: int) -> dict:
+    """``k`` of ``n`` as a share with its 95% Wilson interval (None for ``n = 0``)."""
+    from scipy.stats import binomtest
+
+    if n == 0:
+        return {"value": None, "k": 0, "n": 0, "interval95": None}
+    ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    return {"value": k / n, "k": k, "n": n, "interval95": [float(ci.low), float(ci.high)]}
+
+
+def _rates(matched: int, false: int, contacts: int) -> dict:
+    """Precision (matched of all detections) and recall (matched of the contacts; a contact is matched at most once)."""
+    return {"precision": share(matched, matched + false), "recall": share(matched, contacts)}
+
+
 def summarize(results: list[dict], cap: float = 0.99) -> dict:
     out: dict = {}
     for res in results:
@@ -30,8 +47,10 @@ def summarize(results: list[dict], cap: float = 0.99) -> dict:
             m = c["methods"]["fit"]
             frames = m["false_detections"]["frames"]
             acc = out.setdefault(col, {"contacts": 0, "matched": [], "false": [], "false_with_missed": [],
-                                       "false_missed_distance_cm": []})
+                                       "false_missed_distance_cm": [], "per_result": []})
             acc["contacts"] += m["contacts"]
+            dets = [d for fr in frames for d in fr["detections"]]
+            acc["per_result"].append(_rates(sum(bool(d[3]) for d in dets), sum(not d[3] for d in dets), m["contacts"]))
             for fr in frames:
                 for d in fr["detections"]:
                     (acc["matched"] if d[3] else acc["false"]).append(d)
@@ -50,6 +69,7 @@ def summarize(results: list[dict], cap: float = 0.99) -> dict:
                                                                "recall": tp / max(a["contacts"], 1)}
         report[col] = {
             "contacts": a["contacts"], "matched": len(a["matched"]), "false": len(a["false"]),
+            "pooled": _rates(len(a["matched"]), len(a["false"]), a["contacts"]), "per_result": a["per_result"],
             "stderr_cm_median_matched": float(np.median([_sd_cm(d) for d in a["matched"]])) if a["matched"] else None,
             "stderr_cm_median_false": float(np.median([_sd_cm(d) for d in a["false"]])) if a["false"] else None,
             "at_strength_cap_matched": float(np.mean([d[2] >= cap for d in a["matched"]])) if a["matched"] else None,
@@ -77,7 +97,11 @@ def main(argv=None) -> int:
 
     atomic_write_text(Path(a.out), json.dumps({"results": a.results, "columns": report}, indent=1), overwrite=True)
     for col, r in report.items():
-        print(col, json.dumps({k: v for k, v in r.items() if k != "dropping_by_stderr"}),
+        pr, rc = r["pooled"]["precision"], r["pooled"]["recall"]
+        print(f"{col}: pooled precision {pr['value']:.3f} (95% {pr['interval95'][0]:.3f}-{pr['interval95'][1]:.3f}), "
+              f"recall {rc['value']:.3f} (95% {rc['interval95'][0]:.3f}-{rc['interval95'][1]:.3f}) over "
+              f"{len(r['per_result'])} results" if pr["value"] is not None and rc["value"] is not None else f"{col}: no detections")
+        print(col, json.dumps({k: v for k, v in r.items() if k not in ("dropping_by_stderr", "per_result", "pooled")}),
               json.dumps(r["dropping_by_stderr"]))
     return 0
 

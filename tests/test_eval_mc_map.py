@@ -163,6 +163,16 @@ def test_false_detections_summary(tmp_path):
     assert r["their_distance_to_it_cm_median"] == pytest.approx(5.0)
     assert r["dropping_by_stderr"]["all"] == {"precision": 2 / 3, "recall": 0.5}
     assert r["dropping_by_stderr"]["<= 1 cm"] == {"precision": 1.0, "recall": 0.5}
+    # pooled over two results (the same one twice): the counts add, the interval narrows around the same share
+    one, two = r["pooled"], study.summarize([res, res])["monte_carlo"]["pooled"]
+    assert (one["precision"]["k"], one["precision"]["n"], one["recall"]["n"]) == (2, 3, 4)
+    assert (two["precision"]["k"], two["precision"]["n"]) == (4, 6) and two["precision"]["value"] == pytest.approx(2 / 3)
+    lo1, hi1 = one["precision"]["interval95"]
+    lo2, hi2 = two["precision"]["interval95"]
+    assert lo1 < lo2 < 2 / 3 < hi2 < hi1
+    assert r["per_result"] == [one]
+    # Wilson's interval against a known value (20 of 25: 0.609-0.911)
+    assert study.share(20, 25)["interval95"] == pytest.approx([0.6087, 0.9114], abs=1e-3)
     src = tmp_path / "r.json"
     src.write_text(json.dumps(res))
     assert study.main([str(src), "--out", str(tmp_path / "o.json")]) == 0
