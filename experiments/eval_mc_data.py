@@ -128,6 +128,28 @@ def mc_mean_and_variance(runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return runs.mean(0), runs.var(0, ddof=1) / runs.shape[0]
 
 
+def calibration_baseline(exposure: float = 64.0, photons: int = 25_000, seeds: int = 64):
+    """The baseline this study calibrates, as the studies of its calibration alone refit it: ``(scene, expected,
+    mc_var)``, the guided scene, the mean of ``seeds`` cached Monte Carlo runs times ``exposure`` and the Monte Carlo's
+    own variance of it (``experiments/reverb_spread_grid.py``, ``guided_fidelity_calibration.py``)."""
+    scene = guided_scene()
+    runs = np.stack([mc_expected(scene, photons, s)[0] for s in range(seeds)])
+    mean, var = mc_mean_and_variance(runs)
+    return scene, mean * exposure, var * exposure**2
+
+
+def run_in_own_process(script: str, args: list[str]) -> dict:
+    """Run ``python script *args`` and read the JSON object its last line of output prints: a study's variant in a
+    process of its own (a model's switches and sampling are fixed when its programs are traced). Raises
+    ``RuntimeError`` with the process's last error line when it fails."""
+    import subprocess
+
+    run = subprocess.run([sys.executable, script, *args], capture_output=True, text=True)
+    if run.returncode != 0:
+        raise RuntimeError(f"{' '.join(args)}: the process failed: {run.stderr.strip().splitlines()[-1:]}")
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
 def chi2_with_mc_variance(res, data_mean: np.ndarray, frames: int, mc_var: np.ndarray) -> dict:
     """A calibration's reduced chi-square with the Monte Carlo's own variance (``mc_var``, of the expected counts the
     ``frames``-frame capture of mean ``data_mean`` was drawn around) added to the photon noise, and that variance's

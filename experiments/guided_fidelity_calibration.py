@@ -64,11 +64,9 @@ def calibrate_one(elevations: int, angles: int, repeats: int) -> dict:
 
     from tofjax.fit import Calibrator, FitConfig
 
-    photons, seeds, exposure, frames = 25_000, 64, 64.0, 10
-    scene = ev.guided_scene()
-    runs = np.stack([ev.mc_expected(scene, photons, s)[0] for s in range(seeds)])  # cached by eval_mc_data.py
-    mean, var = ev.mc_mean_and_variance(runs)
-    cap = ev._capture(scene, mean * exposure, frames, 0, "simulated (monte_carlo)")
+    frames = 10
+    scene, expected, mc_var = ev.calibration_baseline()  # its runs cached by eval_mc_data.py
+    cap = ev._capture(scene, expected, frames, 0, "simulated (monte_carlo)")
     t = time.perf_counter()
     res = Calibrator(scene, FitConfig(optics="guided", elevations=elevations, angles_per_zone=angles)).fit(cap)
     secs = time.perf_counter() - t
@@ -77,7 +75,7 @@ def calibrate_one(elevations: int, angles: int, repeats: int) -> dict:
            "n1_rel_error": float(p.n1) / wg.n1 - 1,
            "mu_t_rel_error": float(p.mu_s_per_m + p.mu_a_per_m) / (wg.mu_s_per_m + wg.mu_a_per_m) - 1,
            "steps": res.steps, "calibration_seconds": secs}
-    out.update(ev.chi2_with_mc_variance(res, cap.mean(), frames, var * exposure**2))
+    out.update(ev.chi2_with_mc_variance(res, cap.mean(), frames, mc_var))
     r2 = np.asarray(res.residuals) ** 2  # (S, Z, B), photon-weighted
     out["excess_chi2_by_window"] = {k: float(r2[..., a:b].sum() - r2[..., a:b].size) for k, (a, b) in WINDOWS.items()}
     out["bins"] = int(r2.size)
@@ -88,16 +86,14 @@ def calibrate_one(elevations: int, angles: int, repeats: int) -> dict:
 def calibrations(variants: list[tuple[int, int]], repeats: int, progress: bool) -> dict:
     """:func:`calibrate_one` per variant, each in a process of its own (a model's sampling is fixed when it is
     built; a process of its own also keeps the compiled programs apart)."""
-    import subprocess
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import eval_mc_data as ev
 
     out = {}
     for e, a in variants:
         key = f"elevations_{e}_angles_{a}"
-        run = subprocess.run([sys.executable, __file__, "--out", os.devnull, "--repeats", str(repeats),
-                              "--calibrate-one", f"{e}:{a}"], capture_output=True, text=True)
-        if run.returncode != 0:
-            raise RuntimeError(f"{key}: the calibration's process failed: {run.stderr.strip().splitlines()[-1:]}")
-        out[key] = json.loads(run.stdout.strip().splitlines()[-1])
+        out[key] = ev.run_in_own_process(__file__, ["--out", os.devnull, "--repeats", str(repeats),
+                                                    "--calibrate-one", f"{e}:{a}"])
         if progress:
             r = out[key]
             print(f"{key}: chi2 {r['reduced_chi2_photon_noise']:.3f} ({r['reduced_chi2_with_mc_variance']:.3f} with the "

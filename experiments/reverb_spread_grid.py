@@ -71,30 +71,23 @@ def calibrate_one(spread: bool, nodes: int) -> dict:
 
     from tofjax.model import guided as G
 
-    photons, seeds, exposure, frames = 25_000, 64, 64.0, 10
-    scene = ev.guided_scene()
-    runs = np.stack([ev.mc_expected(scene, photons, s)[0] for s in range(seeds)])  # cached by eval_mc_data.py
-    mean, var = ev.mc_mean_and_variance(runs)
+    scene, expected, mc_var = ev.calibration_baseline()  # its runs cached by eval_mc_data.py
     G.REVERB_SPREAD, G.REVERB_NODES = spread, nodes
-    fig, _ = ev.calibrate_column(scene, mean * exposure, var * exposure**2, frames, 0, "guided",
-                                 "simulated (monte_carlo)")
+    fig, _ = ev.calibrate_column(scene, expected, mc_var, 10, 0, "guided", "simulated (monte_carlo)")
     return {k: fig.get(k) for k in ("result", "converged", "reduced_chi2_photon_noise", "reduced_chi2_with_mc_variance",
                                     "n1_rel_error", "mu_t_rel_error", "steps", "seconds")}
 
 
 def calibrations(variants: list[tuple[bool, int]]) -> dict:
     """:func:`calibrate_one` per (spread, nodes) variant, each in a process of its own."""
-    import subprocess
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import eval_mc_data as ev
 
     out = {}
     for spread, nodes in variants:
         key = f"{'spread' if spread else 'no_spread'}_{nodes}_nodes"
         variant = f"{'on' if spread else 'off'}:{nodes}"
-        run = subprocess.run([sys.executable, __file__, "--out", os.devnull, "--calibrate-one", variant],
-                             capture_output=True, text=True)
-        if run.returncode != 0:
-            raise RuntimeError(f"{key}: the calibration's process failed: {run.stderr.strip().splitlines()[-1:]}")
-        out[key] = json.loads(run.stdout.strip().splitlines()[-1])
+        out[key] = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one", variant])
         print(key, json.dumps(out[key]), flush=True)
     return out
 
