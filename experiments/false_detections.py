@@ -6,6 +6,7 @@ position standard errors and share at the strength cap, how many false ones shar
 **Simulated** (whatever the results were).
 
     python experiments/false_detections.py RESULT.json [RESULT.json ...] --out docs/results/false_detections.json
+        [--method fit:model_error_0.2]   # a variant of the fit method the results hold (default: fit)
 """
 
 from __future__ import annotations
@@ -40,11 +41,11 @@ def _rates(matched: int, false: int, contacts: int) -> dict:
     return {"precision": share(matched, matched + false), "recall": share(matched, contacts)}
 
 
-def summarize(results: list[dict], cap: float = 0.99) -> dict:
+def summarize(results: list[dict], cap: float = 0.99, method: str = "fit") -> dict:
     out: dict = {}
     for res in results:
         for col, c in res["detection"].items():
-            m = c["methods"]["fit"]
+            m = c["methods"][method]
             frames = m["false_detections"]["frames"]
             acc = out.setdefault(col, {"contacts": 0, "matched": [], "false": [], "false_with_missed": [],
                                        "false_missed_distance_cm": [], "per_result": []})
@@ -86,16 +87,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("results", nargs="+", help="eval_mc_data.py result JSONs (pooled)")
     ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--method", default="fit", help="the detection method or fit variant to read (default: fit; e.g. "
+                    "fit_n_sigma_6.5, fit:model_error_0.2, as eval_mc_data.py names them)")
     a = ap.parse_args(argv)
     try:
         results = [json.loads(Path(p).read_text()) for p in a.results]
-        report = summarize(results)
+        report = summarize(results, method=a.method)
     except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
         ap.error(f"cannot read the results: {e}")
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from tofjax.outputs import atomic_write_text
 
-    atomic_write_text(Path(a.out), json.dumps({"results": a.results, "columns": report}, indent=1), overwrite=True)
+    atomic_write_text(Path(a.out), json.dumps({"results": a.results, "method": a.method, "columns": report}, indent=1),
+                      overwrite=True)
     for col, r in report.items():
         pr, rc = r["pooled"]["precision"], r["pooled"]["recall"]
         print(f"{col}: pooled precision {pr['value']:.3f} (95% {pr['interval95'][0]:.3f}-{pr['interval95'][1]:.3f}), "

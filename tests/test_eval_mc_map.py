@@ -180,6 +180,11 @@ def test_false_detections_summary(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(SystemExit):
         study.main([str(tmp_path / "bad.json"), "--out", str(tmp_path / "o2.json")])
+    with pytest.raises(SystemExit):  # a variant the results do not hold
+        study.main([str(src), "--out", str(tmp_path / "o3.json"), "--method", "fit:model_error_0.2"])
+    # a variant is read under its own name
+    res["detection"]["monte_carlo"]["methods"]["fit:model_error_0.2"] = res["detection"]["monte_carlo"]["methods"]["fit"]
+    assert study.summarize([res], method="fit:model_error_0.2")["monte_carlo"]["pooled"] == one
 
 
 def test_reverb_spread_grid_fast(tmp_path):
