@@ -156,7 +156,7 @@ def test_fast_pruning_variants_share_one_search(stand_in):
         base + np.asarray(one(jnp.asarray([0.07, 0.09, 0.8]))).reshape(sc.shape)).astype(float)
     opts = FitDetectOptions(cell_m=0.02, max_contacts=2, iterations=3, relocate_candidates=2)
     det = build_fit_detector(sc, base, optical, opts, n_baseline=100)
-    variants = [opts, dataclasses.replace(opts, model_error=0.2), dataclasses.replace(opts, n_sigma=40.0)]
+    variants = [opts, dataclasses.replace(opts, model_error=0.05), dataclasses.replace(opts, n_sigma=40.0)]
     together = det.process_variants(frame[None], variants)
     for v, r in zip(variants, together):
         alone = det.with_options(v).process(frame[None])

@@ -269,7 +269,7 @@ def _common(s):
         type=float,
         help="--method fit: the forward model's relative error of a contact's signal, counted as noise when pruning "
         "(each bin's variance plus (model-error x the fitted contacts' change)^2): fewer ghosts explaining what the "
-        "model gets wrong of strong contacts, at long exposures where that exceeds photon noise (default 0.1; 0: photon "
+        "model gets wrong of strong contacts, at long exposures where that exceeds photon noise (default 0.2; 0: photon "
         "noise only)",
     )
     s.add_argument(

@@ -27,8 +27,8 @@ included, not a sum of single-contact responses):
 5. **Stop** when the refit's chi-square drop is below ``n_sigma^2`` (a likelihood-ratio test
    in noise units: the drop is ``z^2`` of the new contact's evidence); then **backward pruning**:
    a contact whose removal (with refit) raises the chi-square by less than ``n_sigma^2`` goes. The
-   pruning's chi-square counts the model's own error as noise (``model_error``, default 0.1: each bin's
-   variance plus ``(0.1 Delta)^2``), so what the model gets wrong of a strong contact is not evidence of
+   pruning's chi-square counts the model's own error as noise (``model_error``, default 0.2: each bin's
+   variance plus ``(0.2 Delta)^2``), so what the model gets wrong of a strong contact is not evidence of
    another one; each contact kept gets standard errors of its position and strength (Laplace, at the fit).
 
 Everything is in noise units, none in tofjax's amplitude scale: a rig whose contacts couple at a
@@ -125,8 +125,10 @@ class FitDetectOptions:
       fitted contacts' change of that bin (``Delta`` of the fit before pruning). What the model gets wrong of a
       strong contact's signal is then not evidence of another contact (a ghost explaining it), while a contact
       whose evidence lies in bins the others hardly change keeps its full weight. It matters only where a bin's
-      change is several noise sd (long exposures); default 0.1, the guided model's measured error of a contact's
-      signal against the Monte Carlo (relative L2 0.055 mid-guide to 0.24 in a corner; 0 counts photon noise only).
+      change is several noise sd (long exposures); default 0.2, within the guided model's measured error of a
+      contact's signal against the Monte Carlo (relative L2 0.055 mid-guide, 0.12 near a wall, 0.19-0.24 near a
+      corner, where the false detections were), chosen over 0.1 on two sets of six-contact frames and confirmed on
+      a third (docs/results/pruning_choice_protocol.md; 0 counts photon noise only).
     - ``max_strength``: the largest fitted strength, in units of the skin model's coupling (default 1; above 1 a
       contact couples more than the skin model's typical share, up to full optical contact at ``1 / coupling``:
       without it, such a contact is fitted as duplicates at the bound)."""
@@ -156,7 +158,7 @@ class FitDetectOptions:
     n_sigma_absorbed: float | None = None
     pair_candidates: int = 2
     pair_pool: int = 400
-    model_error: float = 0.1
+    model_error: float = 0.2
     max_strength: float = 1.0
 
     def __post_init__(self):
