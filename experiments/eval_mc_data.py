@@ -138,6 +138,15 @@ def calibration_baseline(exposure: float = 64.0, photons: int = 25_000, seeds: i
     return scene, mean * exposure, var * exposure**2
 
 
+def study_header(study: str, data: str) -> dict:
+    """The head of a JSON of a study of this evaluation's baseline (``reverb_spread_grid.py``,
+    ``guided_fidelity_calibration.py``): what, on which data, machine and load, and the scene."""
+    return {"study": study, "data": data,
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only",
+            "load_average_start": list(os.getloadavg()),
+            "scene": "optoskin baseline (volume_backscatter_fraction 0.5), as experiments/eval_mc_data.py"}
+
+
 def run_in_own_process(script: str, args: list[str]) -> dict:
     """Run ``python script *args`` and read the JSON object its last line of output prints: a study's variant in a
     process of its own (a model's switches and sampling are fixed when its programs are traced). Raises
@@ -254,11 +263,18 @@ def _own_model_options(touch: bool = False):
 def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, frames: int, seed: int, optics: str,
                      source: str) -> tuple[dict, dict]:
     """Calibrate an ``frames``-frame capture of ``expected``; the figures and the calibration JSON."""
+    out, res = calibrate_capture(scene, _capture(scene, expected, frames, seed, source), mc_var, optics)
+    return out, res.to_json()
+
+
+def calibrate_capture(scene, cap, mc_var: np.ndarray | None, optics: str, **fit_options):
+    """Calibrate ``cap`` (``fit_options``: further :class:`~tofjax.fit.FitConfig` fields, e.g. the model's sampling);
+    the figures of :func:`calibrate_column` and the :class:`~tofjax.fit.CalibrationResult`."""
     from tofjax.fit import Calibrator, FitConfig
 
-    cap = _capture(scene, expected, frames, seed, source)
+    frames = cap.n_frames
     t = time.perf_counter()
-    res = Calibrator(scene, FitConfig(optics=optics)).fit(cap)
+    res = Calibrator(scene, FitConfig(optics=optics, **fit_options)).fit(cap)
     secs = time.perf_counter() - t
     wg = scene.waveguide
     p = res.params
@@ -274,7 +290,7 @@ def calibrate_column(scene, expected: np.ndarray, mc_var: np.ndarray | None, fra
     }
     if mc_var is not None:
         out.update(chi2_with_mc_variance(res, cap.mean(), frames, mc_var))
-    return out, res.to_json()
+    return out, res
 
 
 def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndarray], contacts: np.ndarray,

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -62,20 +61,13 @@ def calibrate_one(elevations: int, angles: int, repeats: int) -> dict:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_mc_data as ev
 
-    from tofjax.fit import Calibrator, FitConfig
-
-    frames = 10
     scene, expected, mc_var = ev.calibration_baseline()  # its runs cached by eval_mc_data.py
-    cap = ev._capture(scene, expected, frames, 0, "simulated (monte_carlo)")
-    t = time.perf_counter()
-    res = Calibrator(scene, FitConfig(optics="guided", elevations=elevations, angles_per_zone=angles)).fit(cap)
-    secs = time.perf_counter() - t
-    wg, p = scene.waveguide, res.params
-    out = {"result": res.result, "converged": bool(res.converged), "reduced_chi2_photon_noise": res.reduced_chi2,
-           "n1_rel_error": float(p.n1) / wg.n1 - 1,
-           "mu_t_rel_error": float(p.mu_s_per_m + p.mu_a_per_m) / (wg.mu_s_per_m + wg.mu_a_per_m) - 1,
-           "steps": res.steps, "calibration_seconds": secs}
-    out.update(ev.chi2_with_mc_variance(res, cap.mean(), frames, mc_var))
+    cap = ev._capture(scene, expected, 10, 0, "simulated (monte_carlo)")
+    fig, res = ev.calibrate_capture(scene, cap, mc_var, "guided", elevations=elevations, angles_per_zone=angles)
+    out = {k: fig[k] for k in ("result", "converged", "reduced_chi2_photon_noise", "n1_rel_error", "mu_t_rel_error",
+                               "steps", "reduced_chi2_with_mc_variance", "mc_variance_over_photon_variance_median",
+                               "mc_variance_share_of_photon_weighted_chi2")}
+    out["calibration_seconds"] = fig["seconds"]
     r2 = np.asarray(res.residuals) ** 2  # (S, Z, B), photon-weighted
     out["excess_chi2_by_window"] = {k: float(r2[..., a:b].sum() - r2[..., a:b].size) for k, (a, b) in WINDOWS.items()}
     out["bins"] = int(r2.size)
@@ -139,15 +131,15 @@ def main(argv=None) -> int:
     except (ValueError, OutputError) as e:
         ap.exit(2, f"error: {e}\n")
     t0 = time.perf_counter()
-    result = {"study": "the guided model's sampling (elevations, rays per zone) against its 64x calibration of the "
-                       "Monte Carlo baseline",
-              "data": "simulated (tofjax.mc Monte Carlo runs, as experiments/eval_mc_data.py)",
-              "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only",
-              "load_average_start": list(os.getloadavg()),
-              "scene": "optoskin baseline (volume_backscatter_fraction 0.5), as experiments/eval_mc_data.py",
-              "capture": "64 Monte Carlo runs x 25,000 packets per sensor, 64x exposure, 10 frames, seed 0",
-              "windows_bins": {k: list(v) for k, v in WINDOWS.items()},
-              "calibration_64x_monte_carlo": calibrations(variants, a.repeats, progress=True)}
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import eval_mc_data as ev
+
+    result = ev.study_header("the guided model's sampling (elevations, rays per zone) against its 64x calibration of "
+                             "the Monte Carlo baseline",
+                             "simulated (tofjax.mc Monte Carlo runs, as experiments/eval_mc_data.py)")
+    result |= {"capture": "64 Monte Carlo runs x 25,000 packets per sensor, 64x exposure, 10 frames, seed 0",
+               "windows_bins": {k: list(v) for k, v in WINDOWS.items()},
+               "calibration_64x_monte_carlo": calibrations(variants, a.repeats, progress=True)}
     result["seconds"] = time.perf_counter() - t0
     result["load_average_end"] = list(os.getloadavg())
     atomic_write_text(path, json.dumps(result, indent=1))

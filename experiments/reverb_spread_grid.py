@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -130,13 +129,10 @@ def main(argv=None) -> int:
     import eval_mc_data as ev
 
     t0 = time.perf_counter()
-    result = {"study": "the guided model's reverberant field against its time grid, with and without its delay "
-                       "spread (guided.REVERB_SPREAD)",
-              "data": "simulated (tofjax's guided model; the calibration: tofjax.mc Monte Carlo runs)",
-              "machine": f"{platform.machine()}, {os.cpu_count()} CPUs ({platform.platform()}), CPU only",
-              "load_average_start": list(os.getloadavg()),
-              "scene": "optoskin baseline (volume_backscatter_fraction 0.5), as experiments/eval_mc_data.py",
-              "field_shape": field_shape(ev.guided_scene())}
+    result = ev.study_header("the guided model's reverberant field against its time grid, with and without its delay "
+                             "spread (guided.REVERB_SPREAD)",
+                             "simulated (tofjax's guided model; the calibration: tofjax.mc Monte Carlo runs)")
+    result["field_shape"] = field_shape(ev.guided_scene())
     if a.calibrate:
         result["calibration_64x_monte_carlo"] = calibrations(variants)
     result["seconds"] = time.perf_counter() - t0
