@@ -50,8 +50,7 @@ def summarize(results: list[dict], cap: float = 0.99, method: str = "fit") -> di
             acc = out.setdefault(col, {"contacts": 0, "matched": [], "false": [], "false_with_missed": [],
                                        "false_missed_distance_cm": [], "per_result": []})
             acc["contacts"] += m["contacts"]
-            dets = [d for fr in frames for d in fr["detections"]]
-            acc["per_result"].append(_rates(sum(bool(d[3]) for d in dets), sum(not d[3] for d in dets), m["contacts"]))
+            before = len(acc["matched"]), len(acc["false"])
             for fr in frames:
                 for d in fr["detections"]:
                     (acc["matched"] if d[3] else acc["false"]).append(d)
@@ -59,6 +58,7 @@ def summarize(results: list[dict], cap: float = 0.99, method: str = "fit") -> di
                         acc["false_with_missed"].append(d)
                         acc["false_missed_distance_cm"].append(
                             100.0 * min(float(np.hypot(d[0] - x, d[1] - y)) for x, y in fr["missed"]))
+            acc["per_result"].append(_rates(len(acc["matched"]) - before[0], len(acc["false"]) - before[1], m["contacts"]))
     report = {}
     for col, a in out.items():
         dets = a["matched"] + a["false"]
