@@ -683,7 +683,8 @@ def _reverb(ctx, gg, el, ret, frus):
         vf = vf * (lr + 1j * li)
     out = out + vf * jnp.moveaxis(qbar, 0, -1)[:, None, :]
     # back in time (clipped at 0 against rounding), each coarse node's mass shared by the fine nodes it spans and
-    # then a box as wide (linear between the coarse nodes: mass kept, never negative)
+    # then a box as wide, centred (linear between the coarse nodes: mass and mean delay kept, never negative; a box
+    # of an even width is the mean of two, half a node either side: one alone moved the field half a fine node early)
     coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0)
     rep = jnp.repeat(coarse / step, step, axis=-1)
     if step == 1:
@@ -691,7 +692,10 @@ def _reverb(ctx, gg, el, ret, frus):
     c = jnp.cumsum(jnp.pad(rep, [(0, 0)] * (rep.ndim - 1) + [(step, step)]), axis=-1)
     a = step // 2
     idx = jnp.arange(K_fine) + step
-    return (c[..., idx + a] - c[..., idx + a - step]) / step
+    box = (c[..., idx + a] - c[..., idx + a - step]) / step  # the fine nodes i - a + 1 .. i + a
+    if step % 2:
+        return box
+    return 0.5 * (box + (c[..., idx + a - 1] - c[..., idx + a - 1 - step]) / step)  # and i - a .. i + a - 1
 
 
 def _reverb_volume(p, gg, el, nodes, L):
@@ -706,7 +710,11 @@ def _reverb_volume(p, gg, el, nodes, L):
     ended = _weighted_step(end.reshape(S, Z, -1), w.reshape(S, Z, -1), nodes)  # (S, Z, K)
     cover = jnp.maximum(jnp.sum(w, axis=(2, 3))[..., None] - ended, 0.0)
     lag = nodes.t - 0.5 * nodes.h
-    return (p.mu_s_per_m / (4.0 * gg.thickness_m * cbar) * nodes.c1 * nodes.h) * cover * jnp.exp(-mu_t * nodes.c1 * lag)
+    # node k holds the lags within half a node of k h; the first only the half after 0 (the trapezoid rule: without
+    # it the field's mass and mean delay carried an error of first order in the node spacing, see _reverb)
+    half = jnp.where(jnp.arange(lag.shape[0]) == 0, 0.5, 1.0).astype(lag.dtype)
+    return ((p.mu_s_per_m / (4.0 * gg.thickness_m * cbar) * nodes.c1 * nodes.h) * half * cover
+            * jnp.exp(-mu_t * nodes.c1 * lag))
 
 
 def _leg_frame(p, src, d):
