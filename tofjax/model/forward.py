@@ -310,7 +310,7 @@ def _trace_switches() -> tuple:
             guided.EDGE_SECOND, guided.EDGE_SECOND_STRIDE, guided.EDGE_SECOND_SPREAD, guided.EDGE_SECOND_SHADOW,
             guided.DISCRETE_HITS, guided.EDGE_REVERB, guided.REVERB_SEGMENTS_PER_WALL, guided.REVERB_NODES,
             guided.REVERB_EXACT_ORDERS, guided.REVERB_LEGS, guided.REVERB_VOLUME_LEAD, guided.CONTACT_SHADOW,
-            guided.CONTACT_LINES, guided.REVERB_SPREAD)
+            guided.CONTACT_LINES, guided.REVERB_SPREAD, guided.REVERB_PADDING)
 
 
 def build_model(

@@ -110,6 +110,13 @@ EDGE_REVERB = True
 REVERB_SEGMENTS_PER_WALL = 4
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
+#: The radiosity's period over the histogram's window: the field is solved on a periodic grid this many windows
+#: long, so light still in the guide a period after it arrived wraps onto the window's start. 1.5 (was 2): on
+#: OptoSkin's baseline the field moves from its 8-window form by 7e-5 relative L2 at the fitted end reflectance 0.5
+#: (2: 2e-5), 1.7% at 0.9 and 5.4% at 1 (2: 0.25% and 1.3%; of the far edge's whole term 0.19% and 0.77%), for 10% of
+#: the guided model's time (96 nodes and 49 frequencies for 128 and 65; experiments/bench_guided_switch.py
+#: --switch REVERB_PADDING, docs/results/bench_guided_switch_reverb_padding.json).
+REVERB_PADDING = 1.5
 #: The field's volume view (:func:`_reverb_volume`) from the walls' irradiance a mean forward distance ahead
 #: (:func:`mean_forward_distance` at the band's mean in-plane speed): the light inside a diffuse field reaches
 #: the walls that much later than it is there. On OptoSkin's Monte Carlo baseline the light after bin 60 comes
@@ -600,7 +607,7 @@ def _reverb(ctx, gg, el, ret, frus):
     K = K_fine // step  # the coarse grid: every step-th node's span
     nodes = Nodes(t=(jnp.arange(K, dtype=fine.t.dtype) + 0.5) * (fine.h * step), h=fine.h * step, r=None, dr=None,
                   c1=fine.c1)
-    n = 2 * K  # zero-padded: light older than the histogram's window wraps after another window
+    n = 2 * int(round(REVERB_PADDING * K / 2))  # periodic, zero-padded: light wraps after REVERB_PADDING windows
     M = gg.seg_len.shape[0]
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     cg = launch_band(p.n1, gg.fov)[0]  # the guided band's edge
