@@ -630,7 +630,7 @@ def test_reverberant_field_spreads_as_its_elevations_do(monkeypatch):
         f, ref = field[True, nodes], field[True, 256]
         assert f.sum() == pytest.approx(ref.sum(), rel=2e-3), nodes
         assert (f.sum((0, 1)) @ bins) / f.sum() == pytest.approx((ref.sum((0, 1)) @ bins) / ref.sum(), abs=0.02), nodes
-    assert dev[True] < 0.6 * dev[False]  # measured 0.13 against 0.28 here; OptoSkin's baseline 0.105 / 0.227
+    assert dev[True] < 0.6 * dev[False]  # measured 0.13 against 0.28 here; OptoSkin's baseline 0.099 / 0.225
     assert field[True, 256].sum() == pytest.approx(field[False, 256].sum(), rel=1e-3)  # a blur moves no light
 
 

@@ -104,8 +104,12 @@ EDGE_REVERB = True
 #: The radiosity's wall segments per wall (4: the same figures as 8 and 16 within 0.002 relative L2, at a quarter
 #: of the cost of 8), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
 #: field is smooth in time: on OptoSkin's baseline the model at 64 and 128 nodes agrees within 5e-4 of its peak, the
-#: field itself within 0.105 / 0.049 relative L2 of its 256-node form with :data:`REVERB_SPREAD`, 0.227 / 0.109 without;
-#: experiments/reverb_spread_grid.py), and how its orders after the fifth bounce are summed:
+#: field itself within 0.099 / 0.029 relative L2 of its 256-node form with :data:`REVERB_SPREAD`, 0.225 / 0.090 without,
+#: its light within 0.02% and its mean delay within 0.006 bins at 64 nodes (both converge at second order since the
+#: volume view's first node and the box back onto the model's nodes were mended, see :func:`_reverb`: before, 64 nodes
+#: had 1.4% more light than 256, 0.51 bins early); experiments/reverb_spread_grid.py,
+#: docs/results/reverb_spread_grid_second_order.json), and how its orders after the
+#: fifth bounce are summed:
 #: 0, a geometric train (:func:`_geometric_tail`); N, N more orders one by one (a reference for the tests).
 REVERB_SEGMENTS_PER_WALL = 4
 REVERB_NODES = 64
@@ -133,7 +137,8 @@ REVERB_LEGS = False
 #: (its variance from the band's weights) on top of its mean delay. Without it the grid's own blur (the deposit's
 #: spline at ``REVERB_NODES``) was the only spread, and the 64x calibration of the Monte Carlo baseline moved with the
 #: grid: reduced chi-square 6.50 / 5.79 / 7.89 and mu_s + mu_a +17 / +6 / -13% at 32 / 64 / 128 nodes; with it 5.50 /
-#: 5.54 and +10 / +6% at 64 / 128 (experiments/reverb_spread_grid.py --calibrate).
+#: 5.54 and +10 / +6% at 64 / 128 (experiments/reverb_spread_grid.py --calibrate). With the grid's first-order errors
+#: mended (:data:`REVERB_NODES`): 5.59 / 5.68 and +8 / +4% with it, 6.50 / 5.94 / 8.05 and +14 / +2 / -15% without.
 REVERB_SPREAD = True
 #: Discrete top-face hits under a contact (:func:`_frustrated`). Off: the continuous form, which the
 #: Monte Carlo's next-event estimation uses too (so the benchmark cannot tell them apart); the analog
