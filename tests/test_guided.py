@@ -846,3 +846,6 @@ def test_reverberant_field_period(monkeypatch):
             field[pad], _ = _reverb_part(monkeypatch, sc, end_reflectance=R)
         assert np.linalg.norm(field[1.5] - field[8.0]) / np.linalg.norm(field[8.0]) < tol, R
         assert np.linalg.norm(field[1.5] - field[8.0]) > 0  # the period reached the program
+    monkeypatch.setattr(guided, "REVERB_PADDING", 0.5)
+    with pytest.raises(ValueError, match="REVERB_PADDING"):
+        _reverb_part(monkeypatch, sc)

@@ -612,6 +612,8 @@ def _reverb(ctx, gg, el, ret, frus):
     K = K_fine // step  # the coarse grid: every step-th node's span
     nodes = Nodes(t=(jnp.arange(K, dtype=fine.t.dtype) + 0.5) * (fine.h * step), h=fine.h * step, r=None, dr=None,
                   c1=fine.c1)
+    if not REVERB_PADDING >= 1.0:
+        raise ValueError(f"guided.REVERB_PADDING must be at least 1 (windows), got {REVERB_PADDING!r}")
     n = 2 * int(round(REVERB_PADDING * K / 2))  # periodic, zero-padded: light wraps after REVERB_PADDING windows
     M = gg.seg_len.shape[0]
     mu_t = p.mu_s_per_m + p.mu_a_per_m
