@@ -117,9 +117,9 @@ REVERB_EXACT_ORDERS = 0
 #: The radiosity's period over the histogram's window: the field is solved on a periodic grid this many windows
 #: long, so light still in the guide a period after it arrived wraps onto the window's start. 1.5 (was 2): on
 #: OptoSkin's baseline the field moves from its 8-window form by 7e-5 relative L2 at the fitted end reflectance 0.5
-#: (2: 2e-5), 1.7% at 0.9 and 5.4% at 1 (2: 0.25% and 1.3%; of the far edge's whole term 0.19% and 0.77%), for 10% of
-#: the guided model's time (96 nodes and 49 frequencies for 128 and 65; experiments/bench_guided_switch.py
-#: --switch REVERB_PADDING, docs/results/bench_guided_switch_reverb_padding.json).
+#: (2: 2e-5), 1.7% at 0.9 and 5.4% at 1 (2: 0.25% and 1.3%; of the far edge's whole term 0.19% and 0.77%), for
+#: 0.86x / 0.87x the guided model's time on the baseline / touch scene (96 nodes and 49 frequencies for 128 and 65;
+#: experiments/bench_guided_switch.py --switch REVERB_PADDING, docs/results/bench_guided_switch_reverb_padding*.json).
 REVERB_PADDING = 1.5
 #: The field's volume view (:func:`_reverb_volume`) from the walls' irradiance a mean forward distance ahead
 #: (:func:`mean_forward_distance` at the band's mean in-plane speed): the light inside a diffuse field reaches
