@@ -303,14 +303,10 @@ class ForwardModel(eqx.Module):
 
 
 def _trace_switches() -> tuple:
-    """The module-level switches of :mod:`tofjax.model.guided` that tracing reads."""
+    """The module-level switches of :mod:`tofjax.model.guided` that tracing reads (``guided.SWITCH_NAMES``)."""
     from . import guided
 
-    return (guided.DIST_DIVISOR, guided.NEAR_FIELD_PER_THICKNESS, guided.SECOND_ORDER, guided.SECOND_ORDER_RECIPROCAL,
-            guided.EDGE_SECOND, guided.EDGE_SECOND_STRIDE, guided.EDGE_SECOND_SPREAD, guided.EDGE_SECOND_SHADOW,
-            guided.DISCRETE_HITS, guided.EDGE_REVERB, guided.REVERB_SEGMENTS_PER_WALL, guided.REVERB_NODES,
-            guided.REVERB_EXACT_ORDERS, guided.REVERB_LEGS, guided.REVERB_VOLUME_LEAD, guided.CONTACT_SHADOW,
-            guided.CONTACT_LINES, guided.REVERB_SPREAD, guided.REVERB_PADDING)
+    return tuple(getattr(guided, k) for k in guided.SWITCH_NAMES)
 
 
 def build_model(

@@ -150,6 +150,11 @@ CONTACT_SHADOW = True
 CONTACT_LINES = 5
 
 
+#: The names of the switches above, in order (every upper-case bool, int or float of this module): tracing reads
+#: them, so :func:`tofjax.model.forward._trace_switches` keys every compiled program by their values.
+SWITCH_NAMES = tuple(k for k, v in globals().items() if k.isupper() and isinstance(v, (bool, int, float)))
+
+
 def hg_backward_fraction(g: float) -> float:
     """Share of Henyey-Greenstein scattering into the backward hemisphere (0.5 for g = 0): the
     ``volume_backscatter_fraction`` that matches a Monte Carlo with anisotropy ``g``."""
