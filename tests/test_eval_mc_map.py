@@ -229,3 +229,17 @@ def test_guided_fidelity_calibration_fast(tmp_path):
             gfc.main(["--out", str(tmp_path / "x.json"), *args])
         assert e.value.code == 2
     assert not (tmp_path / "x.json").exists()
+
+
+def test_guided_multiple_scattering_fast(tmp_path):
+    """experiments/guided_multiple_scattering.py: a bad ``--exposures``, an existing ``--out`` without ``--overwrite``
+    and an unknown variant are usage errors (2) before anything runs or is written. (Both parts need the eval's cached
+    Monte Carlo runs: the study itself is not run here; its score tests are tests/test_fixed_scores.py's.)"""
+    gms = load("guided_multiple_scattering")
+    out = tmp_path / "x.json"
+    for bad in ("0", "16,-1", "a", "inf", ""):
+        assert gms.main(["--out", str(out), "--exposures", bad]) == 2
+    assert not out.exists()
+    out.write_text("{}")
+    assert gms.main(["--out", str(out)]) == 2 and out.read_text() == "{}"
+    assert gms.main(["--out", str(out), "--calibrate-one", "half:16"]) == 2

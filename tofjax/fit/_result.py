@@ -334,4 +334,18 @@ def fit_report(result: CalibrationResult) -> str:
             "worst zones (reduced chi-square): "
             + ", ".join(f"sensor {w['sensor']} zone {w['zone']}: {w['reduced_chi2']:.2f}" for w in worst)
         )
+    lines += fixed_score_lines(result.discrepancy.get("fixed_parameters"))
     return "\n".join(lines)
+
+
+def fixed_score_lines(record: dict | None) -> list[str]:
+    """The report's lines on held parameters the data contradict (``discrepancy["fixed_parameters"]``, from
+    :func:`tofjax.fit._scores.fixed_score_record`): none where nothing was tested or nothing is contradicted."""
+    if not record or not record.get("contradicted"):
+        return []
+    rows = [r for r in record["parameters"] if r["contradicted"]]
+    return [f"held parameters the data contradict (score test, |z| / sqrt(reduced chi-square) > {record['threshold']:g}; "
+            "the free parameters' values and errors are biased while they are held):"] + [
+        f"  {r['name']} = {r['value']:.6g}: z = {r['z']:+.3g} (scaled {r['z_scaled']:+.3g}); one Gauss-Newton step "
+        f"moves it to {r['gauss_newton_value']:.4g}" for r in rows] + [
+        "  free them (FitConfig.free, or free = [...] in a --config TOML) or check the scene's values"]

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._problem import CalibrationProblem
+from ._scores import end_point, score_statistics
 
 __all__ = ["SLOW_RATIOS", "slow_tail_score", "tail_test", "tail_tests"]
 
@@ -48,11 +49,7 @@ def slow_tail_score(one: CalibrationProblem, two: CalibrationProblem, params, li
 
     ``one`` is the one-tail problem the fit ran; ``two`` the same free parameters with the
     two-tail model (its slow-tail parameters come from ``params``, not from coordinates)."""
-    jac = one.covariance_jacobian(params, linear, prior_params, data, sigma, anchor)
-    u = one.pack_jax(params, one.free, linear)
-    prior = one.pack_jax(prior_params, one.free)
-    prior["n1_anchor"] = anchor
-    r = one.full_residuals(u, params, prior, data, sigma)
+    jac, u, prior, r = end_point(one, params, linear, prior_params, data, sigma, anchor)
     ft = jac.dtype
 
     def column(ratio):
@@ -63,20 +60,7 @@ def slow_tail_score(one: CalibrationProblem, two: CalibrationProblem, params, li
         return jax.jvp(res, (jnp.zeros((), params.n1.dtype),), (jnp.ones((), params.n1.dtype),))[1].astype(ft)
 
     js = jax.vmap(column)(jnp.asarray(ratios, params.n1.dtype))  # (K, rows)
-    # project out what the one-tail parameters can do: normal equations scaled to unit diagonal,
-    # solved by a pseudo-inverse (the weak prior keeps them regular; the cut-off guards the rest)
-    scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.sum(jac**2, axis=0), jnp.finfo(ft).tiny))
-    js_ = jac * scale
-    gram = js_.T @ js_
-    vals, vecs = jnp.linalg.eigh(gram)
-    keep = vals > vals[-1] * 1e-13
-    inv = (vecs * jnp.where(keep, 1.0 / jnp.where(keep, vals, 1.0), 0.0)) @ vecs.T
-    coef = inv @ (js_.T @ js.T)  # (p, K)
-    perp = js - (js_ @ coef).T
-    norm2 = jnp.sum(perp**2, axis=1)
-    proj = perp @ r
-    z = -proj / jnp.sqrt(jnp.maximum(norm2, jnp.finfo(ft).tiny))
-    w_hat = -proj / jnp.maximum(norm2, jnp.finfo(ft).tiny)
+    z, w_hat, _ = score_statistics(jac, js, r)  # what the one-tail parameters can do projected out
     return z, w_hat
 
 

@@ -53,6 +53,7 @@ from ._result import (
     scene_fingerprint,
 )
 from ._start import envelope_candidates, timing_start
+from ._scores import fixed_score_record
 from ._tails import one_tail_problem, tail_test, tail_tests, two_tail_problem
 from .solve import MarquardtLM, SolveResult, dense_jvp, solve_marquardt, solve_with_history
 from .transforms import FITTABLE, default_transforms
@@ -255,6 +256,18 @@ class FitConfig:
       strongly attenuating guide (4 /m) has a second basin near 0.1 /m whose chi-square
       (2.7-3.2 on the independent simulator) is under ``max_reduced_chi2`` but above the
       true basin's (1.7-2.1). Default 1.5; ``inf`` turns the check off.
+    - ``fixed_score_chi2``, ``fixed_score_threshold``: where the fit's reduced chi-square is above
+      ``fixed_score_chi2`` (default 1.5; 0: always, ``inf``: never), every held scalar parameter is
+      score-tested at its held value (:mod:`tofjax.fit._scores`): ``z`` says how strongly the data
+      want it to move, the free parameters refitted to first order, and
+      ``discrepancy["fixed_parameters"]`` lists them, most contradicted first, with the value one
+      Gauss-Newton step would move each to. Those with ``|z| / sqrt(reduced chi-square)`` above
+      ``fixed_score_threshold`` (default 5) are ``contradicted`` (the CLI warns). A held value the
+      data contradict biases the free parameters beyond their standard errors: on the Monte Carlo
+      baseline the guided optics' multiple-scattering coupling, held at 0.5, put mu_a at 0.30 +- 0.01
+      against 0.14 (docs/calibration.md, "Fixed parameters the data contradict"). One more
+      compiled program (the Laplace Jacobian and a column per held parameter), so not on a fit
+      that describes its capture.
     - ``geodesic``: the default solver adds the geodesic acceleration to its steps
       (:class:`~tofjax.fit.solve.MarquardtLM`); off by default: on the calibration study's grid
       it took more steps (its acceptance test rejects steps near the optimum, where the
@@ -295,6 +308,8 @@ class FitConfig:
     pulse_tails: int | str = 2
     pulse_tail_threshold: float = 4.0
     basin_check_chi2: float = 1.5
+    fixed_score_chi2: float = 1.5
+    fixed_score_threshold: float = 5.0
     optics: str = "default"
     geodesic: bool = False
     precision_target_n1: float = 0.01
@@ -328,7 +343,9 @@ class FitConfig:
             raise ConfigError(f"timing_anchor: must be >= 0, got {self.timing_anchor!r}")
         if self.prior_width < 0:
             raise ConfigError(f"prior_width: must be >= 0, got {self.prior_width!r}")
-        for k in ("rtol", "atol", "max_reduced_chi2", "basin_check_chi2"):
+        if not self.fixed_score_chi2 >= 0:
+            raise ConfigError(f"fixed_score_chi2: must be >= 0 (0: always; inf: never), got {self.fixed_score_chi2!r}")
+        for k in ("rtol", "atol", "max_reduced_chi2", "basin_check_chi2", "fixed_score_threshold"):
             if getattr(self, k) <= 0:
                 raise ConfigError(f"{k}: must be > 0, got {getattr(self, k)!r}")
         if self.max_steps < 1:
@@ -903,7 +920,18 @@ def calibrate(
         best = held
     best.stages = stages
     best.pulse_tails = config.pulse_tails
+    _score_fixed(best, problem, config, data, sigma, base, anchor)
     return best
+
+
+def _score_fixed(res: CalibrationResult, problem, config: FitConfig, data, sigma, base, anchor) -> None:
+    """Where ``res`` misfits (reduced chi-square above ``config.fixed_score_chi2``), score-test its held scalar
+    parameters (:func:`~tofjax.fit._scores.fixed_score_record`) into ``res.discrepancy["fixed_parameters"]``."""
+    if not res.reduced_chi2 > config.fixed_score_chi2 or not np.isfinite(res.reduced_chi2):
+        return
+    linear = {k: res.values[k] for k in problem.linear}
+    res.discrepancy["fixed_parameters"] = fixed_score_record(problem, res.params, linear, base, data, sigma, anchor,
+                                                             res.reduced_chi2, config.fixed_score_threshold)
 
 
 def _starts(problem, config, scene, capture, data, sigma, base):
@@ -1006,6 +1034,7 @@ def _calibrate_auto(capture, config, scene, two, solver, objective, data, sigma,
     best.stages = stages
     best.pulse_tails = 2 if test["two_tails"] else 1
     best.pulse_tail_test = test
+    _score_fixed(best, problem, cfg, data, sigma, base, anchor)
     return best
 
 

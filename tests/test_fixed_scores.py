@@ -1,0 +1,78 @@
+"""Score tests of the parameters a calibration holds fixed (tofjax.fit._scores): where the fit misfits, which held
+values do the data contradict, and which way would they move?"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from small_scenes import calibration_scene
+
+from tofjax.config import ConfigError
+from tofjax.fit import Calibrator, FitConfig
+from tofjax.fit.calibrate import DEFAULT_FREE, fit_report
+from tofjax.simulate import simulate
+
+#: the default free parameters but the pulse's width, held at the scene's value
+HELD = tuple(k for k in DEFAULT_FREE if k != "pulse_sigma_s")
+
+
+@pytest.fixture(scope="module")
+def fits():
+    """One baseline of the small scene fitted with the pulse's width held at the truth and at 1.3x (the scene the
+    fit starts from says so), both scored always (one compiled fit), and with the width free from the wrong scene."""
+    scene = calibration_scene()
+    cap = simulate(scene, 60, seed=11)
+    sm = scene.sensor
+    wrong = scene.replace(sensor=dataclasses.replace(sm, pulse_sigma_s=1.3 * sm.pulse_sigma_s))
+    always = FitConfig(free=HELD, fixed_score_chi2=0.0)
+    right = Calibrator(scene, always).fit(cap)
+    held_wrong = Calibrator(wrong, always).fit(dataclasses.replace(cap, scene=wrong))
+    freed = Calibrator(wrong, FitConfig()).fit(dataclasses.replace(cap, scene=wrong))
+    return scene, right, held_wrong, freed
+
+
+def _row(res, name):
+    return next(r for r in res.discrepancy["fixed_parameters"]["parameters"] if r["name"] == name)
+
+
+def test_a_true_held_value_is_not_contradicted(fits):
+    """At the true held values the statistic is N(0, 1): every tested one within 4 (a false alarm ~1e-4 each).
+    Only held scalars are tested; a term the scene leaves out says so."""
+    _, right, _, _ = fits
+    rec = right.discrepancy["fixed_parameters"]
+    tested = [r for r in rec["parameters"] if r["z"] is not None]
+    assert "pulse_sigma_s" in {r["name"] for r in tested}
+    assert all(abs(r["z"]) < 4.0 for r in tested), tested
+    assert rec["contradicted"] == [] and "contradict" not in fit_report(right)
+    names = {r["name"] for r in rec["parameters"]}
+    assert not names & set(right.free) and not names & {"gain", "ambient_counts", "crosstalk_counts"}
+    assert all(r["note"] for r in rec["parameters"] if r["z"] is None)
+
+
+def test_a_wrong_held_value_is_contradicted_and_the_step_points_back(fits):
+    """Held 30% wide, the pulse's width is the most contradicted, the report says so, and one Gauss-Newton step
+    lands near the fit that frees it (the two methods agree), far nearer the truth than the held value."""
+    scene, _, held_wrong, freed = fits
+    rec = held_wrong.discrepancy["fixed_parameters"]
+    row = rec["parameters"][0]
+    assert row["name"] == "pulse_sigma_s" and row["contradicted"] and rec["contradicted"][0] == "pulse_sigma_s"
+    assert row["z"] < -5 and row["z_scaled"] == pytest.approx(row["z"] / np.sqrt(max(rec["reduced_chi2"], 1.0)))
+    truth, held = scene.sensor.pulse_sigma_s, 1.3 * scene.sensor.pulse_sigma_s
+    assert row["value"] == pytest.approx(held)
+    free_value = float(freed.params.pulse_sigma_s)
+    assert abs(free_value - truth) < 0.05 * truth
+    assert abs(row["gauss_newton_value"] - free_value) < 0.25 * (held - truth)
+    text = fit_report(held_wrong)
+    assert "held parameters the data contradict" in text and "pulse_sigma_s" in text
+
+
+def test_scores_only_where_the_fit_misfits(fits):
+    """The default gate (reduced chi-square above 1.5) keeps a fit that describes its capture free of the extra
+    program; the config's checks name the key."""
+    _, _, held_wrong, freed = fits
+    assert held_wrong.reduced_chi2 > FitConfig().fixed_score_chi2 > freed.reduced_chi2
+    assert "fixed_parameters" not in freed.discrepancy and "fixed_parameters" not in freed.to_json()["discrepancy"]
+    for bad in ({"fixed_score_chi2": -1.0}, {"fixed_score_chi2": float("nan")}, {"fixed_score_threshold": 0.0}):
+        with pytest.raises(ConfigError, match=f"^{next(iter(bad))}: must be"):
+            FitConfig(**bad)
+    assert FitConfig(fixed_score_chi2=float("inf")).fixed_score_chi2 == float("inf")
