@@ -277,6 +277,29 @@ def test_a_refused_fit_is_restarted_from_other_starts(fitted, small):
     assert res.reduced_chi2 == pytest.approx(min(f["reduced_chi2"] for f in fits if f["result"] == "refused_reduced_chi2"))
 
 
+def test_a_refused_fit_within_the_timing_anchor_keeps_its_n1(fitted, small, monkeypatch):
+    """A refused fit holds n1 at the timing estimate only where it left that estimate by more than the anchor's
+    width: a timing estimate 1% off (the anchor is 2% wide) leaves the joint fit's n1, which the data pin, alone
+    (the rule was a tenth of the width, and then the refit replaced a better n1 by the timing's)."""
+    import importlib
+
+    mod = importlib.import_module("tofjax.fit.calibrate")
+    cal, _, cap = fitted
+    orig = mod.timing_start
+
+    def one_percent_off(*args, **kwargs):
+        start, found = orig(*args, **kwargs)
+        return start.replace(n1=np.asarray(1.01 * float(start.n1), start.n1.dtype)), found
+
+    monkeypatch.setattr(mod, "timing_start", one_percent_off)
+    res = calibrate(cap, FitConfig(max_reduced_chi2=0.5, pulse_tails=2, restarts=0), scene=small, problem=cal.problem)
+    assert res.result == "refused_reduced_chi2"
+    timing = next(s for s in res.stages if s["stage"] == "timing")["n1"]
+    assert abs(timing / small.waveguide.n1 - 1.01) < 0.005  # the estimate the fit was given
+    assert not any(s["stage"] == "n1 held at the timing estimate" for s in res.stages)
+    assert abs(float(res.params.n1) / small.waveguide.n1 - 1) < 0.002
+
+
 def test_two_tail_defaults_and_one_tail_config():
     """Calibration fits two pulse tails and a per-zone edge by default ("auto" chooses:
     tests/test_pulse_tails.py); pulse_tails = 1 drops the slow-tail parameters from the default
