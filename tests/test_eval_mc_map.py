@@ -243,3 +243,16 @@ def test_guided_multiple_scattering_fast(tmp_path):
     out.write_text("{}")
     assert gms.main(["--out", str(out)]) == 2 and out.read_text() == "{}"
     assert gms.main(["--out", str(out), "--calibrate-one", "half:16"]) == 2
+
+
+def test_refused_fit_n1_fast(tmp_path):
+    """experiments/refused_fit_n1.py: a bad ``--quadratures`` and an existing ``--out`` without ``--overwrite`` are usage
+    errors (2) before anything runs or is written. (The calibrations need the eval's cached Monte Carlo runs; the
+    rule itself is tests/test_calibrate.py::test_a_refused_fit_within_the_timing_anchor_keeps_its_n1.)"""
+    rf = load("refused_fit_n1")
+    out = tmp_path / "x.json"
+    for bad in ("0", "2,x", "", "17"):
+        assert rf.main(["--out", str(out), "--quadratures", bad]) == 2
+    assert not out.exists()
+    out.write_text("{}")
+    assert rf.main(["--out", str(out)]) == 2 and out.read_text() == "{}"
