@@ -147,6 +147,14 @@ def study_header(study: str, data: str) -> dict:
             "scene": "optoskin baseline (volume_backscatter_fraction 0.5), as experiments/eval_mc_data.py"}
 
 
+def write_study(out: dict, path: Path) -> None:
+    """Write a study's JSON (headed by :func:`study_header`) with the load average at its end, and say so."""
+    out["load_average_end"] = list(os.getloadavg())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1) + "\n")
+    print(f"wrote {path}")
+
+
 def run_in_own_process(script: str, args: list[str]) -> dict:
     """Run ``python script *args`` and read the JSON object its last line of output prints: a study's variant in a
     process of its own (a model's switches and sampling are fixed when its programs are traced). Raises

@@ -155,10 +155,7 @@ def main(argv=None) -> int:
                 out["calibrations"][key] = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one",
                                                                             f"{variant}:{exposure:g}"])
                 print(key, json.dumps(out["calibrations"][key]), flush=True)
-    out["load_average_end"] = list(os.getloadavg())
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(out, indent=1) + "\n")
-    print(f"wrote {out_path}")
+    ev.write_study(out, out_path)
     return 0
 
 

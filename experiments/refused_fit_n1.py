@@ -80,10 +80,7 @@ def main(argv=None) -> int:
         row = ev.run_in_own_process(__file__, ["--out", os.devnull, "--one", str(q)])
         out["calibrations"].append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "stages"}), flush=True)
-    out["load_average_end"] = list(os.getloadavg())
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(out, indent=1) + "\n")
-    print(f"wrote {out_path}")
+    ev.write_study(out, out_path)
     return 0
 
 
