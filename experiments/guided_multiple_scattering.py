@@ -30,7 +30,6 @@ import dataclasses
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +79,6 @@ def calibrate_one(variant: str, exposure: float) -> dict:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import eval_mc_data as ev
 
-    from tofjax.fit import Calibrator, FitConfig
     from tofjax.fit.calibrate import DEFAULT_FREE, NOT_GUIDED
 
     scene, expected, mc_var = ev.calibration_baseline(exposure=exposure)
@@ -92,17 +90,14 @@ def calibrate_one(variant: str, exposure: float) -> dict:
         cap = dataclasses.replace(cap, scene=fit_scene)
     elif variant == "free":
         options["free"] = tuple(k for k in DEFAULT_FREE if k not in NOT_GUIDED) + ("multiple_scattering",)
-    t = time.perf_counter()
-    res = Calibrator(fit_scene, FitConfig(optics="guided", **options)).fit(cap)
-    wg, p = scene.waveguide, res.params
-    out = {"variant": variant, "exposure": exposure, "frames": frames, "result": res.result,
-           "converged": bool(res.converged), "steps": res.steps, "seconds": time.perf_counter() - t,
-           "reduced_chi2_photon_noise": res.reduced_chi2,
-           "n1_rel_error": float(p.n1) / wg.n1 - 1,
-           "mu_t_rel_error": float(p.mu_s_per_m + p.mu_a_per_m) / (wg.mu_s_per_m + wg.mu_a_per_m) - 1,
+    # the eval's figures of a calibration (errors against fit_scene's optics: only the coupling differs from scene's)
+    fig, res = ev.calibrate_capture(fit_scene, cap, mc_var, "guided", **options)
+    p = res.params
+    keep = ("result", "converged", "steps", "seconds", "reduced_chi2_photon_noise", "n1_rel_error", "mu_t_rel_error")
+    out = {"variant": variant, "exposure": exposure, "frames": frames, **{k: fig[k] for k in keep},
            "mu_s_per_m": float(p.mu_s_per_m), "mu_a_per_m": float(p.mu_a_per_m),
            "multiple_scattering": float(p.multiple_scattering)}
-    out.update(ev.chi2_with_mc_variance(res, cap.mean(), frames, mc_var))
+    out.update({k: v for k, v in fig.items() if k.startswith(("reduced_chi2_with", "mc_variance"))})
     out["stderr"] = {k: float(np.ravel(res.stderr[k])[0]) for k in ("n1", "mu_s_per_m", "mu_a_per_m", "multiple_scattering")
                      if k in res.stderr}
     # the held parameters' score tests (FitConfig.fixed_score_chi2: on a fit above reduced chi-square 1.5)
