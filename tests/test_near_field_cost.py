@@ -51,13 +51,15 @@ def _args(lo, hi, d, p, dtype=jnp.float64):
 @pytest.mark.filterwarnings("ignore::scipy.integrate.IntegrationWarning")
 def test_node_correction_matches_adaptive_quadrature():
     """float64, near field 5 mm (the window): <= 5e-12 of the node's integral for p <= 8, 1e-10 at
-    p = 65 (the fit's bound; 6e-8 at p = 1000, the Params' bound); p = 2 exactly 0. Nodes before
-    emission, the emission node, the band (d/4 to 4 d) and far away."""
+    p = 65 (the fit's bound; 6e-8 at p = 1000, the Params' bound); p = 2 zero to rounding (exactly 0
+    where XLA optimises the program fully, 6e-19 m of a node's r^2 moment at the tests' optimisation
+    level, tests/conftest.py), on every node. Nodes before emission, the emission node, the band (d/4 to
+    4 d) and far away."""
     lo, hi = _edges()
     nodes = [6, 8, 9, 10, 12, 47]
     for p, tol in ((1.0, 1e-10), (8.0, 1e-10), (65.0, 1e-9)):
         assert _worst(lo, hi, 0.005, p, _node(*_args(lo, hi, 0.005, p)), nodes) < tol, p
-    assert all(float(jnp.abs(x).max()) == 0.0 for x in _node(*_args(lo, hi, 0.005, 2.0)))
+    assert _worst(lo, hi, 0.005, 2.0, _node(*_args(lo, hi, 0.005, 2.0)), range(len(lo))) < 1e-15
 
 
 @pytest.mark.slow
