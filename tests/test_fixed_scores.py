@@ -9,7 +9,7 @@ from small_scenes import calibration_scene
 
 from tofjax.config import ConfigError
 from tofjax.fit import Calibrator, FitConfig
-from tofjax.fit.calibrate import DEFAULT_FREE, fit_report
+from tofjax.fit.calibrate import DEFAULT_FREE, calibrate_many, fit_report
 from tofjax.simulate import simulate
 
 #: the default free parameters but the pulse's width, held at the scene's value
@@ -28,7 +28,7 @@ def fits():
     right = Calibrator(scene, always).fit(cap)
     held_wrong = Calibrator(wrong, always).fit(dataclasses.replace(cap, scene=wrong))
     freed = Calibrator(wrong, FitConfig()).fit(dataclasses.replace(cap, scene=wrong))
-    return scene, right, held_wrong, freed
+    return scene, right, held_wrong, freed, wrong, cap
 
 
 def _row(res, name):
@@ -38,7 +38,7 @@ def _row(res, name):
 def test_a_true_held_value_is_not_contradicted(fits):
     """At the true held values the statistic is N(0, 1): every tested one within 4 (a false alarm ~1e-4 each).
     Only held scalars are tested; a term the scene leaves out says so."""
-    _, right, _, _ = fits
+    _, right, _, _, _, _ = fits
     rec = right.discrepancy["fixed_parameters"]
     tested = [r for r in rec["parameters"] if r["z"] is not None]
     assert "pulse_sigma_s" in {r["name"] for r in tested}
@@ -52,7 +52,7 @@ def test_a_true_held_value_is_not_contradicted(fits):
 def test_a_wrong_held_value_is_contradicted_and_the_step_points_back(fits):
     """Held 30% wide, the pulse's width is the most contradicted, the report says so, and one Gauss-Newton step
     lands near the fit that frees it (the two methods agree), far nearer the truth than the held value."""
-    scene, _, held_wrong, freed = fits
+    scene, _, held_wrong, freed, _, _ = fits
     rec = held_wrong.discrepancy["fixed_parameters"]
     row = rec["parameters"][0]
     assert row["name"] == "pulse_sigma_s" and row["contradicted"] and rec["contradicted"][0] == "pulse_sigma_s"
@@ -69,10 +69,23 @@ def test_a_wrong_held_value_is_contradicted_and_the_step_points_back(fits):
 def test_scores_only_where_the_fit_misfits(fits):
     """The default gate (reduced chi-square above 1.5) keeps a fit that describes its capture free of the extra
     program; the config's checks name the key."""
-    _, _, held_wrong, freed = fits
+    _, _, held_wrong, freed, _, _ = fits
     assert held_wrong.reduced_chi2 > FitConfig().fixed_score_chi2 > freed.reduced_chi2
     assert "fixed_parameters" not in freed.discrepancy and "fixed_parameters" not in freed.to_json()["discrepancy"]
     for bad in ({"fixed_score_chi2": -1.0}, {"fixed_score_chi2": float("nan")}, {"fixed_score_threshold": 0.0}):
         with pytest.raises(ConfigError, match=f"^{next(iter(bad))}: must be"):
             FitConfig(**bad)
     assert FitConfig(fixed_score_chi2=float("inf")).fixed_score_chi2 == float("inf")
+
+
+def test_a_batch_of_calibrations_scores_its_held_parameters_as_one_does(fits):
+    """calibrate_many scores each misfitting result's held parameters as calibrate does (it used not to): the same
+    statistics for the same capture (the gate is calibrate's own, tested above)."""
+    _, _, held_wrong, _, wrong, cap = fits
+    cap = dataclasses.replace(cap, scene=wrong)
+    [one] = calibrate_many([cap], FitConfig(free=HELD, fixed_score_chi2=0.0), scene=wrong)
+    got, want = one.discrepancy["fixed_parameters"], held_wrong.discrepancy["fixed_parameters"]
+    assert [r["name"] for r in got["parameters"]] == [r["name"] for r in want["parameters"]]
+    assert got["contradicted"] == want["contradicted"] == ["pulse_sigma_s"] + want["contradicted"][1:]
+    for a, b in zip(got["parameters"], want["parameters"]):
+        assert (a["z"] is None) == (b["z"] is None) and (a["z"] is None or a["z"] == pytest.approx(b["z"], rel=1e-3, abs=1e-3))

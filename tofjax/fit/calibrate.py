@@ -1086,7 +1086,8 @@ def calibrate_many(
     one fit after the other on a CPU); :func:`fit_problem_batch` forces the one vmapped call,
     :func:`fit_problem_compact` the compacting batch (``functools.partial(fit_problem_compact,
     options=CompactBatch(...))`` for other options),
-    :func:`tofjax.parallel.sharded_fit_batch` spreads it over devices."""
+    :func:`tofjax.parallel.sharded_fit_batch` spreads it over devices. Each result's misfit is scored against
+    its held parameters as :func:`calibrate` scores it (``config.fixed_score_chi2``)."""
     scene = (scene or captures[0].scene).without_touches()
     for c in captures:
         check_baseline(c, scene)
@@ -1111,14 +1112,16 @@ def calibrate_many(
                            default_fit_batch() if fit_batch is None else fit_batch, scene=scene)
     fingerprint = scene_fingerprint(scene)
     out = []
-    for c, f in zip(captures, fits):
+    for i, (c, f) in enumerate(zip(captures, fits)):
         res = _assemble(f.problem, scene, f.config, f.solution, c.n_frames, f.stages, fingerprint)
         res.pulse_tails, res.pulse_tail_test = f.config.pulse_tails, f.test
         if restart_failures and (
             res.result not in ("successful", "refused_reduced_chi2")
             or (res.result == "successful" and res.reduced_chi2 > config.basin_check_chi2)
         ):
-            res = calibrate(c, config, scene=scene, problem=problem)
+            res = calibrate(c, config, scene=scene, problem=problem)  # scores its held parameters itself
+        else:
+            _score_fixed(res, f.problem, f.config, data[i], sigma[i], base_params(scene, f.config, dtype), anchors[i])
         out.append(res)
     return out
 
