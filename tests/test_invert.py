@@ -289,15 +289,13 @@ def test_different_scene_same_shape_is_an_error(scene):
 
 def test_simulate_contacts_on_a_guide_smaller_than_15_cm():
     """The vmapped simulator's prototype contacts sit inside any guide (they were hard-coded at
-    (0.15, 0.15) m, outside a 10 cm guide), and its frames equal the one-scene simulator's.
-    The emission time is off the node grid's edges (1.2 bins, not 1): exactly on an edge, the compiled
-    model's near-field spread of one node differed with the program around it (by 11%, 0.15% of the
-    first bins; the two programs agreed only where XLA optimised both alike: tests/conftest.py)."""
+    (0.15, 0.15) m, outside a 10 cm guide), and its frames equal the one-scene simulator's (the emission on
+    a node edge: test_model.py::test_continuous_where_the_emission_sits_on_a_node_edge)."""
     from tofjax.scene import Touch, scene_from_dict
 
     sc = scene_from_dict({
         "waveguide": {"size_m": [0.1, 0.08], "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": 0.5, "mu_a_per_m": 0.1},
-        "sensor": {"bin_width_s": 1e-10, "n_bins": 24, "zones": 3, "fov_deg": 30.0, "emission_time_s": 1.2e-10},
+        "sensor": {"bin_width_s": 1e-10, "n_bins": 24, "zones": 3, "fov_deg": 30.0, "emission_time_s": 1e-10},
         "sensors": [{"position_m": [0.0, 0.04], "direction_deg": 0.0}],
     })
     c = np.array([[[0.06, 0.045, 1.0]]])

@@ -303,10 +303,14 @@ def node_falloff_after_emission(nodes: Nodes, near_field, shape=2.0):
 
     def after_emission(x):
         # 0.5 (x + sqrt(x^2 + eps^2)), written without cancellation for x < 0 (float32: nodes
-        # long before emission must get 0, not rounding noise of either sign)
+        # long before emission must get 0, not rounding noise of either sign). The branch not
+        # taken divides by sq + x (no cancellation, never 0), not by a placeholder: where an edge
+        # sits on the emission (x within rounding of 0, a round emission time on the node grid)
+        # XLA may evaluate the two tests of x > 0 apart, each with its own rounding, and a
+        # placeholder 1 then gave the edge 0.5 eps^2 instead of eps / 2 (the node's spread 11% off)
         sq = jnp.sqrt(x * x + eps * eps)
         pos = x > 0
-        return jnp.where(pos, 0.5 * (x + sq), 0.5 * eps * eps / jnp.where(pos, 1.0, sq - x))
+        return jnp.where(pos, 0.5 * (x + sq), 0.5 * eps * eps / jnp.where(pos, sq + x, sq - x))
 
     lo = after_emission(nodes.r - 0.5 * nodes.dr)
     hi = after_emission(nodes.r + 0.5 * nodes.dr)
