@@ -13,15 +13,31 @@ from tofjax.compile_cache import use_fast_cpu_compiler  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Most of the suite's time is XLA compiling (87% of test_calibrate.py's and test_guided.py's, their
-# backend's LLVM passes), and the tests' programs run for milliseconds: they are compiled without
-# LLVM's optimisation. Measured side by side on the 2-core VM, fresh clones, empty caches: the suite
-# 6:35 against 11:31 of pytest (2026-11-29). What a test computes does not change beyond rounding,
-# except where a program sits on a knife edge (README "Tests"). TOFJAX_TEST_XLA_OPT=default runs
-# the suite as the CLI compiles (XLA's default optimisation); like the flag below, it must be set
-# before JAX's backend starts, and a user's own $XLA_FLAGS naming the option stands.
+# backend's LLVM passes), and the default selection's programs run for milliseconds: it compiles
+# without LLVM's optimisation (pytest_configure below). Measured side by side on the 2-core VM, fresh
+# clones, empty caches: the suite 6:35 against 11:31 of pytest (2026-11-29). What a test computes does
+# not change beyond rounding, except where a program sits on a knife edge (README "Tests").
 TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-if os.environ.get("TOFJAX_TEST_XLA_OPT", "").strip().lower() != "default" and "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
+
+
+def unoptimised(markexpr: str, environ=os.environ) -> bool:
+    """Whether this run compiles without LLVM's optimisation: the default selection (``-m 'not slow'``,
+    pyproject's addopts) does; a run that selects the long studies (``make test-all``'s ``-m ""``, ``-m slow``),
+    whose programs run long enough for optimisation to pay, compiles as the CLI does, and so does any run with
+    ``TOFJAX_TEST_XLA_OPT=default`` or a ``$XLA_FLAGS`` that names the level itself."""
+    if environ.get("TOFJAX_TEST_XLA_OPT", "").strip().lower() == "default":
+        return False
+    if "xla_backend_optimization_level" in environ.get("XLA_FLAGS", ""):
+        return False
+    return " ".join(markexpr.split()) == "not slow"
+
+
+def pytest_configure(config):
+    # after the options are read, before any test starts JAX's backend (XLA reads $XLA_FLAGS then)
+    if unoptimised(config.getoption("markexpr", "") or ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
+
+
 # The CPU compiler the CLI uses (XLA's elemental emitters: most of the suite is compilation),
 # set before any test starts JAX's backend.
 use_fast_cpu_compiler()

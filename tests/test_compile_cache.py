@@ -301,3 +301,14 @@ def test_fusion_jit_is_jit_with_the_fusion_emitters_on_a_cpu():
     if jax.default_backend() == "cpu":
         lowered = jax.jit(f, compiler_options=FUSION_EMITTERS).lower(x, 3.0)
         assert lowered.compile().as_text()  # the option is one this XLA accepts on its CPU backend
+
+
+def test_the_default_selection_alone_compiles_unoptimised():
+    """tests/conftest.py: the default run (-m 'not slow') compiles without LLVM's optimisation; make test-all
+    (-m ""), -m slow, TOFJAX_TEST_XLA_OPT=default and a user's own level compile as the CLI does."""
+    from conftest import unoptimised
+
+    assert unoptimised("not slow", {}) and unoptimised(" not  slow ", {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=false"})
+    assert not unoptimised("", {}) and not unoptimised("slow", {})
+    assert not unoptimised("not slow", {"TOFJAX_TEST_XLA_OPT": "default"})
+    assert not unoptimised("not slow", {"XLA_FLAGS": "--xla_backend_optimization_level=2"})
