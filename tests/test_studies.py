@@ -43,3 +43,15 @@ def test_recovery_study_full(tmp_path):
     study = load("study_recovery")
     study.main(["--config", str(ROOT / "configs" / "studies" / "recovery.toml"), "--out", str(tmp_path)])
     assert (tmp_path / "recovery.json").exists()
+
+
+def test_cpu_opt_level_refuses_bad_arguments(tmp_path):
+    """experiments/cpu_opt_level.py (a benchmark: each round runs three cold calibrations in fresh processes, so the
+    run itself is not repeated here): no output file or no rounds is a usage error, before any worker starts."""
+    study = load("cpu_opt_level")
+    for argv in ([], ["--out", str(tmp_path / "x.json"), "--rounds", "0"], ["--out", str(tmp_path / "x.json"), "--warm", "0"]):
+        with pytest.raises(SystemExit) as e:
+            study.main(argv)
+        assert e.value.code == 2
+    assert not (tmp_path / "x.json").exists()
+    assert set(study.VARIANTS) == {"default", "level1", "level0"} and "optimization_level" not in study.VARIANTS["default"]
