@@ -46,11 +46,14 @@ MEASURES = ("calibration_cold_s", "calibration_warm_s", "model_compile_s", "mode
             "mc_events_per_s")
 
 
-def worker(warm: int) -> dict:
+def calibration_and_model_timings(warm: int):
+    """In this process (float64, the default scene, the simulated 100-frame baseline of seed 1000): the first
+    calibration's seconds, ``warm`` more fits' seconds, and the model's value-and-gradient compile and median call
+    (the part of the worker ``experiments/cpu_opt_level.py`` shares). Returns ``(scene, capture, calibrator, result,
+    cold_s, warm_s list, model_compile_s, model_warm_s)``."""
     sys.path.insert(0, str(ROOT))
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from tofjax import build_model, enable_x64
     from tofjax.fit import Calibrator
@@ -82,7 +85,17 @@ def worker(warm: int) -> dict:
     compiled = f.lower(p).compile()
     m_compile = time.perf_counter() - t
     m_warm = median_seconds(compiled, p, 20)  # one call first, then the median of 20
+    return scene, cap, cal, res, cold, times, m_compile, m_warm
+
+
+def worker(warm: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    scene, cap, cal, res, cold, times, m_compile, m_warm = calibration_and_model_timings(warm)
     from tofjax.fit.posterior import log_density
+    from tofjax.timing import median_seconds
 
     ld = log_density(cal, cap, res)
     vg = jax.jit(jax.value_and_grad(ld.fn))

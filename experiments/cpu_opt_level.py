@@ -5,12 +5,13 @@ test run compiles with, tests/conftest.py), all on the elemental emitters the CL
 Each measurement runs in a fresh Python process (``--worker``) with an explicit ``$XLA_FLAGS``, cold
 (``TOFJAX_PROGRAM_STORE=0 TOFJAX_COMPILATION_CACHE=0``, no JAX persistent cache), the variants' order rotated
 every round so a shared machine's swings fall on all alike. Per process, float64, the default scene, a
-**simulated** 100-frame baseline (seed 1000), as ``experiments/cpu_emitters.py``:
+**simulated** 100-frame baseline (seed 1000), measured by ``experiments/cpu_emitters.py``'s
+``calibration_and_model_timings``:
 
 * ``calibration_cold_s``: ``Calibrator(scene).fit(capture)``, the first in the process (compilations and one fit);
-* ``calibration_warm_s`` and ``steps``: the median of ``--warm`` more fits of the same capture, and its steps. The
-  fit's path depends on rounding (the default scene's fit creeps along a ridge), so the steps differ between levels:
-  ``warm_per_step_s`` is the comparable run-time figure;
+* ``calibration_warm_s`` and ``steps``: the median of ``--warm`` more fits of the same capture, and the fit's steps.
+  The fit's path depends on rounding (where a fit creeps along a ridge, the steps differ between levels: the demo's
+  OptoSkin baseline takes 73-199), so ``warm_per_step_s`` is the comparable run-time figure;
 * ``model_compile_s`` / ``model_warm_s``: ``jit(value_and_grad(sum(model(p)^2)))`` compiled and its median call;
 * ``n1``, ``mu_t``, ``reduced_chi2``: the fit's answer.
 
@@ -42,37 +43,11 @@ MEASURES = ("calibration_cold_s", "calibration_warm_s", "warm_per_step_s", "mode
 
 
 def worker(warm: int) -> dict:
-    sys.path.insert(0, str(ROOT))
-    import jax
-    import jax.numpy as jnp
     import numpy as np
 
-    from tofjax import build_model, enable_x64
-    from tofjax.fit import Calibrator
-    from tofjax.model import Params
-    from tofjax.scene import default_scene
-    from tofjax.simulate import simulate
-    from tofjax.timing import median_seconds
+    from cpu_emitters import calibration_and_model_timings  # the same measurements, per variant
 
-    enable_x64()
-    scene = default_scene()
-    cap = simulate(scene, 100, seed=1000)
-    cal = Calibrator(scene)
-    t = time.perf_counter()
-    res = cal.fit(cap)
-    cold = time.perf_counter() - t
-    times = []
-    for _ in range(warm):
-        t = time.perf_counter()
-        res = cal.fit(cap)
-        times.append(time.perf_counter() - t)
-    model = build_model(scene)
-    p = Params.from_scene(scene, jnp.float64)
-    f = jax.jit(jax.value_and_grad(lambda q: jnp.sum(model(q) ** 2)))
-    t = time.perf_counter()
-    compiled = f.lower(p).compile()
-    m_compile = time.perf_counter() - t
-    m_warm = median_seconds(compiled, p, 20)
+    _, _, _, res, cold, times, m_compile, m_warm = calibration_and_model_timings(warm)
     warm_s = statistics.median(times)
     return {
         "calibration_cold_s": cold, "calibration_warm_s": warm_s, "steps": int(res.steps),
