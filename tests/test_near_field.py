@@ -98,3 +98,60 @@ def test_config_and_params_know_the_shape(optoskin):
     t = default_transforms(optoskin)["near_field_shape"]
     for v in (1.5, 2.0, 45.0):
         assert float(t.to_physical(t.to_unconstrained(v))) == pytest.approx(v, rel=1e-9)
+
+
+class _Disagreeing:
+    """``jnp`` as ``components`` sees it, except that the ``where`` calls made from function ``fn``
+    whose order (0, 1, ...) is in ``flip`` see their condition negated (at elements ``at``, all if
+    None): what XLA does when it
+    evaluates one comparison in two fusions with different rounding of a value on its threshold
+    (it did so in ``node_falloff_after_emission``: test_model.py,
+    test_continuous_where_the_emission_sits_on_a_node_edge). A knife-edge-safe double where gives
+    the value beside the threshold whichever calls disagree."""
+
+    def __init__(self, fn, flip, at=None):
+        self.fn, self.flip, self.at, self.calls = fn, set(flip), at, 0
+
+    def __getattr__(self, name):
+        return getattr(jnp, name)
+
+    def where(self, cond, a, b):
+        import sys
+
+        if sys._getframe(1).f_code.co_name == self.fn:
+            if self.calls in self.flip:
+                cond = jnp.asarray(cond)
+                cond = ~cond if self.at is None else cond.at[self.at].set(~cond[self.at])
+            self.calls += 1
+        return jnp.where(cond, a, b)
+
+
+@pytest.mark.parametrize("case", ["falloff", "pow_small", "exprel", "shape_points"])
+def test_double_wheres_hold_when_their_conditions_disagree(case, monkeypatch):
+    """At each helper's threshold (r = d; s within rounding of 0; |a| = 1e-3; a node edge at d),
+    any subset of its threshold wheres negated gives the value beside the threshold (within 1e-12
+    relative), not the placeholder's (s = d / 1, 1^p, expm1(1) / 1)."""
+    r = jnp.asarray([D])
+    calls = {
+        # fn whose wheres are flipped, the call, its wheres on the threshold (by order), the
+        # elements on it (None: all), the value
+        "falloff": ("falloff", lambda: C.falloff(r, D, 3.0), (0, 1), None, 2.0 ** (-2.0 / 3.0) / D**2),
+        "pow_small": ("_pow_small", lambda: C._pow_small(jnp.asarray([1e-300]), 2.0), (0, 1), None, 0.0),
+        "exprel": ("_exprel", lambda: C._exprel(jnp.asarray([1e-3, -1e-3])), (0, 1), None,
+                   np.expm1([1e-3, -1e-3]) / np.asarray([1e-3, -1e-3])),
+        # edges (lo, hi) = (1 mm, d): the edge at d (element 1) has s = e / d (inner) or d / e, 1 either
+        # way; the wheres of ``pos`` (calls 2, 3) are not on a threshold
+        "shape_points": ("_shape_points", lambda: C.shape_correction(jnp.asarray([0.001]), r, D, 3.0), (0, 1), 1, None),
+    }
+    fn, call, wheres, at, want = calls[case]
+    if want is None:
+        want = np.concatenate([np.asarray(x) for x in call()])
+    for k in range(1, 2 ** len(wheres)):
+        flip = [w for i, w in enumerate(wheres) if k >> i & 1]
+        shim = _Disagreeing(fn, flip, at)
+        monkeypatch.setattr(C, "jnp", shim)
+        got = call()
+        monkeypatch.setattr(C, "jnp", jnp)
+        assert shim.calls >= len(wheres)
+        got = np.concatenate([np.asarray(x).ravel() for x in (got if isinstance(got, (list, tuple)) else [got])])
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300, err_msg=f"{case}: wheres {flip} negated")

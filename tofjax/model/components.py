@@ -68,7 +68,11 @@ SHAPE_WINDOW = 16
 def _pow_small(s, p):
     """``s^p`` for ``0 <= s <= 1``, with finite gradients at ``s = 0`` (where it is 0)."""
     pos = s > 0
-    return jnp.where(pos, jnp.exp(p * jnp.log(jnp.where(pos, s, 1.0))), 0.0)
+    # the branch not taken reads the smallest normal number, not 1: if XLA evaluates the two
+    # ``s > 0`` apart with different rounding of ``s`` (as it did in node_falloff_after_emission),
+    # a disagreeing pair still gives ~0, the value beside the threshold (1 would give s^p = 1)
+    tiny = jnp.finfo(jnp.result_type(s, float)).tiny
+    return jnp.where(pos, jnp.exp(p * jnp.log(jnp.where(pos, s, tiny))), 0.0)
 
 
 def falloff(r, near_field, shape=2.0):
@@ -82,14 +86,19 @@ def falloff(r, near_field, shape=2.0):
     r = jnp.abs(r)
     far = r >= near_field
     m = jnp.where(far, r, near_field)
-    s = jnp.where(far, near_field / jnp.where(far, r, 1.0), r / near_field)
+    # the branch not taken divides by m (= d there), not by 1: should XLA evaluate the ``r >= d``
+    # of the two wheres apart with different rounding at r = d, a disagreeing pair gives s = 1,
+    # the value at the threshold, not d / 1
+    s = jnp.where(far, near_field / m, r / near_field)
     return jnp.exp(-(2.0 / shape) * jnp.log1p(_pow_small(s, shape))) / m**2
 
 
 def _exprel(a):
     """``expm1(a) / a``, 1 at ``a = 0`` (a double-where keeps the gradient finite)."""
     small = jnp.abs(a) < 1e-3
-    safe = jnp.where(small, 1.0, a)
+    # the placeholder sits at the threshold with a's sign: should XLA evaluate the two ``small``
+    # apart with different rounding, the branch not taken gives the value beside it, not expm1(1)
+    safe = jnp.where(small, jnp.copysign(jnp.asarray(1e-3, a.dtype), a), a)
     return jnp.where(small, 1.0 + a * (0.5 + a * (1.0 / 6.0 + a / 24.0)), jnp.expm1(safe) / safe)
 
 
@@ -161,7 +170,8 @@ def _shape_points(e, near_field, shape, band=True):
     inner (E,), at_d (3 x (2,)))``."""
     d = near_field
     inner = jnp.concatenate([e <= d, jnp.asarray([True, False])])
-    s = jnp.concatenate([jnp.where(e <= d, e / d, d / jnp.where(e <= d, 1.0, e)), jnp.ones((2,), e.dtype)])
+    # the branch not taken divides by d, not 1 (see falloff): s = 1 should the two ``e <= d`` disagree
+    s = jnp.concatenate([jnp.where(e <= d, e / d, d / jnp.where(e <= d, d, e)), jnp.ones((2,), e.dtype)])
     pos = s > 0
     sc = jnp.minimum(s, SHAPE_SERIES_SPLIT)
     out = _shape_series(jnp.where(pos, sc, 0.0), jnp.log(jnp.where(pos, sc, 1.0)), inner, shape)
