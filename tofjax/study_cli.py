@@ -232,6 +232,6 @@ def register(sub) -> None:
     s = sub.add_parser("study", help="run a study config on every device of one or several processes (jax.distributed)")
     s.add_argument("config", help="study TOML (a recovery grid, or kind = \"mc\"), or a built-in name such as 'recovery'")
     s.add_argument("--out", required=True, help="output folder (process 0 writes recovery.json or mc.json)")
-    s.add_argument("--chunk", type=int, default=4, help="fits per device in one compiled call (default 4)")
+    s.add_argument("--chunk", type=int, default=4, help="fits per device in one compiled call on accelerators (default 4; unused where every device is a CPU: the fits then run one after the other)")
     add_cluster_arguments(s)
     s.set_defaults(func=_cmd_study)
