@@ -132,6 +132,14 @@ def test_fit_config_validation(tmp_path):
             load_fit_config(p)
     with pytest.raises(ConfigError, match="elevations: must be an integer in 1..64, got 2.5"):
         FitConfig(elevations=2.5)
+    # the two thresholds whose "off" is inf take it from a file (docs/calibration.md); other numbers stay finite
+    p.write_text("basin_check_chi2 = inf\nfixed_score_chi2 = inf\n")
+    cfg = load_fit_config(p)
+    assert cfg.basin_check_chi2 == np.inf and cfg.fixed_score_chi2 == np.inf
+    for text in ("basin_check_chi2 = -inf\n", "fixed_score_chi2 = nan\n", "max_reduced_chi2 = inf\n"):
+        p.write_text(text)
+        with pytest.raises(ConfigError, match="must be"):
+            load_fit_config(p)
 
 
 def test_fit_config_fidelity_reaches_the_model(small):

@@ -127,6 +127,11 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
     raise TypeError(f"unsupported config type {tp!r} at {where}")  # a bug in tofjax, not in the file
 
 
+#: ``dataclasses.field(metadata={INFINITE_OK: True})``: a float field that also takes ``inf`` from a
+#: file (a threshold whose "never" is +inf); every other float must be finite
+INFINITE_OK = "infinite_ok"
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
     """Build the frozen dataclass ``cls`` from a TOML table.
 
@@ -151,6 +156,9 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
         if name not in data:
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ConfigError(f"{key}: missing key ({_type_name(hints[name])} is required)")
+            continue
+        if f.metadata.get(INFINITE_OK) and data[name] == math.inf and not isinstance(data[name], bool):
+            kwargs[name] = math.inf  # a threshold whose "never" is +inf (TOML's inf)
             continue
         kwargs[name] = _convert(data[name], hints[name], key)
     try:

@@ -35,7 +35,7 @@ import optimistix as optx
 
 from ..capture import Capture
 from ..compile_cache import call_stored, compile_ahead, prefetch
-from ..config import ConfigError, from_dict, load_toml
+from ..config import INFINITE_OK, ConfigError, from_dict, load_toml
 from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
 from ._batch import CompactBatch, solve_marquardt_compact
@@ -183,10 +183,11 @@ class FitConfig:
       (a few hundredths of a standard error from the optimum); 0 turns it off. (A
       ``MarquardtLM(lambda_trials=...)`` passed as ``solver=`` stops instead when the Gauss-Newton
       model says less than this is left, ``0.5 g^T (J^T J)^-1 g``, and its best trial agrees.)
-    - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first (for
-      ``dogleg`` and an optimistix solver passed as ``solver=``; the default solver's first
-      steps already are nearly Gauss-Newton steps); where they fail or do not lower the loss
-      the solver takes over. 0 = off.
+    - ``gauss_newton_first``: up to this many undamped Gauss-Newton steps first, with
+      ``solver = "dogleg"`` only (ignored by every other ``solver``, and by a solver object passed
+      as ``solver=`` unless ``solver = "dogleg"`` too; the default solver's first steps already are
+      nearly Gauss-Newton steps); where they fail or do not lower the loss the solver takes over.
+      0 = off.
     - ``max_steps``: per start.
     - ``free``: which parameters to fit; the rest stay at the scene's values.
     - ``zone_gain``: the gain is free per (sensor, zone), profiled out like ambient and
@@ -307,8 +308,8 @@ class FitConfig:
     max_reduced_chi2: float = 4.0
     pulse_tails: int | str = 2
     pulse_tail_threshold: float = 4.0
-    basin_check_chi2: float = 1.5
-    fixed_score_chi2: float = 1.5
+    basin_check_chi2: float = dataclasses.field(default=1.5, metadata={INFINITE_OK: True})  # inf: off
+    fixed_score_chi2: float = dataclasses.field(default=1.5, metadata={INFINITE_OK: True})  # inf: never
     fixed_score_threshold: float = 5.0
     optics: str = "default"
     geodesic: bool = False
