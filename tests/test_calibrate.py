@@ -779,7 +779,8 @@ def test_compile_ahead_compiles_each_program_once_and_changes_nothing(small, mon
         ahead = Calibrator(scene, FitConfig(pulse_tails=2)).fit(cap)
     finally:
         mon.unregister_event_duration_listener(listen)
-    assert compiled.count("jit(fit_problem)") <= 1 and compiled.count("jit(_covariance)") <= 1, compiled
+    # the default solver's fit computes its Laplace pieces itself: no covariance program at all
+    assert compiled.count("jit(fit_problem)") <= 1 and "jit(_covariance)" not in compiled, compiled
     monkeypatch.setenv(AHEAD_ENV_VAR, "0")
     plain = Calibrator(scene, FitConfig(pulse_tails=2)).fit(cap)
     assert float(ahead.params.n1) == float(plain.params.n1)
@@ -811,3 +812,33 @@ def test_a_guided_switch_keys_the_fits_programs(monkeypatch):
         out.append(np.asarray(_model_at(problem, Params.from_scene(sc))))
     assert None not in keys and keys[0] != keys[1] and trees[0] != trees[1]
     assert out[0].sum() > out[1].sum() > 0  # the walls' later bounces add light
+
+
+@pytest.mark.parametrize("zone_gain", [True, False])
+def test_laplace_pieces_from_the_fits_own_jacobians(small, zone_gain):
+    """The default fit (Marquardt LM on the chi-square) takes its Laplace pieces from the Jacobians it
+    already has at the optimum (the profiled residuals' and the profiled linear values', chain rule):
+    the same J^T J as differentiating the full residuals again (``CalibrationProblem.laplace``), to
+    rounding, and the same d(physical)/d(coordinates)."""
+    import importlib
+
+    import jax
+
+    C = importlib.import_module("tofjax.fit.calibrate")
+    cfg = FitConfig(zone_gain=zone_gain)
+    scene = small.without_touches()
+    problem = build_problem(scene, cfg)
+    cap = simulate(scene, 20, seed=5)
+    dtype = problem.model.geometry.ray_length.dtype
+    data, sigma = C._data(cap, dtype)
+    base = C.base_params(scene, cfg, dtype)
+    _, _, anchor, starts, _, _ = C._starts(problem, cfg, scene, cap, data, sigma, base)
+    assert C._cov_in_fit(cfg.make_objective(), cfg.make_solver())
+    sol = C.fit_problem(problem, cfg.make_objective(), cfg.make_solver(), starts[0], data, sigma, base, anchor,
+                        max_steps=cfg.max_steps, loss_tol=cfg.loss_tol, gn_first=cfg.gn_first, with_cov=True)
+    h_ref, d_ref, _ = jax.jit(lambda p, lin: problem.laplace(p, lin, base, data, sigma, anchor))(sol.params, sol.linear)
+    h, h_ref = np.asarray(sol.hessian), np.asarray(h_ref)
+    scale = np.sqrt(np.outer(np.diag(h_ref), np.diag(h_ref)))
+    assert h.shape == h_ref.shape and h.shape[0] > 12
+    assert np.max(np.abs(h - h_ref) / scale) < 1e-10
+    np.testing.assert_allclose(np.asarray(sol.dphys), np.asarray(d_ref), rtol=1e-12, atol=1e-300)

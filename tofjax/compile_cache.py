@@ -33,8 +33,9 @@ backend, the host CPU's features and ``$XLA_FLAGS``), which a later process load
 directly. What remains of a warm start is then mostly loading that executable, whose cost
 grows with its number of kernels (see ``experiments/first_fit_kernels.py``); the load releases
 the GIL, so :func:`prefetch` starts it on a background thread as soon as the arguments' shapes
-are known (the calibration does so before its start stages), and the calibration's fit and its
-Laplace pieces are two programs, the second read while the first runs.
+are known (the calibration does so before its start stages). The default calibration's fit
+computes its Laplace pieces from its own Jacobians (one program); with another solver they are
+a second program, read while the first runs.
 """
 
 from __future__ import annotations

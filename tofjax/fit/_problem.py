@@ -400,6 +400,51 @@ class CalibrationProblem(eqx.Module):
         data_part = ((m - data) / sigma).ravel()
         return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
+    def _linear_columns(self, params: Params, linear: dict, sigma, ft):
+        """The data residuals' derivatives by each profiled linear parameter's *physical* values at
+        ``params`` (one column per sensor or zone, written down from ``linear_parts``): ``{name:
+        (S * Z * B, size)}``, for every name of ``self.linear`` among the free parameters."""
+        R, P, E = self._linear_parts(params)
+        S, Z, B = R.shape
+        R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
+        if E is not None:
+            E = E.astype(ft)
+            e_z = jnp.asarray(linear["end_reflectance"], ft)
+            g_z = jnp.asarray(linear["gain"], ft)
+            R = R + e_z[..., None] * E  # d/d gain
+            E = g_z[..., None] * E  # d/d reflectance
+        eye_s, eye_z = jnp.eye(S, dtype=ft), jnp.eye(Z, dtype=ft)
+        comps = self.model.components
+        cols = {}
+        for k in sorted(self.free):
+            if k not in self.linear:
+                continue
+            if k == "gain" and not self.zone_gain:
+                cols[k] = jnp.einsum("szb,st->szbt", R / sig, eye_s).reshape(S * Z * B, S)
+            elif k in ("gain", "end_reflectance") or (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
+                part = {"gain": R, "crosstalk_counts": P, "end_reflectance": E}.get(k, jnp.ones_like(R))
+                cols[k] = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z).reshape(S * Z * B, S * Z)
+            else:
+                cols[k] = jnp.zeros((S * Z * B, int(np.size(linear[k]))), ft)
+        return cols
+
+    def _assemble_jacobian(self, u: dict, j_nl, lin_cols: dict):
+        """The covariance's Jacobian (columns in ``ravel_pytree`` order of ``u``) from the nonlinear
+        columns ``j_nl`` (all rows) and the linear ones in physical units (data rows), carried to
+        the linear parameters' coordinates."""
+        n_rows = j_nl.shape[0]
+        cols, pos = {}, 0
+        for k in sorted(u):
+            if k in self.linear:
+                continue
+            n = int(np.size(u[k]))
+            cols[k] = j_nl[:, pos : pos + n]
+            pos += n
+        for k, block in lin_cols.items():
+            block = block * jnp.ravel(self.transform(k).derivative(u[k]))[None, :]
+            cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - block.shape[0], block.shape[1]), block.dtype)])
+        return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
+
     def covariance_jacobian(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
         """Jacobian of :meth:`full_residuals` over every free coordinate (columns in
         ``ravel_pytree`` order). Nonlinear columns by forward-mode AD; the linear ones (one per
@@ -412,42 +457,44 @@ class CalibrationProblem(eqx.Module):
         nl = {k: u[k] for k in u if k not in self.linear}
         f_nl, unravel_nl = jax.flatten_util.ravel_pytree(nl)
         j_nl = jax.jacfwd(lambda g: self.full_residuals({**unravel_nl(g), **lin}, params, prior, data, sigma))(f_nl)
-        n_rows = j_nl.shape[0]
-        R, P, E = self._linear_parts(params)
-        S, Z, B = R.shape
-        ft = j_nl.dtype
-        R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
-        if E is not None:
-            E = E.astype(ft)
-            e_z = jnp.asarray(linear["end_reflectance"], ft)
-            g_z = jnp.asarray(linear["gain"], ft)
-            R = R + e_z[..., None] * E  # d/d gain
-            E = g_z[..., None] * E  # d/d reflectance
-        cols, pos = {}, 0
-        for k in sorted(nl):
-            n = int(np.size(nl[k]))
-            cols[k] = j_nl[:, pos : pos + n]
-            pos += n
-        eye_s, eye_z = jnp.eye(S, dtype=ft), jnp.eye(Z, dtype=ft)
-        comps = self.model.components
-        for k, uk in lin.items():
-            dxdu = self.transform(k).derivative(uk)
-            if k == "gain" and not self.zone_gain:
-                block = jnp.einsum("szb,st->szbt", R / sig, eye_s * dxdu[None, :]).reshape(S * Z * B, S)
-            elif k in ("gain", "end_reflectance") or (k == "crosstalk_counts" and "crosstalk" in comps) or (k == "ambient_counts" and "ambient" in comps):
-                part = {"gain": R, "crosstalk_counts": P, "end_reflectance": E}.get(k, jnp.ones_like(R))
-                block = jnp.einsum("szb,st,zy->szbty", part / sig, eye_s, eye_z) * dxdu[None, None, None]
-                block = block.reshape(S * Z * B, S * Z)
-            else:
-                block = jnp.zeros((S * Z * B, int(np.size(uk))), ft)
-            cols[k] = jnp.concatenate([block, jnp.zeros((n_rows - S * Z * B, block.shape[1]), ft)])
-        return jnp.concatenate([cols[k] for k in sorted(u)], axis=1)
+        return self._assemble_jacobian(u, j_nl, self._linear_columns(params, linear, sigma, j_nl.dtype))
 
-    def laplace(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
-        """``J^T J`` over every free coordinate, and d(physical)/d(coordinates) (physical values
-        in ``sorted(free)`` order), at the optimum."""
-        jac = self.covariance_jacobian(params, linear, prior_params, data, sigma, anchor)
+    def residuals_and_linear(self, u, args):
+        """:meth:`residuals` and the profiled linear parameters' physical values, flat (sorted
+        names, each raveled): the objective of a fit that keeps both Jacobians
+        (:meth:`laplace_from_fit`)."""
+        base, data, sigma, prior = args
+        _, m, lin = self.profiled_model(u, base, data, sigma)
+        data_part = ((m - data) / sigma).ravel()
+        ft = jnp.result_type(float)
+        r = jnp.concatenate([data_part.astype(ft), self.prior_residuals(u, prior)])
+        return r, jnp.concatenate([jnp.ravel(lin[k]).astype(ft) for k in sorted(lin)] or [jnp.zeros((0,), ft)])
+
+    def laplace_from_fit(self, params: Params, linear: dict, jac, jac_linear, sigma):
+        """:meth:`laplace`'s pieces from the fit's own Jacobians at the optimum, no new derivative:
+        ``jac`` of the profiled residuals and ``jac_linear`` of the profiled linear values
+        (:meth:`residuals_and_linear`), both by the fit's nonlinear coordinates. The residuals
+        are affine in the linear parameters, so by the chain rule the derivative at fixed linear
+        values is ``jac - (d r / d linear) jac_linear``: the same Jacobian as
+        :meth:`covariance_jacobian` (equal to rounding; tested)."""
         u = self.pack_jax(params, self.free, linear)
+        ft = jac.dtype
+        lin_cols = self._linear_columns(params, linear, sigma, ft)
+        n_data = next(iter(lin_cols.values())).shape[0] if lin_cols else 0
+        if lin_cols:
+            names = sorted(linear)
+            if names != list(lin_cols):
+                raise ValueError(f"profiled linear parameters {names} are not the covariance's {list(lin_cols)}")
+            pos, through = 0, jnp.zeros((n_data, jac.shape[1]), ft)
+            for k, block in lin_cols.items():
+                n = block.shape[1]
+                through = through + block @ jac_linear[pos : pos + n]
+                pos += n
+            jac = jnp.concatenate([jac[:n_data] - through, jac[n_data:]])
+        j = self._assemble_jacobian(u, jac, lin_cols)
+        return j.T @ j, self._dphys(u)
+
+    def _dphys(self, u):
         flat, unravel = jax.flatten_util.ravel_pytree(u)
         names = sorted(self.free)
 
@@ -455,7 +502,14 @@ class CalibrationProblem(eqx.Module):
             x = self.physical(unravel(f))
             return jnp.concatenate([jnp.ravel(x[k]) for k in names])
 
-        return jac.T @ jac, jax.jacfwd(phys_flat)(flat), flat
+        return jax.jacfwd(phys_flat)(flat)
+
+    def laplace(self, params: Params, linear: dict, prior_params: Params, data, sigma, anchor=None):
+        """``J^T J`` over every free coordinate, and d(physical)/d(coordinates) (physical values
+        in ``sorted(free)`` order), at the optimum."""
+        jac = self.covariance_jacobian(params, linear, prior_params, data, sigma, anchor)
+        u = self.pack_jax(params, self.free, linear)
+        return jac.T @ jac, self._dphys(u), jax.flatten_util.ravel_pytree(u)[0]
 
 
 #: Coordinates the pulse kernels depend on (and nothing else in ``linear_parts`` but the peak).

@@ -500,7 +500,11 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, m
         return objective(problem, unravel(f), a)
 
     if isinstance(solver, MarquardtLM):
-        out = solve_marquardt(flat, solver, f0, args, max_steps=max_steps, loss_tol=tol)
+        # with the covariance, the solver also keeps the profiled linear values' Jacobian: the
+        # Laplace pieces then come from the fit's own Jacobians (no second forward-mode pass to compile)
+        keep = with_cov and _cov_in_fit(objective, solver)
+        out = solve_marquardt((lambda f, a: problem.residuals_and_linear(unravel(f), a)) if keep else flat, solver, f0, args,
+                              max_steps=max_steps, loss_tol=tol)
         return _finish(problem, out, unravel, p0, data, sigma, prior_params, anchor, with_cov)
     fn = flat if objective.minimise else dense_jvp(flat)
 
@@ -537,7 +541,9 @@ def _finish(problem, out: SolveResult, unravel, p0, data, sigma, prior_params, a
     params, m, lin = problem.profiled_model(u, p0, data, sigma)
     r = (m - data) / sigma
     hessian = dphys = None
-    if with_cov:
+    if with_cov and out.aux_jac is not None:
+        hessian, dphys = problem.laplace_from_fit(params, lin, out.jac, out.aux_jac, sigma)
+    elif with_cov:
         hessian, dphys, _ = problem.laplace(params, lin, prior_params, data, sigma, anchor)
     return FitSolution(params, lin, out.result, out.steps, out.history, jnp.sum(r**2), r, hessian, dphys)
 
@@ -610,9 +616,21 @@ class _FlatResiduals(eqx.Module):
 
     problem: CalibrationProblem
     objective: AbstractObjective
+    keep_linear: bool = False
 
     def __call__(self, f, a):
-        return self.objective(self.problem, _unravel(self.problem, a[0])(f), a)
+        u = _unravel(self.problem, a[0])(f)
+        if self.keep_linear:
+            # (residuals, profiled linear values): the solver keeps both Jacobians (_cov_in_fit)
+            return self.problem.residuals_and_linear(u, a)
+        return self.objective(self.problem, u, a)
+
+
+def _cov_in_fit(objective, solver) -> bool:
+    """Whether a fit computes its Laplace pieces from its own Jacobians (:meth:`CalibrationProblem.laplace_from_fit`):
+    with :class:`MarquardtLM` (it keeps the Jacobians) on the chi-square (the residuals the covariance is of).
+    Otherwise a second program differentiates the residuals at the optimum (:func:`_covariance`)."""
+    return isinstance(solver, MarquardtLM) and type(objective) is ChiSquare
 
 
 def _unravel(problem, p0):
@@ -655,7 +673,8 @@ def fit_problem_compact(
         return (sol, None) if return_stats else sol
     tol = _solver_loss_tol(objective, loss_tol, data[0].size)
     f0, args = _prepare_batch(problem, starts, data, sigma, prior_params, anchors)
-    out, stats = solve_marquardt_compact(_FlatResiduals(problem, objective), solver, f0, args, max_steps=max_steps, loss_tol=tol,
+    residuals = _FlatResiduals(problem, objective, keep_linear=with_cov and _cov_in_fit(objective, solver))
+    out, stats = solve_marquardt_compact(residuals, solver, f0, args, max_steps=max_steps, loss_tol=tol,
                                          options=options)
     sol = _finish_batch(problem, out, args, prior_params, anchors, with_cov)
     return (sol, stats) if return_stats else sol
@@ -699,9 +718,11 @@ def _covariance(problem, params, linear, prior_params, data, sigma, anchor):
     return hessian, dphys
 
 
-def _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first):
-    # the stored fit never holds the Laplace pieces: they are a second program (see run_fit)
-    return (problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, False)
+def _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov=True):
+    # the stored fit holds the Laplace pieces only where it computes them from its own Jacobians
+    # (_cov_in_fit); otherwise they are a second program (see run_fit)
+    return (problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first,
+            with_cov and _cov_in_fit(objective, solver))
 
 
 def run_fit(problem, objective, solver, start, data, sigma, prior_params, anchor, *, max_steps=200, loss_tol=1e-3,
@@ -711,13 +732,15 @@ def run_fit(problem, objective, solver, start, data, sigma, prior_params, anchor
     reads the compiled fit from disk instead of tracing and compiling it again; otherwise it is
     ``fit_problem``.
 
-    The fit and its Laplace pieces (``with_cov``) are two programs: reading a stored executable
-    costs a new process in proportion to its kernels, and the fit is dispatched before the
-    covariance's program is read, so that reading overlaps the fit's run (and a fit without
-    covariance never reads it)."""
-    args = _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first)
+    With :class:`MarquardtLM` on the chi-square (the default) the fit computes its Laplace pieces
+    (``with_cov``) from its own Jacobians at the optimum, in the same program
+    (:meth:`CalibrationProblem.laplace_from_fit`). With another solver they are a second program
+    that differentiates the residuals again: the fit is dispatched before that program is read
+    from the store, so that reading overlaps the fit's run (and a fit without covariance never
+    reads it)."""
+    args = _fit_args(problem, objective, solver, start, data, sigma, prior_params, anchor, max_steps, loss_tol, gn_first, with_cov)
     sol = call_stored("calibration fit", _fit_positional, args, to_plain=_solution_to_plain, from_plain=_solution_from_plain)
-    if not with_cov:
+    if not with_cov or args[-1]:
         return sol
     hessian, dphys = call_stored(
         "calibration covariance", _covariance, (problem, sol.params, sol.linear, prior_params, data, sigma, anchor),
@@ -732,7 +755,7 @@ def _prefetch_fit(problem, objective, solver, base: Params, data, sigma, config:
     start and a placeholder for the timing anchor."""
     anchor = np.zeros(2, np.dtype(data.dtype))
     return prefetch("calibration fit", _fit_args(problem, objective, solver, base, data, sigma, base, anchor,
-                                                 config.max_steps, config.loss_tol, config.gn_first))
+                                                 config.max_steps, config.loss_tol, config.gn_first, True))
 
 
 def _compile_fit_ahead(problem, objective, solver, base: Params, data, sigma, config: FitConfig) -> bool:
@@ -742,7 +765,8 @@ def _compile_fit_ahead(problem, objective, solver, base: Params, data, sigma, co
     prior, zeros for the timing anchor, and the fit's output shapes (``eqx.filter_eval_shape``)
     for the covariance's parameters."""
     dt = np.dtype(data.dtype)
-    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=False)
+    in_fit = _cov_in_fit(objective, solver)  # the fit computes its Laplace pieces itself: one program
+    kw = dict(max_steps=config.max_steps, loss_tol=config.loss_tol, gn_first=config.gn_first, with_cov=in_fit)
 
     def fit_args():
         return (problem, objective, solver, base, data, sigma, base, jax.device_put(np.zeros(2, dt)))
@@ -760,6 +784,8 @@ def _compile_fit_ahead(problem, objective, solver, base: Params, data, sigma, co
         return _covariance.lower(problem, zeros(out.params), zeros(out.linear), base, data, sigma, args[7]).compile()
 
     started = compile_ahead("calibration fit", compile_fit)
+    if in_fit:
+        return started
     return compile_ahead("calibration covariance", compile_cov) or started
 
 

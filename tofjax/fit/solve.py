@@ -55,6 +55,8 @@ class SolveResult(NamedTuple):
     steps: jax.Array
     history: jax.Array  # (max_steps + 1,) loss per step, NaN after the last
     trace: object = None  # solve_marquardt(trace=True): per-step damping, gain ratio, predictions
+    jac: object = None  # solve_marquardt: the residuals' Jacobian at ``value``
+    aux_jac: object = None  # solve_marquardt with residuals that return (r, aux): aux's Jacobian at ``value``
 
 
 def _state_loss(state, fallback):
@@ -208,6 +210,7 @@ class MarquardtState(NamedTuple):
     code: object
     history: jax.Array
     trace: object
+    aux_jac: object = None
 
 
 def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0,
@@ -221,6 +224,12 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
     ``trace``: also return, per step, the damping, the gain ratio, the predicted and actual
     loss decrease, whether the step was accepted, and the Gauss-Newton (undamped) predicted
     decrease ``0.5 g^T (J^T J)^-1 g`` (what is left to gain, to second order): for diagnosis.
+
+    ``residuals`` may return ``(r, aux)`` (``aux`` a flat array): the solver then also keeps the
+    Jacobian of ``aux`` at the iterate, from the same forward pass as ``r``'s (the calibration's
+    profiled linear parameters: their derivatives give the Laplace covariance without a second
+    Jacobian, :meth:`tofjax.fit._problem.CalibrationProblem.laplace_from_fit`). The result's
+    ``jac`` and ``aux_jac`` are the Jacobians at the end point.
     """
     state = marquardt_init(residuals, solver, y0, args, max_steps=max_steps, trace=trace)
     state = marquardt_advance(residuals, solver, state, args, max_steps=max_steps, loss_tol=loss_tol)
@@ -255,7 +264,7 @@ def marquardt_solution(state: MarquardtState) -> SolveResult:
     by its own rules is ``nonlinear_max_steps_reached``."""
     code = optx.RESULTS.where((state.code == optx.RESULTS.successful) & ~state.done,
                               optx.RESULTS.nonlinear_max_steps_reached, state.code)
-    return SolveResult(state.y, code, state.step, state.history, state.trace)
+    return SolveResult(state.y, code, state.step, state.history, state.trace, state.jac, state.aux_jac)
 
 
 def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_tol: float, trace: bool):
@@ -263,14 +272,21 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
     ft = y0.dtype
     tiny = jnp.finfo(ft).tiny
     eye = jnp.eye(y0.shape[0], dtype=ft)
+    has_aux = isinstance(jax.eval_shape(lambda z: residuals(z, args), y0), tuple)
+
+    def res_of(z):
+        """The residuals alone (a trial point needs no aux)."""
+        out = residuals(z, args)
+        return out[0] if has_aux else out
 
     def value_and_jac(y):
+        """``(r, J, J_aux)`` at ``y`` from one forward-mode pass (``J_aux`` None without aux)."""
         def f(z):
-            r = residuals(z, args)
-            return r, r
+            out = residuals(z, args)
+            return out, out
 
-        jac, r = jax.jacfwd(f, has_aux=True)(y)
-        return r, jac
+        jac, out = jax.jacfwd(f, has_aux=True)(y)
+        return (out[0], jac[0], jac[1]) if has_aux else (out, jac, None)
 
     def loss_of(r):
         return 0.5 * jnp.sum(r * r)
@@ -295,26 +311,29 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
         # carry: y, r, J, loss, lambda, nu, step, done, result code, history
         if trials:
-            r0, j0 = value_and_jac(y0)
+            r0, j0, a0 = value_and_jac(y0)
             loss0 = loss_of(r0)
             ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
             hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
             res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-            carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0)
+            carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0,
+                      a0)
         else:
             # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
             # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
             # executable's load time grows with its kernels)
-            r_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+            out_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+            r_struct = out_struct[0] if has_aux else out_struct
             r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
             j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
+            a0 = jnp.zeros(out_struct[1].shape + y0.shape, out_struct[1].dtype) if has_aux else None
             hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
             carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
-                      jnp.array(False), optx.RESULTS.successful, hist0, tr0)
+                      jnp.array(False), optx.RESULTS.successful, hist0, tr0, a0)
         return MarquardtState(*carry0)
 
     def body(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac = c
         first = step < 0  # the first pass evaluates y0 itself (no step; see carry0)
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
@@ -325,10 +344,10 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             # evaluation) bends the step along the valley's curve
             if solver.geodesic_h > 0:
                 h = solver.geodesic_h
-                r_vv = (2.0 / h) * ((residuals(y + h * v, args) - r) / h - jac @ v)
+                r_vv = (2.0 / h) * ((res_of(y + h * v) - r) / h - jac @ v)
             else:
                 def along(t):
-                    return jax.jvp(lambda z: residuals(z, args), (t,), (v,))[1]
+                    return jax.jvp(res_of, (t,), (v,))[1]
 
                 r_vv = jax.jvp(along, (y,), (v,))[1]
             acc = jax.scipy.linalg.cho_solve((chol, True), -(jac.T @ r_vv) / d) / d
@@ -339,7 +358,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             delta = v
         pred = -(g @ delta + 0.5 * delta @ (a @ delta))
         y_t = jnp.where(first, y, y + delta)
-        r_t, j_t = value_and_jac(y_t)
+        r_t, j_t, a_t = value_and_jac(y_t)
         loss_t = loss_of(r_t)
         finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t)) & jnp.all(jnp.isfinite(delta))
         rho = (loss - loss_t) / jnp.maximum(pred, tiny)
@@ -352,16 +371,18 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         done = small_step | small_gain | stalled
         code = optx.RESULTS.where(stalled & ~(small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
         y, r, jac, loss = (jnp.where(accept, a_new, a_old) for a_new, a_old in ((y_t, y), (r_t, r), (j_t, jac), (loss_t, loss)))
+        if has_aux:
+            aux_jac = jnp.where(accept, a_t, aux_jac)
         if trace:
             vals = {"lam": lam, "rho": rho, "pred": pred, "actual": c[3] - loss_t, "accept": accept.astype(ft),
                     "gn_pred": gauss_newton_left(a_s, g_s)}
             tr = {k: tr[k].at[step].set(vals[k]) for k in names} | {"y": tr["y"].at[step].set(jnp.where(accept, y_t, y))}
         hist = hist.at[step + 1].set(loss)
-        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr)
+        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr, aux_jac)
         # the first pass: the start's residuals, Jacobian and loss, nothing else changes
         ok0 = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t))
         code0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10])
+        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10], a_t)
         code = optx.RESULTS.where(first, code0, code)
         pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
         pick[8] = code
@@ -370,7 +391,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
     factors = jnp.asarray(solver.lambda_trials, ft)
 
     def body_trials(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac = c
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         gn_pred = gauss_newton_left(a_s, g_s)
         # every trial damping at once: one small Cholesky each, one residual pass each
@@ -381,13 +402,13 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             # each damped step also with its geodesic acceleration (Transtrum and Sethna 2012):
             # the second directional derivative of the residuals by a finite difference
             h = solver.geodesic_h if solver.geodesic_h > 0 else 0.1
-            r_h = jax.vmap(lambda vk: residuals(y + h * vk, args))(v)
+            r_h = jax.vmap(lambda vk: res_of(y + h * vk))(v)
             r_vv = (2.0 / h) * ((r_h - r[None, :]) / h - v @ jac.T)
             acc = jax.vmap(lambda ck, rk: jax.scipy.linalg.cho_solve((ck, True), -(jac.T @ rk) / d))(chol, r_vv) / d
             v = jnp.concatenate([v, v + 0.5 * acc])
             lams = jnp.concatenate([lams, lams])
         pred = -(v @ g + 0.5 * jnp.sum((v @ a) * v, axis=-1))
-        r_t = jax.vmap(lambda z: residuals(z, args))(y + v)
+        r_t = jax.vmap(res_of)(y + v)
         loss_t = 0.5 * jnp.sum(r_t * r_t, axis=-1)
         finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(v), axis=-1) & jnp.all(jnp.isfinite(r_t), axis=-1)
         loss_t = jnp.where(finite, loss_t, jnp.inf)
@@ -403,7 +424,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         near = ((gn_pred < loss_tol) & ~(loss - lt >= loss_tol)) if loss_tol > 0 else jnp.array(False)
         accept = jnp.isfinite(lt) & (lt <= loss) & (rho > 1e-4) & ~near
         y_new = jnp.where(accept, y + delta, y)
-        r_new, j_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac), y_new)
+        r_new, j_new, a_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac, aux_jac), y_new)
         ok_j = jnp.all(jnp.isfinite(j_new))
         lam_new = jnp.where(accept, lk * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * jnp.max(factors) * nu / 2.0)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
@@ -423,6 +444,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             tr = {k_: tr[k_].at[step].set(vals[k_]) for k_ in names} | {"y": tr["y"].at[step].set(y_new)}
         # a stop because the model says nothing is left is not a step
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
-        return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr)
+        return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr,
+                              a_new)
 
     return init, (body_trials if trials else body)
