@@ -111,6 +111,11 @@ def _scene_variants(text: str) -> dict[str, bytes]:
         "components_unknown": _replace_value(text, "components", '["crosstalk", "magic"]'),
         "components_string": _replace_value(text, "components", '"all"'),
         "noise_not_bool": _replace_value(text, "poisson", "1"),
+        # the audit of 2026-11-29: scenes that wrote all-zero captures (exit 0), a sensor model ignored
+        "n1_huge": _replace_value(text, "n1", "1e300"),
+        "bin_width_tiny": _replace_value(text, "bin_width_s", "1e-300"),
+        "saturation_tiny": _replace_value(text, "saturation_counts", "1e-300"),
+        "sensor_model_missing": sub("[sensor]", '[sensor]\nmodel = "no-such-sensor.json"'),
     }
 
 
@@ -283,7 +288,8 @@ SCENE_COMMANDS = {
 # a spread for the rest).
 SCENE_SPREAD = ("non_utf8", "binary_junk", "empty", "invalid_toml", "no_waveguide", "n_bins_huge", "zones_huge",
                 "n_bins_float", "n1_nan", "thickness_zero", "no_sensors", "sensor_off_edge", "sensors_65",
-                "touch_outside", "touch_radius_zero", "touch_stick_billions", "iterations_huge", "folder", "missing")
+                "touch_outside", "touch_radius_zero", "touch_stick_billions", "iterations_huge", "folder", "missing",
+                "n1_huge", "bin_width_tiny", "sensor_model_missing")
 
 CAPTURE_COMMANDS = {
     "plot": lambda w, c, o: ["plot", c, "--out", f"{o}/plots"],
@@ -606,6 +612,145 @@ def _cases() -> list[Case]:
                                                                     "--overwrite"], keep=lambda w: [w["scene"]]))
     cases.append(Case("argparse/bench_without_what", lambda w, o: ["bench"]))
     cases.append(Case("argparse/bench_unknown", lambda w, o: ["bench", "speed"]))
+    cases += _audit_cases()
+    return cases
+
+
+#: A free-space scene (a TMF8820 facing a flat target; docs/sensor.md), no sensor model.
+FREE_SPACE = """name = "air"
+[sensor]
+bin_width_s = 94e-12
+n_bins = 128
+zones = 9
+grid = [3, 3]
+fov_deg = 45.0
+
+[[sensors]]
+position_m = [0.0, 0.0]
+direction_deg = 0.0
+
+[target]
+distance_m = 0.2
+reflectance = 0.8
+"""
+
+
+def _free_space(w) -> tuple[str, str]:
+    """The free-space scene file and a capture of it (NumPy counts), made once per world."""
+    if "free_space" not in w:
+        from tofjax.scene import load_scene
+
+        p = w["d"] / "air.toml"
+        p.write_text(FREE_SPACE)
+        w["free_space"] = (str(p), str(write_capture(w["d"] / "air.h5", _capture(load_scene(p), 3))))
+    return w["free_space"]
+
+
+def _fifo(w) -> str:
+    p = w["d"] / "pipe.h5"
+    if not p.exists():
+        os.mkfifo(p)
+    return str(p)
+
+
+def _calibration(w, **edits) -> str:
+    """A calibration JSON of the world's tiny scene that every reader accepts, then ``edits`` to its
+    parameters' values (written without fitting anything)."""
+    from tofjax.fit._result import scene_fingerprint
+    from tofjax.scene import load_scene
+
+    scene = load_scene(w["scene"])
+    S, Z, _ = scene.shape
+    values = {"n1": 1.4, "mu_s_per_m": 0.6, "mu_a_per_m": 0.14, "gain": [150.0] * S, "emission_time_s": 1.45e-9,
+              "pulse_sigma_s": 6e-11, "pulse_tail_s": 1.5e-10, "crosstalk_counts": [[3000.0] * Z] * S}
+    values.update(edits)
+    data = {"converged": True, "result": "successful", "scene_fingerprint": scene_fingerprint(scene), "optics": "default",
+            "parameters": {k: {"value": v, "stderr": 0.0} for k, v in values.items()}}
+    p = w["d"] / f"cal_{abs(hash(json.dumps(edits, sort_keys=True)))}.json"
+    p.write_text(json.dumps(data))
+    return str(p)
+
+
+def _audit_cases() -> list:
+    """The bad inputs an audit of every command found (2026-11-29): tracebacks, hangs, a device replaced,
+    and exit 0 with a wrong answer. Each now ends in one line."""
+    G = lambda w: str(w["good"])  # noqa: E731
+    T = lambda w: str(w["touch"])  # noqa: E731
+    cases = []
+    # free-space scenes and captures where a command needs a waveguide (AttributeError before)
+    free = {
+        "prune": lambda w, o: ["prune", _free_space(w)[0]],
+        "mc": lambda w, o: ["mc", _free_space(w)[0], "--photons", "10", "--out", f"{o}/m.h5"],
+        "demo": lambda w, o: ["demo", "--scene", _free_space(w)[0], "--frames", "1", "--out", f"{o}/demo"],
+        "bench_tradeoff": lambda w, o: ["bench", "tradeoff", "--scene", _free_space(w)[0], "--photons", "10",
+                                        "--json", f"{o}/b.json"],
+        "calibrate": lambda w, o: ["calibrate", _free_space(w)[1], "--out", f"{o}/c.json"],
+        "detect": lambda w, o: ["detect", _free_space(w)[1], "--baseline", _free_space(w)[1], "--json", f"{o}/d.json"],
+        "process": lambda w, o: ["process", _free_space(w)[1], "--baseline", _free_space(w)[1], "--out", f"{o}/p.h5"],
+        "sensitivity": lambda w, o: ["sensitivity", _free_space(w)[0], "--baseline", _free_space(w)[1], "--out", f"{o}/s"],
+    }
+    for name, argv in free.items():
+        cases.append(Case(f"free_space/{name}", argv))
+    # --overwrite never replaces a named pipe (it hung) or a device (/dev/full was replaced)
+    cases.append(Case("output/fifo_capture", lambda w, o: ["simulate", str(w["scene"]), "--frames", "1", "--out", _fifo(w),
+                                                           "--overwrite"]))
+    cases.append(Case("output/fifo_json", lambda w, o: ["calibrate", G(w), "--out", _fifo(w), "--overwrite"]))
+    cases.append(Case("output/dev_null_capture", lambda w, o: ["simulate", str(w["scene"]), "--frames", "1", "--out",
+                                                               "/dev/null", "--overwrite"]))
+    # calibrations whose values no reader can use (0 touches and exit 0, or tracebacks, before)
+    for name, edits in {"n1_huge": {"n1": 1e300}, "mu_a_huge": {"mu_a_per_m": 1e300}, "gain_two_values_one_sensor": {"gain": [150.0, 150.0]},
+                        "gain_nested": {"gain": [[150.0]]}, "n1_dict": {"n1": {"a": 1}},
+                        "crosstalk_ragged": {"crosstalk_counts": [[3000.0, 3000.0], [3000.0]]}}.items():
+        cases.append(Case(f"detect/calibration_{name}", lambda w, o, e=edits: [
+            "detect", T(w), "--baseline", G(w), "--calibration", _calibration(w, **e), "--json", f"{o}/d.json"]))
+    # options that did nothing without the sampler they belong to
+    cases.append(Case("calibrate/max_steps_without_mcmc", lambda w, o: ["calibrate", G(w), "--max-steps", "5", "--out",
+                                                                        f"{o}/c.json"]))
+    cases.append(Case("calibrate/walkers_with_nuts", lambda w, o: ["calibrate", G(w), "--mcmc", "nuts", "--walkers", "8",
+                                                                   "--out", f"{o}/c.json"]))
+
+    def twice(w, o):
+        p = w["d"] / "free_twice.toml"
+        p.write_text('free = ["n1", "n1", "mu_s_per_m"]\n')
+        return ["calibrate", G(w), "--config", str(p), "--out", f"{o}/c.json"]
+    cases.append(Case("calibrate/free_listed_twice", twice))
+
+    # replay: a recording's gap (or a tiny speed) read as a hang; backwards timestamps
+    def replay(w, o, times, speed):
+        from tofjax.scene import load_scene
+
+        cap = _capture(load_scene(w["scene"]), len(times))
+        cap = dataclasses.replace(cap, timestamps=np.asarray(times, float))
+        p = write_capture(o / "rec.h5", cap, overwrite=True)
+        return ["replay", str(p), "--speed", speed, "--quiet"]
+    cases.append(Case("replay/gap_of_days", lambda w, o: replay(w, o, [0.0, 1e7], "recorded")))
+    cases.append(Case("replay/speed_tiny", lambda w, o: replay(w, o, [0.0, 0.1], "1e-300")))
+    cases.append(Case("replay/backwards", lambda w, o: replay(w, o, [0.0, 10.0, 0.0], "recorded")))
+    # a baseline no sensor can record: counts above the limit, or every bin saturated (0 touches, exit 0)
+    def baseline(w, o, value):
+        from tofjax.scene import load_scene
+
+        cap = _capture(load_scene(w["scene"]), 2)
+        cap.histograms[:] = value
+        return ["detect", T(w), "--baseline", str(write_capture(o / "b.h5", cap, overwrite=True)), "--json", f"{o}/d.json"]
+    cases.append(Case("detect/baseline_above_the_limit", lambda w, o: baseline(w, o, 3e38)))
+    cases.append(Case("detect/baseline_saturated", lambda w, o: baseline(w, o, 2.0**24 - 1)))
+    # a map too fine for memory (killed for memory at 0.05 mm before)
+    cases.append(Case("process/resolution_too_fine", lambda w, o: ["process", T(w), "--baseline", G(w), "--out",
+                                                                   f"{o}/p.h5", "--resolution-mm", "0.05"]))
+
+    # configs that asked for more memory than there is (SIGABRT / MemoryError before)
+    def study(w, o):
+        p = w["d"] / "study_huge.toml"
+        p.write_text(f'scene = "{w["scene"]}"\nframes = 100000000\n')
+        return ["study", str(p), "--out", f"{o}/st"]
+    cases.append(Case("study/frames_huge", study))
+
+    def protocol(w, o):
+        p = w["d"] / "protocol_huge.toml"
+        p.write_text("hold_s = 1e9\n")
+        return ["force-data", "--protocol", str(p), "--out", f"{o}/f"]
+    cases.append(Case("force_data/hold_huge", protocol))
     return cases
 
 

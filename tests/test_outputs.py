@@ -41,3 +41,27 @@ def test_a_failed_save_keeps_the_old_file_and_leaves_no_partial(tmp_path):
 def test_scene_plot_goes_through_it(tmp_path):
     path = plot_scene(default_scene(), tmp_path / "scene.png")
     assert path.stat().st_size > 1000 and [p.name for p in tmp_path.iterdir()] == ["scene.png"]
+
+
+def test_never_writes_over_a_device_or_a_pipe(tmp_path):
+    """--overwrite replaces files, never a device or a named pipe (an audit replaced /dev/full with a
+    capture, and hung on a pipe, opening it to test its lock): one-line errors, nothing touched."""
+    import os
+    import stat
+
+    from tofjax.capture import CaptureError, check_capture_target
+    from tofjax.outputs import OutputError, check_output
+
+    fifo = tmp_path / "fifo.h5"
+    os.mkfifo(fifo)
+    with pytest.raises(CaptureError, match="not a regular file"):
+        check_capture_target(fifo, overwrite=True)
+    with pytest.raises(OutputError, match="not a regular file"):
+        check_output(fifo, overwrite=True)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    if os.path.exists("/dev/null"):
+        with pytest.raises(CaptureError, match="not a regular file"):
+            check_capture_target("/dev/null", overwrite=True)
+        with pytest.raises(OutputError, match="not a regular file"):
+            check_output("/dev/null", overwrite=True, flag="--json")
+        assert stat.S_ISCHR(os.stat("/dev/null").st_mode)

@@ -276,3 +276,30 @@ def test_study_sensor_runs_on_the_slice(tmp_path):
 
     with pytest.raises(OutputError):
         mod.main(argv)
+
+
+def test_a_damaged_sensor_model_is_refused_in_one_line(tmp_path):
+    """A sensor.json without its pulse, with a NaN bin width or NaN in an array is refused on reading
+    (an AttributeError in `tofjax range` and 0 touches from `detect --sensor` before), and a free-space
+    simulation whose model gives negative expected counts is refused, not a NumPy traceback."""
+    import json
+
+    from tofjax.sensor import load_sensor_model
+    from tofjax.sensor.response import SensorModelError
+    from tofjax.sensor.simulate import _check_expected
+
+    good = _truth_model().to_json()
+    for name, edit, msg in (("no_pulse", {"pulse": None}, "missing field: pulse"),
+                            ("bin_width_nan", {"bin_width_s": float("nan")}, "bin_width_s must be finite"),
+                            ("gain_nan", {"gain_m2": [float("nan")]}, "gain_m2 has non-finite values")):
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps({**good, **edit}))
+        with pytest.raises(SensorModelError, match=msg):
+            load_sensor_model(p)
+    lam = np.ones((2, 1, 8))
+    _check_expected(lam, np.array([0.1, 0.2]))
+    lam[1, 0, 3] = -5.0
+    with pytest.raises(SensorModelError, match="target at 0.2 m: the sensor model gives negative expected counts"):
+        _check_expected(lam, np.array([0.1, 0.2]))
+    with pytest.raises(SensorModelError, match="beyond any sensor"):
+        _check_expected(np.full((1, 1, 8), 1e300), np.array([1e-300]))

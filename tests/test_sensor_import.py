@@ -61,6 +61,28 @@ def test_json_without_dist_to_plane(tmp_path, entries):
     assert np.isnan(read_tmf882x_json(p, require_truth=False).target_distance_m).all()
 
 
+def test_json_malformed_values_are_dropped_by_name(tmp_path, entries):
+    """Values that are not numbers (a ragged, short or textual 'hists', a textual 'dist_to_plane') drop
+    their frame with a named reason (tracebacks before); NaN 'dist_to_plane' is no ground truth, as a
+    missing one; a 'reference_hist' of the wrong length is left out with a warning (silently before)."""
+    bad = [dict(e) for e in entries[:6]]
+    bad[1]["hists"] = [list(r) for r in bad[1]["hists"]]
+    bad[1]["hists"][2] = bad[1]["hists"][2][:50]
+    bad[2]["hists"] = [["x"] * 128 for _ in bad[2]["hists"]]
+    bad[3]["dist_to_plane"] = "far"
+    bad[4]["dist_to_plane"] = float("nan")
+    bad[5]["reference_hist"] = [1.0] * 10
+    p = tmp_path / "malformed.json"
+    p.write_text(json.dumps(bad))
+    with pytest.warns(UserWarning) as rec:
+        frames = read_tmf882x_json(p)
+    text = " ".join(str(w.message) for w in rec)
+    assert "'hists' is not a regular array of numbers" in text and "'dist_to_plane' is not a number" in text
+    assert "no 'dist_to_plane'" in text and "reference_hist is not 128 numbers" in text
+    np.testing.assert_array_equal(frames.source_index, [0, 5])
+    assert np.isnan(frames.reference[1]).all() and not np.isnan(frames.reference[0]).any()
+
+
 def test_json_saturated_bins_dropped(tmp_path, entries):
     bad = [dict(e) for e in entries[:3]]
     bad[2]["hists"] = [list(r) for r in bad[2]["hists"]]

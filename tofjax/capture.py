@@ -147,6 +147,10 @@ def _prepare_target(path: Path, overwrite: bool) -> None:
     """Refuse an existing ``path`` unless ``overwrite``; never replace a capture being written."""
     if path.is_dir():
         raise CaptureError(f"{path}: is a folder, expected a capture file name")
+    if path.exists() and not path.is_file():
+        # a device, a pipe or a socket: replacing it would remove it (/dev/full), and opening a
+        # pipe to test its lock would wait for a writer
+        raise CaptureError(f"{path}: is not a regular file (a device, pipe or socket); refusing to write over it")
     if path.exists() or path.is_symlink():
         if not overwrite:
             raise CaptureError(f"{path}: exists; pass --overwrite to replace it")

@@ -33,6 +33,7 @@ def _cmd_simulate(a) -> int:
         cap = simulate_free_space(scene, a.frames, a.seed)
     else:
         cap = simulate(scene, a.frames, a.seed, options=ModelOptions(quadrature=a.quadrature, dtype=a.dtype))
+    _check_some_light(cap, a.scene)
     write_capture(a.out, cap, overwrite=a.overwrite)
     print(f"wrote {a.out}: {cap.n_frames} frames of {scene.shape} (sensors, zones, bins), scene '{scene.name}'")
     return 0
@@ -49,7 +50,8 @@ def _cmd_plot(a) -> int:
             f"{a.baseline}: baseline shape {base.scene.shape} does not match the capture's {cap.scene.shape}"
         )
     paths = plot_capture(cap, a.out, baseline=base, log=not a.linear)
-    paths.append(plot_scene(cap.scene, Path(a.out) / "scene.png"))
+    if not cap.scene.free_space:  # a free-space capture has no waveguide to draw
+        paths.append(plot_scene(cap.scene, Path(a.out) / "scene.png"))
     print(f"wrote {len(paths)} figures to {a.out}/")
     return 0
 
@@ -60,6 +62,7 @@ def _cmd_demo(a) -> int:
 
     scene = load_scene(a.scene) if a.scene else None
     if scene is not None:
+        scene.require_waveguide("tofjax demo", a.scene)
         _check_size(scene, a.frames)
     run_demo(a.out, scene, frames=a.frames, seed=a.seed, overwrite=a.overwrite)
     return 0
@@ -90,8 +93,14 @@ def _cmd_calibrate(a) -> int:
     nuts_only = [_flag(k) for k in ("chains", "warmup", "draws") if getattr(a, k) is not None]
     if nuts_only and a.mcmc != "nuts":
         raise UserError(f"{nuts_only[0]}: only for --mcmc nuts")
+    emcee_only = [_flag(k) for k in ("walkers", "max_steps", "chain") if getattr(a, k) is not None]
+    if emcee_only and a.mcmc != "emcee":
+        # --max-steps is easily read as the fit's own step limit (that is max_steps in a --config)
+        raise UserError(f"{emcee_only[0]}: only for --mcmc (emcee)" + ("; the fit's step limit is max_steps in a --config"
+                                                                       if emcee_only[0] == "--max-steps" else ""))
     cap = read_capture(a.baseline)
-    scene = load_scene(a.scene) if a.scene else None
+    cap.scene.require_waveguide("tofjax calibrate", a.baseline)
+    scene = load_scene(a.scene).require_waveguide("tofjax calibrate", a.scene) if a.scene else None
     if scene is not None and scene.shape != cap.scene.shape:
         raise CalibrationError(
             f"{a.scene}: the scene has (sensors, zones, bins) = {scene.shape} but {a.baseline} has {cap.scene.shape}"
@@ -148,7 +157,8 @@ def _cmd_calibrate(a) -> int:
             calibrator,
             cap,
             result,
-            PosteriorOptions(walkers=a.walkers, max_steps=a.max_steps, chain=a.chain, progress=True),
+            PosteriorOptions(walkers=a.walkers, max_steps=5000 if a.max_steps is None else a.max_steps, chain=a.chain,
+                             progress=True),
         )
         report["posterior"] = post.summary()
         atomic_write_text(out, json.dumps(report, indent=2))
@@ -269,6 +279,18 @@ def _flag(dest: str) -> str:
     return "--" + dest.replace("_", "-")
 
 
+def _check_some_light(cap, source: str) -> None:
+    """Refuse to write a capture in which every bin is 0 (every reader refuses it as impossible counts)."""
+    import numpy as np
+
+    h = np.asarray(cap.histograms)
+    if not np.any(h > 0):
+        raise UserError(f"{source}: the scene gives no light at all (every bin of every frame is 0): check its gain, "
+                        "crosstalk and ambient counts, n1 and bin width; nothing written")
+    if not np.all(np.isfinite(h)):
+        raise UserError(f"{source}: the scene's expected counts are not finite; nothing written")
+
+
 def _check_size(scene, frames: int) -> None:
     S, Z, B = scene.shape
     if frames * S * Z * B > _MAX_VALUES:
@@ -375,7 +397,7 @@ def build_parser(extensions: bool = True) -> argparse.ArgumentParser:
     s.add_argument("--warmup", type=int, default=None, help="NUTS warm-up steps per chain (default: the library's, tofjax.fit.nuts.NutsOptions)")
     s.add_argument("--draws", type=int, default=None, help="NUTS draws per chain (default: the library's, tofjax.fit.nuts.NutsOptions)")
     s.add_argument("--walkers", type=int, default=None, help="emcee walkers (default max(32, 4 x parameters))")
-    s.add_argument("--max-steps", type=int, default=5000, help="most emcee steps (default 5000)")
+    s.add_argument("--max-steps", type=int, default=None, help="most emcee steps (default 5000; --mcmc only)")
     s.add_argument("--chain", help="HDF5 file for the chain: an interrupted run resumes from it")
     s.add_argument("--sensor", help="sensor model from `tofjax sensor fit` (its bin width replaces the scene's)")
     s.add_argument("--optics", choices=OPTICS, default=None,

@@ -63,6 +63,8 @@ def check_output(
         else:
             if p.is_dir():
                 raise OutputError(f"{flag} {p}: is a folder, expected a file name")
+            if not p.is_file():  # replacing a device or a pipe would remove it
+                raise OutputError(f"{flag} {p}: is not a regular file (a device, pipe or socket); refusing to write over it")
             if not overwrite:
                 raise OutputError(f"{flag} {p}: exists; pass --overwrite to replace it")
     parent = p if folder else p.parent

@@ -106,6 +106,8 @@ class Waveguide:
         _positive(self.thickness_m, "thickness_m")
         if self.n1 <= 1.0:
             raise ConfigError(f"n1: must be > 1 for total internal reflection in air, got {self.n1!r}")
+        if self.n1 > 4.0:  # no waveguide material; far beyond it the model's light never returns (all-zero captures)
+            raise ConfigError(f"n1: must be <= 4 (no waveguide material refracts more), got {self.n1!r}")
         _positive(self.mu_s_per_m, "mu_s_per_m", strict=False)
         _positive(self.mu_a_per_m, "mu_a_per_m", strict=False)
         _positive(self.interface_backscatter_per_m, "interface_backscatter_per_m", strict=False)
@@ -117,6 +119,9 @@ class Waveguide:
                 raise ConfigError(f"{key}: must be in [0, 1], got {v!r}")
         if self.near_field_m is not None:
             _positive(self.near_field_m, "near_field_m")
+            if self.near_field_m > max(self.size_m):
+                raise ConfigError(f"near_field_m: the 1/r^2 saturation range must be within the guide's size "
+                                  f"({max(self.size_m):g} m), got {self.near_field_m!r}")
 
     @property
     def near_field(self) -> float:
@@ -163,6 +168,8 @@ class SensorModel:
 
     def __post_init__(self):
         _positive(self.bin_width_s, "bin_width_s")
+        if not 1e-13 <= self.bin_width_s <= 1e-6:  # 0.1 ps to 1 us (a TMF8828's is ~250 ps)
+            raise ConfigError(f"bin_width_s: must be in [1e-13, 1e-6] s, got {self.bin_width_s!r}")
         if not 2 <= self.n_bins <= MAX_BINS:
             raise ConfigError(f"n_bins: must be in [2, {MAX_BINS}] (a TMF8828 histogram), got {self.n_bins!r}")
         if not 1 <= self.zones <= MAX_ZONES:
@@ -183,6 +190,8 @@ class SensorModel:
         if not 1 <= self.iterations <= MAX_ITERATIONS:
             raise ConfigError(f"iterations: must be in [1, {MAX_ITERATIONS}], got {self.iterations!r}")
         _positive(self.saturation_counts, "saturation_counts")
+        if self.saturation_counts < 1:
+            raise ConfigError(f"saturation_counts: must be >= 1 (a bin's largest count), got {self.saturation_counts!r}")
         if self.grid is not None:
             if min(self.grid) < 1 or self.grid[0] * self.grid[1] != self.zones:
                 raise ConfigError(f"grid: {self.grid[0]} x {self.grid[1]} zones do not make zones = {self.zones}")
@@ -398,6 +407,16 @@ class Scene:
         """True for a sensor in air looking at a flat target (no waveguide)."""
         return self.waveguide is None
 
+    def require_waveguide(self, what: str, source: str | None = None) -> "Scene":
+        """``self``, or a one-line :class:`ConfigError` where this is a free-space scene: ``what``
+        (a command, a job) needs a waveguide. ``source``: the file it came from, for the message."""
+        if self.free_space:
+            raise ConfigError(
+                f"{source or self.name}: a free-space scene (a sensor facing a flat target, no [waveguide]); {what} "
+                "needs a waveguide scene (free-space captures go to `tofjax sensor fit` and `tofjax range`)"
+            )
+        return self
+
     def with_sensor_model(self, path: str) -> "Scene":
         """This scene with ``[sensor] model`` set to a fitted sensor model (``tofjax sensor fit``);
         its bin width replaces the nominal one, so a waveguide fit no longer absorbs it into n1."""
@@ -485,7 +504,12 @@ def load_scene(path: str | Path) -> Scene:
         if builtin.is_file():
             with resources.as_file(builtin) as bp:
                 return scene_from_dict(load_toml(bp), str(p.name))
-    return scene_from_dict(load_toml(p), str(p))
+    scene = scene_from_dict(load_toml(p), str(p))
+    if scene.sensor.model and not scene.free_space:
+        # a waveguide scene's fitted sensor model: its bin width replaces the nominal one, as --sensor does
+        # (it was silently ignored, even when the file did not exist)
+        scene = scene.with_sensor_model(scene.sensor.model)
+    return scene
 
 
 def default_scene() -> Scene:

@@ -33,6 +33,10 @@ from .config import ConfigError, from_dict, load_toml
 __all__ = ["MCStudy", "RecoveryStudy", "load_study", "register", "run_mc_study", "run_recovery"]
 
 
+#: The most histogram values one process of a recovery study simulates (float32 or float64: 0.8-1.6 GB).
+MAX_STUDY_VALUES = 2 * 10**8
+
+
 @dataclass(frozen=True)
 class RecoveryStudy:
     """The recovery grid (the keys of ``configs/studies/recovery.toml``)."""
@@ -143,9 +147,14 @@ def run_recovery(study: RecoveryStudy, *, chunk: int = 4, mesh=None) -> dict:
     from . import parallel
     from .scene import load_scene
 
-    nominal = load_scene(study.scene)
+    nominal = load_scene(study.scene).require_waveguide("a recovery study", study.scene)
     items = study.items()
     mine = parallel.split_items(len(items), jax.process_index(), jax.process_count())
+    S, Z, B = nominal.shape
+    values = len(mine) * study.frames * S * Z * B  # this process's simulated captures, all held at once
+    if values > MAX_STUDY_VALUES:
+        raise ConfigError(f"frames: {len(mine)} captures of {study.frames} frames x {S} x {Z} x {B} bins are {values:.3g} "
+                          f"values, more than {MAX_STUDY_VALUES:.0e} fit in memory; use fewer frames or replicates, or more processes")
     t0 = time.perf_counter()
     caps = [simulate_item(study, nominal, items[i]) for i in mine]
     t_fit = time.perf_counter()
@@ -175,7 +184,7 @@ def run_mc_study(study: MCStudy) -> dict:
     from .mc.transport import MCOptions
     from .scene import load_scene
 
-    scene = load_scene(study.scene)
+    scene = load_scene(study.scene).require_waveguide("a Monte Carlo study", study.scene)
     opts = MCOptions(photons=study.photons, seed=study.seed, g=study.g, batch=study.batch, dtype=study.dtype)
     r = parallel.run_mc(scene, opts)
     return {

@@ -48,6 +48,10 @@ RESULTS = (
     "failed",
 )
 
+#: A calibration's n1 and mu above these is refused as unphysical (no waveguide material has n1 > 4;
+#: 1e5 /m is a 10 um attenuation length): a reader would otherwise see no light and report no touch.
+MAX_N1 = 4.0
+MAX_MU_PER_M = 1e5
 #: The optics and timing a calibration must provide (fitted or fixed).
 REQUIRED = ("n1", "mu_s_per_m", "mu_a_per_m", "gain", "emission_time_s", "pulse_sigma_s", "pulse_tail_s")
 
@@ -247,8 +251,14 @@ def load_calibration(
         k = f.name
         if k not in values or k.startswith("touch_"):
             continue
-        v = np.asarray(values[k], float)
+        try:
+            v = np.asarray(values[k], float)
+        except (TypeError, ValueError):
+            raise CalibrationRefused(f"{source}: {k} is not a number or a regular array of numbers") from None
         want = np.shape(getattr(base, k))
+        if k == "gain" and v.shape not in ((S,), (S, Z)):
+            raise CalibrationRefused(f"{source}: gain has shape {v.shape} where this scene needs ({S},) or ({S}, {Z}): "
+                                     "a calibration of another scene?")
         if k == "gain" and v.shape == (S, Z):
             v = v.mean(-1)  # per-zone gains: the sensor's K is their mean
         if k == "end_reflectance" and v.shape == (S, Z):
@@ -266,10 +276,11 @@ def load_calibration(
             raise CalibrationRefused(f"{source}: {k} is not finite")
         changes[k] = v.reshape(want)
     params = base.replace(**changes)
-    if float(params.n1) <= 1.0 or float(params.mu_s_per_m) < 0 or float(params.mu_a_per_m) < 0 or (np.asarray(params.gain) <= 0).any():
+    if (not 1.0 < float(params.n1) <= MAX_N1 or not 0 <= float(params.mu_s_per_m) <= MAX_MU_PER_M
+            or not 0 <= float(params.mu_a_per_m) <= MAX_MU_PER_M or (np.asarray(params.gain) <= 0).any()):
         raise CalibrationRefused(
-            f"{source}: unphysical n1={float(params.n1)}, mu_s={float(params.mu_s_per_m)}, "
-            f"mu_a={float(params.mu_a_per_m)} or a non-positive gain"
+            f"{source}: unphysical n1={float(params.n1)} (1 < n1 <= {MAX_N1:g}), mu_s={float(params.mu_s_per_m)}, "
+            f"mu_a={float(params.mu_a_per_m)} (each in [0, {MAX_MU_PER_M:g}] /m) or a non-positive gain"
         )
     return params
 

@@ -327,6 +327,9 @@ class FitConfig:
             raise ConfigError(f"pulse_tail_threshold: must be > 0, got {self.pulse_tail_threshold!r}")
         if not isinstance(self.free, tuple):
             object.__setattr__(self, "free", tuple(self.free))
+        twice = sorted({k for k in self.free if self.free.count(k) > 1})
+        if twice:
+            raise ConfigError(f"free: {', '.join(repr(k) for k in twice)} listed more than once")
         if self.free == DEFAULT_FREE:
             drop = (SLOW_TAIL if self.pulse_tails == 1 else ()) + (NOT_GUIDED if self.optics == "guided" else ())
             object.__setattr__(self, "free", tuple(k for k in DEFAULT_FREE if k not in drop))

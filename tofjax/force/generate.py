@@ -65,6 +65,10 @@ __all__ = [
 ]
 
 
+#: The most force-reference samples a protocol may ask for (float64: 0.8 GB); beyond, generation runs out of memory.
+MAX_FORCE_SAMPLES = 1e8
+
+
 @dataclass(frozen=True)
 class Protocol:
     """Seed 001's indentation protocol, and the physics of the simulated skin.
@@ -143,6 +147,22 @@ class Protocol:
             raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
         if self.baseline_s * self.frame_rate_hz < 1:
             raise ConfigError("baseline_s: must hold at least one frame (the dual-input models need a baseline)")
+        samples = self.estimated_force_samples()
+        if not samples <= MAX_FORCE_SAMPLES:
+            raise ConfigError(
+                f"the protocol's force reference would hold about {samples:.3g} samples (more than {MAX_FORCE_SAMPLES:.0e}: "
+                "memory); shorten hold_s / rest_s / baseline_s, lower force_rate_hz or use fewer presses"
+            )
+
+    def estimated_force_samples(self) -> float:
+        """About how many force-reference samples the protocol's captures hold, all together (an upper
+        estimate: every press to the largest force, its ramps at each velocity)."""
+        f_max = max(max(self.train_forces_n), self.test_force_range_n[1])
+        depth_mm = (f_max / self.stiffness_n_per_mm1p5) ** (2.0 / 3.0)
+        presses = self.repetitions * len(self.train_forces_n) * max(len(self.train_positions), 1) + self.test_forces_per_velocity
+        seconds = sum(presses * (self.hold_s + self.rest_s + 2.0 * depth_mm / v) + self.baseline_s
+                      for v in self.velocities_mm_s)
+        return seconds * self.force_rate_hz * (1 + len(self.unseen_positions_m) + len(self.two_contacts_m))
 
     @property
     def train_positions(self) -> tuple[tuple[float, float], ...]:
@@ -153,7 +173,7 @@ class Protocol:
         return int(round(self.baseline_s * self.frame_rate_hz))
 
     def load_scene(self) -> Scene:
-        scene = load_scene(self.scene).without_touches()
+        scene = load_scene(self.scene).require_waveguide("the force protocol", self.scene).without_touches()
         if not 0 <= self.sensor < scene.n_sensors:
             raise ConfigError(f"sensor: {self.sensor} is not a sensor of scene '{scene.name}' ({scene.n_sensors} sensors)")
         named = [("positions_m", q) for q in self.positions_m] + [("unseen_positions_m", q) for q in self.unseen_positions_m]

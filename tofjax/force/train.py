@@ -26,6 +26,7 @@ import json
 import math
 import platform
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -283,7 +284,7 @@ def load_predictor(run_dir: str | Path):
         return _load_predictor(run_dir, header)
     except UserError:
         raise
-    except (KeyError, TypeError, ValueError, IndexError, OSError, RuntimeError) as e:
+    except (KeyError, TypeError, ValueError, IndexError, OSError, RuntimeError, EOFError, zipfile.BadZipFile) as e:
         what = f"key {e}" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
         raise UserError(f"{run_dir}: damaged run folder ({what})".splitlines()[0]) from None
 
@@ -307,7 +308,9 @@ def _load_predictor(run_dir: Path, header: dict):
             f.readline()
             mlp = eqx.tree_deserialise_leaves(f, like)
         forest = None
-        if header.get("forest") and (run_dir / "forest.npz").exists():
+        if header.get("forest") and not (run_dir / "forest.npz").exists():
+            raise UserError(f"{run_dir}: model.json names a residual forest but forest.npz is missing (a damaged run folder)")
+        if header.get("forest"):
             with np.load(run_dir / "forest.npz") as npz:
                 forest = ForestArrays.from_numpy(npz, str(run_dir / "forest.npz"))
         pred = ForcePredictor(
@@ -386,13 +389,16 @@ def predict_capture(
     """
     from .features import capture_rows
 
+    if baseline_frames is not None and baseline_frames < 1:
+        raise UserError(f"--baseline-frames: must be >= 1 (the features need a no-touch baseline), got {baseline_frames}")
     model, header = load_predictor(run_dir)
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     window = Window.from_json(header["window"])
     fcfg = from_dict(FeatureConfig, header["features"])
     if baseline_frames is not None or "baseline_frames" in cap.truth:
-        fcfg = dataclasses.replace(fcfg, baseline_frames=baseline_frames or int(cap.truth["baseline_frames"]))
+        fcfg = dataclasses.replace(fcfg, baseline_frames=baseline_frames if baseline_frames is not None
+                                   else int(cap.truth["baseline_frames"]))
     out = {"time": cap.timestamps, "force": cap.force if cap.force is not None else np.full(cap.n_frames, np.nan)}
     for j, (raw, valid, f) in enumerate(capture_rows(cap, window, fcfg, src)):
         preds = _predict(model, header, np.where(np.isfinite(raw), raw, 0.0))
@@ -678,9 +684,14 @@ def table(run_dirs) -> str:
         p = d / "metrics.json"
         if not p.exists():
             raise UserError(f"{d}: no metrics.json (not a finished force run)")
-        m = json.loads(p.read_text())
-        for model, v in m["mae_n"].items():
-            rows.append((m["name"], m.get("variant", ""), model, v, m["operations_per_prediction"].get(model)))
+        try:
+            m = json.loads(p.read_text())
+            for model, v in m["mae_n"].items():
+                rows.append((m["name"], m.get("variant", ""), model, v, m["operations_per_prediction"].get(model)))
+                float(v["overall"]), dict(v["by_velocity_mm_s"])
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as e:
+            what = f"key {e}" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+            raise UserError(f"{p}: not a force run's metrics ({what})".splitlines()[0]) from None
     vels = sorted({k for r in rows for k in r[3]["by_velocity_mm_s"]}, key=float)
     head = ["run", "input", "model", *[f"v={v} mm/s" for v in vels], "overall", "ops/prediction"]
     lines = [head]

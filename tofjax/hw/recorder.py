@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
+
 from ..capture import Capture, CaptureWriter, read_capture
 from ..errors import UserError
 from ..scene import Scene
@@ -212,6 +214,11 @@ def record(source, writer: CaptureWriter, *, frames: int | None = None, duration
     return written, stats.dropped, interrupted
 
 
+#: The longest a replay at a given speed may take (s): beyond, a recording's gaps (or a tiny speed) would
+#: read as a hang.
+MAX_REPLAY_S = 7 * 86400.0
+
+
 class ReplaySource:
     """A recorded capture as a frame source: the same :meth:`read_frame` as a live rig.
 
@@ -233,6 +240,18 @@ class ReplaySource:
                 raise UserError(f"--speed: max, recorded or a positive number, got {speed!r}") from None
             if not self.factor > 0:
                 raise UserError(f"--speed: must be > 0, got {speed!r}")
+        ts = np.asarray(self.capture.timestamps, float)
+        where = capture if not isinstance(capture, Capture) else "the capture"
+        if not np.isfinite(ts).all():
+            raise UserError(f"{where}: its timestamps are not all finite")
+        if self.factor is not None and len(ts) > 1:
+            back = np.flatnonzero(np.diff(ts) < 0)
+            if len(back):
+                raise UserError(f"{where}: the timestamps go backwards at frame {back[0] + 1}; replay it with --speed max")
+            total = (ts[-1] - ts[0]) / self.factor
+            if not total <= MAX_REPLAY_S:
+                raise UserError(f"--speed {speed}: replaying {ts[-1] - ts[0]:.3g} s of recording would take {total:.3g} s "
+                                f"(more than {MAX_REPLAY_S / 86400:g} days); use a higher speed or max")
         self.errors = ErrorCounts()
         self.clock = SimClock(0.0)  # the recording's own time origin: timestamps pass through unchanged
         self._i = 0
@@ -272,7 +291,7 @@ def replay(capture: str | Path, out: str | Path | None = None, *, speed: str | f
                            truth=cap.truth or None, overwrite=overwrite) as w:
             written, dropped, interrupted = record(src, w, progress=progress, label="replay")
         path = Path(out)
-    elapsed = float(cap.timestamps[written - 1] - cap.timestamps[0]) if written > 1 else 0.0
+    elapsed = float(np.ptp(cap.timestamps[:written])) if written > 1 else 0.0  # timestamps may go backwards (at max speed)
     return AcquireResult(path, written, dropped, dict(src.errors.counts), elapsed, time.perf_counter() - t_wall,
                          interrupted)
 

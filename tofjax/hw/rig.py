@@ -169,7 +169,7 @@ def load_rig_or_scene(ref: str) -> tuple[Rig, Scene, bool]:
             keys = ", ".join(sorted(rig_only & set(data)))
             raise ConfigError(f"{p}: a rig file ({keys}) needs one [[sensors]] table per sensor "
                               f"(see configs/rigs/optoskin-mux.toml)")
-        if "sensors" in data and "waveguide" not in data:
+        if "sensors" in data and "waveguide" not in data and "target" not in data:  # [target]: a free-space scene
             rig = load_rig(p)
             scene = rig.load_scene()
             _check(rig, scene, str(p))

@@ -297,7 +297,7 @@ def _cmd_sensitivity(a) -> int:
 
     changes = {"n_sigma": a.n_sigma, "response": a.contact_response}
     options = SensitivityOptions(strength=a.strength, frames=a.frames, **{k: v for k, v in changes.items() if v is not None})
-    scene = load_scene(a.scene).without_touches()
+    scene = load_scene(a.scene).require_waveguide("tofjax sensitivity", a.scene).without_touches()
     base = read_capture(a.baseline)
     check_compatible(scene, base.scene, what="baseline", other="scene")
     if a.sensor is not None:

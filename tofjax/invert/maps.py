@@ -157,6 +157,10 @@ def _projection(scene: Scene, grid: Grid, optical: OpticalParams, response_delay
     return zone, u
 
 
+#: The most (pixel, sensor, neighbour) entries a map operator may hold (16 bytes each: 1.6 GB).
+MAX_OPERATOR_ENTRIES = 10**8
+
+
 def build_map_operator(
     scene: Scene,
     optical: OpticalParams | None = None,
@@ -171,6 +175,13 @@ def build_map_operator(
     optical = OpticalParams.from_scene(scene) if optical is None else optical
     grid = Grid.for_scene(scene, options.resolution_m)
     S, Z, B = scene.shape
+    entries = grid.nx * grid.ny * S * 4  # the operator's (pixel, sensor, 4 neighbours) indices and weights
+    if entries > MAX_OPERATOR_ENTRIES:
+        raise ConfigError(
+            f"resolution_m: {options.resolution_m * 1e3:g} mm gives a {grid.nx} x {grid.ny} map; its projection of {S} "
+            f"sensors needs about {entries * 16 / 1e9:.2g} GB; use a coarser resolution (>= "
+            f"{math.sqrt(grid.nx * grid.ny * S * 4 / MAX_OPERATOR_ENTRIES) * options.resolution_m * 1e3:.2g} mm)"
+        )
     zone, u = _projection(scene, grid, optical, options.response_delay)
     P = zone.shape[0]
     inside = np.isfinite(zone)

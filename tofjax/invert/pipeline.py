@@ -352,13 +352,30 @@ def load_inputs(
     that bin width in its scene fingerprint."""
     touch = read_capture(touch_path)
     base = read_capture(baseline_path)
+    base.scene.require_waveguide("touch inversion", str(baseline_path))
     check_compatible(touch.scene, base.scene)
+    _check_baseline_counts(base, baseline_path)
     if sensor_path is not None:
         touch = dataclasses.replace(touch, scene=touch.scene.with_sensor_model(sensor_path))
         base = dataclasses.replace(base, scene=base.scene.with_sensor_model(sensor_path))
     optical = load_optics(base.scene, calibration_path, allow_unconverged=allow_unconverged,
                           allow_other_scene=allow_other_scene)
     return touch, base, optical
+
+
+def _check_baseline_counts(base: Capture, path) -> None:
+    """Refuse a baseline whose counts no raw histogram of its sensor has: above the saturation limit
+    (not this sensor's data), or at it (a saturated bin's mean is wrong, and a saturated baseline hides
+    every touch: the inversion found 0 touches and said nothing)."""
+    h = base.histograms
+    sat = base.scene.sensor.saturation_counts
+    if (h > sat).any():
+        raise InversionError(f"{path}: counts up to {float(h.max()):.3g}, above the sensor's limit ({sat:g}): "
+                             "not raw histograms of this sensor")
+    n_sat = int((h >= sat).sum())
+    if n_sat:
+        raise InversionError(f"{path}: {n_sat} baseline bins at the saturation limit ({sat:g} counts): "
+                             "lower the sensor's iterations or gain and record the baseline again")
 
 
 def load_optics(

@@ -194,8 +194,8 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
     MCOptions, run_mc = transport.MCOptions, transport.run_mc
 
     t0 = time.perf_counter()
-    base = load_scene(opts.scene).without_touches()
-    touch = load_scene(opts.touch_scene)
+    base = load_scene(opts.scene).require_waveguide("tofjax bench tradeoff", opts.scene).without_touches()
+    touch = load_scene(opts.touch_scene).require_waveguide("tofjax bench tradeoff", opts.touch_scene)
     if not touch.touches:
         raise ConfigError(f"--touch-scene: {opts.touch_scene!r} has no contacts ([[touches]])")
     result = {

@@ -24,10 +24,10 @@ def _cmd_mc(a) -> int:
     slab_only = [f"--{k.replace('_', '-')}" for k in _SLAB_ONLY if getattr(a, k) is not None]
     if slab_only:
         raise ConfigError(f"{', '.join(slab_only)}: only for 'tofjax mc slab'")
-    scene = load_scene(a.scene)
+    scene = load_scene(a.scene).require_waveguide("tofjax mc", a.scene)
     if a.frames < 1:
         raise ConfigError(f"--frames: must be >= 1, got {a.frames}")
-    from ..cli import _check_size
+    from ..cli import _check_size, _check_some_light
 
     _check_size(scene, a.frames)
     from ..capture import check_capture_target
@@ -35,6 +35,7 @@ def _cmd_mc(a) -> int:
     check_capture_target(a.out, a.overwrite)
     opts = MCOptions(photons=a.photons, seed=a.seed, g=a.g, edges=a.edges, dtype=a.dtype, batch=a.batch)
     cap = mc_capture(scene, a.frames, a.seed, opts, progress=True)
+    _check_some_light(cap, a.scene)
     write_capture(a.out, cap, overwrite=a.overwrite)
     t = cap.truth
     print(
@@ -72,7 +73,7 @@ def _cmd_prune(a) -> int:
     from ..scene import load_scene
     from .prune import PruneOptions, prune_model
 
-    scene = load_scene(a.scene)
+    scene = load_scene(a.scene).require_waveguide("tofjax prune", a.scene)
     report = prune_model(
         scene,
         PruneOptions(noise_floor=a.noise_floor, frames=a.frames, model=ModelOptions(quadrature=a.quadrature), timing=a.timing),

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import sys
 import warnings
+
+from ..errors import UserError
 
 
 def _cmd_import(a) -> int:
@@ -49,13 +52,15 @@ def _cmd_sensor_fit(a) -> int:
     from .importer import DroppedFramesWarning
     from .response import SensorModelError
 
+    if a.no_shape_drift and a.drift_order is not None:
+        raise UserError("--drift-order: the order of the shape drift, which --no-shape-drift leaves out")
     cap, hist, ref = _capture_one_sensor(a.capture)
     if cap.target_distance_m is None:
         raise SensorModelError(f"{a.capture}: no truth/target_distance_m: a sensor fit needs captures of a target at known distances")
     opts = SensorFitOptions(
         min_distance_m=a.min_distance_m, max_distance_m=a.max_distance_m, knots_per_bin=a.knots_per_bin,
         max_iterations=a.max_iterations, pile_up=not a.no_pile_up, shape_drift=not a.no_shape_drift, echo=not a.no_echo,
-        drift_order=a.drift_order,
+        drift_order=2 if a.drift_order is None else a.drift_order,
     )
     grid = cap.scene.sensor.grid
     with warnings.catch_warnings():  # saturated frames left out: named on stderr
@@ -88,6 +93,10 @@ def _cmd_sensor_fit(a) -> int:
         paths = plot_sensor_fit(model, details, a.plots)
         print(f"wrote {len(paths)} figures to {a.plots}/")
     print(f"wrote {a.out}")
+    if not r.get("converged", True):
+        # written (the fit's state is worth keeping), but never silently: `range` and `simulate` would trust it
+        print(f"tofjax sensor fit: warning: the fit did not converge in --max-iterations {a.max_iterations} "
+              f"(report.converged = false in {a.out}); raise --max-iterations before ranging with it", file=sys.stderr)
     return 0
 
 
@@ -154,8 +163,8 @@ def register(sub) -> None:
     f.add_argument("--no-shape-drift", action="store_true",
                    help="a fixed pulse shape (median reduced chi2 ~5 on the TMF8820 sweep instead of below 2 with the "
                    "default second-order drift; fits faster)")
-    f.add_argument("--drift-order", type=int, default=2, choices=(1, 2, 3),
-                   help="order of the pulse's change of shape with distance (default 2)")
+    f.add_argument("--drift-order", type=int, default=None, choices=(1, 2, 3),
+                   help="order of the pulse's change of shape with distance (default 2; not with --no-shape-drift)")
     f.add_argument("--no-reference", action="store_true", help="do not fit the reference channel's pulse")
     f.add_argument("-v", "--verbose", action="store_true")
     f.set_defaults(func=_cmd_sensor_fit)

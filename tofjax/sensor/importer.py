@@ -104,12 +104,16 @@ def read_tmf882x_json(path: str | Path, *, require_truth: bool = True) -> Import
         raise TmfImportError(f"{path}: expected a JSON list of captures (each with 'hists'), got {type(data).__name__}")
     hists, refs, dists, onc, conf, src, dropped = [], [], [], [], [], [], []
     zones = None
-    no_truth = []
+    no_truth, bad_ref = [], []
     for i, e in enumerate(data):
         if not isinstance(e, dict) or "hists" not in e:
             dropped.append((i, "no 'hists' field"))
             continue
-        h = np.asarray(e["hists"], float)
+        try:
+            h = np.asarray(e["hists"], float)
+        except (TypeError, ValueError):
+            dropped.append((i, "'hists' is not a regular array of numbers"))
+            continue
         if h.ndim != 2 or h.shape[1] != N_BINS or not np.all(np.isfinite(h)) or np.any(h < 0):
             dropped.append((i, f"'hists' is not zones x {N_BINS} non-negative counts (shape {h.shape})"))
             continue
@@ -118,7 +122,16 @@ def read_tmf882x_json(path: str | Path, *, require_truth: bool = True) -> Import
         if h.shape[0] != zones:
             dropped.append((i, f"{h.shape[0]} zones where the first frame has {zones}"))
             continue
-        if "dist_to_plane" not in e or e["dist_to_plane"] is None:
+        dist = e.get("dist_to_plane")
+        if dist is not None:
+            try:
+                dist = float(dist)
+            except (TypeError, ValueError):
+                dropped.append((i, f"'dist_to_plane' is not a number ({dist!r})"))
+                continue
+            if not np.isfinite(dist):
+                dist = None  # NaN: no ground truth, as a missing field
+        if dist is None:
             no_truth.append(i)
             if require_truth:
                 continue
@@ -126,9 +139,16 @@ def read_tmf882x_json(path: str | Path, *, require_truth: bool = True) -> Import
             dropped.append((i, f"saturated bins (count {SATURATED})"))
             continue
         r = e.get("reference_hist")
-        refs.append(np.asarray(r, float) if r is not None and len(r) == N_BINS else np.full(N_BINS, np.nan))
+        try:
+            r = None if r is None else np.asarray(r, float)
+        except (TypeError, ValueError):
+            r = np.zeros(0)
+        if r is not None and r.shape != (N_BINS,):
+            bad_ref.append(i)
+            r = None
+        refs.append(r if r is not None else np.full(N_BINS, np.nan))
         hists.append(h)
-        dists.append(float(e["dist_to_plane"]) if e.get("dist_to_plane") is not None else np.nan)
+        dists.append(np.nan if dist is None else dist)
         dd, cc = _json_onchip(e.get("distances"), zones)
         onc.append(dd)
         conf.append(cc)
@@ -144,6 +164,10 @@ def read_tmf882x_json(path: str | Path, *, require_truth: bool = True) -> Import
         _warn_dropped(path, sorted(dropped))
     if not hists:
         raise TmfImportError(f"{path}: no usable frame ({len(dropped)} dropped)")
+    if bad_ref:
+        warnings.warn(DroppedFramesWarning(
+            f"{path}: {len(bad_ref)} frames' reference_hist is not {N_BINS} numbers (first: entry {bad_ref[0]}); "
+            "their reference channel is left out (NaN)"), stacklevel=2)
     ref = np.stack(refs)
     return ImportedFrames(
         histograms=np.stack(hists),

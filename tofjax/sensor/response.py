@@ -15,6 +15,7 @@ the centre zone, larger off axis where the path to the plane is longer).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -195,6 +196,18 @@ class SensorResponse:
             )
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise SensorModelError(f"{source}: missing or malformed field: {e}") from None
+        for k in ("zero_range_bins", "bins_per_m", "pulse"):
+            if getattr(m, k) is None:
+                raise SensorModelError(f"{source}: missing field: {k}")
+        if not (np.isfinite(m.bin_width_s) and m.bin_width_s > 0) or m.n_bins < 1:
+            raise SensorModelError(f"{source}: bin_width_s must be finite and > 0 and n_bins >= 1, got "
+                                   f"{m.bin_width_s!r} and {m.n_bins!r}")
+        for f in dataclasses.fields(m):
+            v = getattr(m, f.name)
+            if isinstance(v, np.ndarray) and not np.all(np.isfinite(v)):
+                raise SensorModelError(f"{source}: {f.name} has non-finite values")
+            if isinstance(v, float) and not np.isfinite(v):
+                raise SensorModelError(f"{source}: {f.name} is not finite ({v!r})")
         Z = m.n_zones
         if m.pulse_drift is not None and (m.pulse_drift.ndim not in (2, 3) or m.pulse_drift.shape[0] != Z
                                           or m.pulse_drift.shape[-1] != m.pulse.shape[-1]):

@@ -34,6 +34,25 @@ def _expected(scene, model, distances):
     return lam
 
 
+def _check_expected(lam: np.ndarray, distances: np.ndarray) -> None:
+    """Refuse expected counts no sensor can give (one line, the distance named): negative ones (a
+    sensor model whose fit did not converge can dip below zero), non-finite ones and counts beyond a
+    Poisson draw's range (a target at 1e-300 m)."""
+    lam = np.asarray(lam, float)
+    per_frame = lam.reshape(len(distances), -1)
+    peak = np.max(np.abs(np.where(np.isfinite(per_frame), per_frame, 0.0)), axis=1)
+    for i, d in enumerate(distances):
+        row = per_frame[i]
+        if not np.all(np.isfinite(row)):
+            raise SensorModelError(f"target at {d:g} m: the sensor model's expected counts are not finite")
+        if row.min() < -1e-9 * max(peak[i], 1.0):
+            raise SensorModelError(f"target at {d:g} m: the sensor model gives negative expected counts "
+                                   f"({row.min():.3g}); was its fit converged (report.converged in sensor.json)?")
+        if row.max() > 1e15:
+            raise SensorModelError(f"target at {d:g} m: {row.max():.3g} expected counts in a bin, beyond any sensor "
+                                   "(a target this close is outside the model)")
+
+
 def simulate_free_space(scene, n_frames: int = 1, seed: int = 0, *, distances_m=None, model: SensorResponse | None = None,
                         frame_period_s: float = 1.0 / 30.0):
     """Simulate a TMF882x looking at the scene's flat target (or at ``distances_m``, one per frame).
@@ -53,6 +72,8 @@ def simulate_free_space(scene, n_frames: int = 1, seed: int = 0, *, distances_m=
     d = np.asarray(distances_m, float)
     rng = np.random.default_rng(seed)
     lam = _expected(scene, model, d)
+    _check_expected(lam, d)
+    lam = np.maximum(lam, 0.0)  # rounding below zero only (checked)
     hist = rng.poisson(lam).astype(float) if scene.noise.poisson else lam
     hist = np.minimum(hist, scene.sensor.saturation_counts)
     ref = expected_reference(model, len(d))
