@@ -55,3 +55,16 @@ def test_cpu_opt_level_refuses_bad_arguments(tmp_path):
         assert e.value.code == 2
     assert not (tmp_path / "x.json").exists()
     assert set(study.VARIANTS) == {"default", "level1", "level0"} and "optimization_level" not in study.VARIANTS["default"]
+
+
+def test_tree_compare_refuses_bad_arguments(tmp_path):
+    """experiments/tree_compare.py (a benchmark: each round runs two cold calibrations in fresh processes): a base that
+    is not a checkout, no rounds, or no output is a usage error before any worker starts."""
+    study = load("tree_compare")
+    out = str(tmp_path / "x.json")
+    for argv in ([], ["--base", str(tmp_path), "--out", out], ["--base", str(study.ROOT), "--out", out, "--rounds", "0"],
+                 ["--base", str(study.ROOT)]):
+        with pytest.raises(SystemExit) as e:
+            study.main(argv)
+        assert e.value.code == 2
+    assert not (tmp_path / "x.json").exists()
