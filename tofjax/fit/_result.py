@@ -257,8 +257,8 @@ def load_calibration(
             raise CalibrationRefused(f"{source}: {k} is not a number or a regular array of numbers") from None
         want = np.shape(getattr(base, k))
         if k == "gain" and v.shape not in ((S,), (S, Z)):
-            raise CalibrationRefused(f"{source}: gain has shape {v.shape} where this scene needs ({S},) or ({S}, {Z}): "
-                                     "a calibration of another scene?")
+            raise CalibrationRefused(f"{source}: gain has {v.size} values for {S} sensors (shape {v.shape}; this scene needs "
+                                     f"({S},) or ({S}, {Z})): a calibration of another scene?")
         if k == "gain" and v.shape == (S, Z):
             v = v.mean(-1)  # per-zone gains: the sensor's K is their mean
         if k == "end_reflectance" and v.shape == (S, Z):
