@@ -57,6 +57,30 @@ def worker(warm: int) -> dict:
     }
 
 
+def run_worker(label: str, xla_flags: str, warm: int, tree: Path = ROOT) -> dict:
+    """One cold worker process (:func:`worker`) of ``tree``'s copy of this script, with ``xla_flags``, no program store and
+    no compilation cache; its record with the 1-minute load at its start. ``label`` names it in a failure.
+    ``experiments/tree_compare.py`` runs it for two checkouts."""
+    env = dict(os.environ, XLA_FLAGS=xla_flags, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0",
+               JAX_PLATFORMS="cpu", PYTHONPATH=str(tree))
+    load = os.getloadavg()[0]
+    out = subprocess.run([sys.executable, str(tree / "experiments" / "cpu_opt_level.py"), "--worker", "--warm", str(warm)],
+                         env=env, capture_output=True, text=True, check=False, cwd=str(tree))
+    if out.returncode != 0:
+        print(out.stderr[-3000:], file=sys.stderr)
+        raise SystemExit(f"worker ({label}) failed with exit code {out.returncode}")
+    rec = json.loads(out.stdout.strip().splitlines()[-1])
+    rec["load_1min"] = load
+    return rec
+
+
+def describe(r: int, label: str, rec: dict) -> str:
+    """A worker's record as one progress line."""
+    return (f"round {r + 1} {label:8s} cold {rec['calibration_cold_s']:6.2f} s  warm {rec['calibration_warm_s'] * 1e3:6.0f} ms "
+            f"({rec['steps']} steps, {rec['warm_per_step_s'] * 1e3:5.1f} ms each)  model compile {rec['model_compile_s']:5.2f} s  "
+            f"warm {rec['model_warm_s'] * 1e3:6.2f} ms  n1 {rec['n1']:.9f}  load {rec['load_1min']:.1f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", help="JSON file to write")
@@ -76,20 +100,9 @@ def main(argv=None) -> int:
     for r in range(a.rounds):
         order = names[r % len(names):] + names[: r % len(names)]
         for v in order:
-            env = dict(os.environ, XLA_FLAGS=VARIANTS[v], TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0",
-                       JAX_PLATFORMS="cpu")
-            load = os.getloadavg()[0]
-            out = subprocess.run([sys.executable, __file__, "--worker", "--warm", str(a.warm)], env=env, capture_output=True,
-                                 text=True, check=False)
-            if out.returncode != 0:
-                print(out.stderr[-3000:], file=sys.stderr)
-                raise SystemExit(f"worker ({v}) failed with exit code {out.returncode}")
-            rec = json.loads(out.stdout.strip().splitlines()[-1])
-            rec["load_1min"] = load
+            rec = run_worker(v, VARIANTS[v], a.warm)
             runs[v].append(rec)
-            print(f"round {r + 1} {v:8s} cold {rec['calibration_cold_s']:6.2f} s  warm {rec['calibration_warm_s'] * 1e3:6.0f} ms "
-                  f"({rec['steps']} steps, {rec['warm_per_step_s'] * 1e3:5.1f} ms each)  model compile {rec['model_compile_s']:5.2f} s  "
-                  f"warm {rec['model_warm_s'] * 1e3:6.2f} ms  n1 {rec['n1']:.9f}  load {load:.1f}", flush=True)
+            print(describe(r, v, rec), flush=True)
     med = {v: {m: statistics.median(x[m] for x in runs[v]) for m in MEASURES} for v in names}
     ratios = {v: {m: [x[m] / d[m] for x, d in zip(runs[v], runs["default"])] for m in MEASURES} for v in names if v != "default"}
     spread = {v: {"n1_max_abs_difference": max(abs(x["n1"] - d["n1"]) for x, d in zip(runs[v], runs["default"])),

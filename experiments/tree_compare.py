@@ -18,7 +18,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
 
-from cpu_opt_level import MEASURES, VARIANTS  # noqa: E402  (the CLI's flags, the worker's measures)
+from cpu_opt_level import MEASURES, VARIANTS, describe, run_worker  # noqa: E402  (the CLI's flags, the worker and its measures)
 
 
 def main(argv=None) -> int:
@@ -46,20 +45,9 @@ def main(argv=None) -> int:
     runs = {k: [] for k in trees}
     for r in range(a.rounds):
         for k in (("before", "after") if r % 2 == 0 else ("after", "before")):
-            env = dict(os.environ, XLA_FLAGS=VARIANTS["default"], TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0",
-                       JAX_PLATFORMS="cpu", PYTHONPATH=str(trees[k]))
-            load = os.getloadavg()[0]
-            out = subprocess.run([sys.executable, str(trees[k] / "experiments" / "cpu_opt_level.py"), "--worker", "--warm",
-                                  str(a.warm)], env=env, capture_output=True, text=True, check=False, cwd=str(trees[k]))
-            if out.returncode != 0:
-                print(out.stderr[-3000:], file=sys.stderr)
-                raise SystemExit(f"worker ({k}) failed with exit code {out.returncode}")
-            rec = json.loads(out.stdout.strip().splitlines()[-1])
-            rec["load_1min"] = load
+            rec = run_worker(k, VARIANTS["default"], a.warm, trees[k])
             runs[k].append(rec)
-            print(f"round {r + 1} {k:6s} cold {rec['calibration_cold_s']:6.2f} s  warm {rec['calibration_warm_s'] * 1e3:6.0f} ms "
-                  f"({rec['steps']} steps, {rec['warm_per_step_s'] * 1e3:5.1f} ms each)  model compile {rec['model_compile_s']:5.2f} s"
-                  f"  n1 {rec['n1']:.9f}  load {load:.1f}", flush=True)
+            print(describe(r, k, rec), flush=True)
     med = {k: {m: statistics.median(x[m] for x in runs[k]) for m in MEASURES} for k in trees}
     ratios = {m: [x[m] / y[m] for x, y in zip(runs["after"], runs["before"])] for m in MEASURES}
     sys.path.insert(0, str(ROOT))
