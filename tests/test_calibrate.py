@@ -842,3 +842,12 @@ def test_laplace_pieces_from_the_fits_own_jacobians(small, zone_gain):
     assert h.shape == h_ref.shape and h.shape[0] > 12
     assert np.max(np.abs(h - h_ref) / scale) < 1e-10
     np.testing.assert_allclose(np.asarray(sol.dphys), np.asarray(d_ref), rtol=1e-12, atol=1e-300)
+    # the end point the solver kept (no model evaluated after its loop) is the profile at the fit's parameters
+    p_ref, m_ref, _, lin_ref = jax.jit(lambda p: problem.profile(p, data, sigma))(sol.params)
+    np.testing.assert_allclose(np.asarray(sol.residuals), np.asarray((m_ref - data) / sigma), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(float(sol.chi2), float(np.sum(np.asarray((m_ref - data) / sigma) ** 2)), rtol=1e-10)
+    assert sorted(sol.linear) == sorted(lin_ref)
+    for k in lin_ref:
+        np.testing.assert_allclose(np.asarray(sol.linear[k]), np.asarray(lin_ref[k]), rtol=1e-9, atol=1e-12)
+    for a, b in zip(jax.tree_util.tree_leaves(sol.params), jax.tree_util.tree_leaves(p_ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)

@@ -48,6 +48,34 @@ def test_marquardt_finds_the_least_squares_optimum(geodesic):
     assert np.all(np.diff(h[: steps + 1]) <= 0)  # rejected steps repeat the loss, never raise it
 
 
+@pytest.mark.parametrize("trials", [(), (0.1, 1.0, 10.0)])
+def test_marquardt_keeps_aux_and_keep_at_its_end_point(trials):
+    """Residuals that return ``(r, aux, keep)``: the result's residuals, aux, aux Jacobian and keep are
+    those of the end point (the accepted iterate, not the last trial), whichever loop body runs; the
+    calibration's end reads its profiled point from them instead of evaluating the model again."""
+    data = jnp.asarray(_data(0))
+
+    def with_aux(p, d):
+        r = residuals(p, d)
+        aux = jnp.stack([jnp.sum(jnp.exp(p)), p[0] * p[3]])
+        return r, aux, {"model": _model(p, jnp.asarray(T)), "p2": p**2}
+
+    solver = MarquardtLM(rtol=1e-12, atol=1e-12, lambda_trials=trials)
+    out = jax.jit(lambda y, d: solve_marquardt(with_aux, solver, y, d, max_steps=200))(Y0, data)
+    plain = jax.jit(lambda y, d: solve_marquardt(residuals, solver, y, d, max_steps=200))(Y0, data)
+    # aux changes nothing of the fit (but the rounding of differently fused programs)
+    np.testing.assert_allclose(np.asarray(out.value), np.asarray(plain.value), rtol=0, atol=1e-9)
+    assert plain.aux is None and plain.keep is None and plain.aux_jac is None
+    y = out.value
+    r, aux, keep = with_aux(y, data)
+    np.testing.assert_allclose(np.asarray(out.residuals), np.asarray(r), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.aux), np.asarray(aux), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.keep["model"]), np.asarray(keep["model"]), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.keep["p2"]), np.asarray(keep["p2"]), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.aux_jac), np.asarray(jax.jacfwd(lambda z: with_aux(z, data)[1])(y)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.jac), np.asarray(jax.jacfwd(residuals)(y, data)), rtol=1e-10, atol=1e-9)
+
+
 def test_batched_fits_equal_separate_fits():
     solver = MarquardtLM()
     data = jnp.stack([jnp.asarray(_data(s)) for s in range(5)])

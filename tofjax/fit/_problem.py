@@ -400,11 +400,12 @@ class CalibrationProblem(eqx.Module):
         data_part = ((m - data) / sigma).ravel()
         return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
-    def _linear_columns(self, params: Params, linear: dict, sigma, ft):
+    def _linear_columns(self, params: Params, linear: dict, sigma, ft, parts=None):
         """The data residuals' derivatives by each profiled linear parameter's *physical* values at
         ``params`` (one column per sensor or zone, written down from ``linear_parts``): ``{name:
-        (S * Z * B, size)}``, for every name of ``self.linear`` among the free parameters."""
-        R, P, E = self._linear_parts(params)
+        (S * Z * B, size)}``, for every name of ``self.linear`` among the free parameters.
+        ``parts``: :meth:`_linear_parts` at ``params``, when the caller has them."""
+        R, P, E = self._linear_parts(params) if parts is None else parts
         S, Z, B = R.shape
         R, P, sig = R.astype(ft), P.astype(ft), jnp.asarray(sigma, ft)
         if E is not None:
@@ -460,26 +461,36 @@ class CalibrationProblem(eqx.Module):
         return self._assemble_jacobian(u, j_nl, self._linear_columns(params, linear, sigma, j_nl.dtype))
 
     def residuals_and_linear(self, u, args):
-        """:meth:`residuals` and the profiled linear parameters' physical values, flat (sorted
-        names, each raveled): the objective of a fit that keeps both Jacobians
-        (:meth:`laplace_from_fit`)."""
+        """:meth:`residuals`, the profiled linear parameters' physical values, flat (sorted
+        names, each raveled), and, not to be differentiated, ``(params, linear, parts)``: the
+        profiled parameters (:meth:`profiled_model`'s), the linear values by name and the model's
+        parts (:meth:`_linear_parts`; None without linear parameters). The objective of a fit that
+        keeps both Jacobians and the profiled point (:meth:`laplace_from_fit`): its end evaluates
+        no model of its own."""
         base, data, sigma, prior = args
-        _, m, lin = self.profiled_model(u, base, data, sigma)
+        params = self.unpack(u, base)
+        if self.linear:
+            parts = self._parts_of(u, base)
+            params, m, _, lin = self.profile(params, data, sigma, parts)
+        else:
+            parts, m, lin = None, self.model(params), {}
         data_part = ((m - data) / sigma).ravel()
         ft = jnp.result_type(float)
         r = jnp.concatenate([data_part.astype(ft), self.prior_residuals(u, prior)])
-        return r, jnp.concatenate([jnp.ravel(lin[k]).astype(ft) for k in sorted(lin)] or [jnp.zeros((0,), ft)])
+        flat = jnp.concatenate([jnp.ravel(lin[k]).astype(ft) for k in sorted(lin)] or [jnp.zeros((0,), ft)])
+        return r, flat, (params, lin, parts)
 
-    def laplace_from_fit(self, params: Params, linear: dict, jac, jac_linear, sigma):
+    def laplace_from_fit(self, params: Params, linear: dict, jac, jac_linear, sigma, parts=None):
         """:meth:`laplace`'s pieces from the fit's own Jacobians at the optimum, no new derivative:
         ``jac`` of the profiled residuals and ``jac_linear`` of the profiled linear values
         (:meth:`residuals_and_linear`), both by the fit's nonlinear coordinates. The residuals
         are affine in the linear parameters, so by the chain rule the derivative at fixed linear
         values is ``jac - (d r / d linear) jac_linear``: the same Jacobian as
-        :meth:`covariance_jacobian` (equal to rounding; tested)."""
+        :meth:`covariance_jacobian` (equal to rounding; tested). ``parts``: the model's parts at
+        ``params`` (:meth:`_linear_parts`), when the fit kept them."""
         u = self.pack_jax(params, self.free, linear)
         ft = jac.dtype
-        lin_cols = self._linear_columns(params, linear, sigma, ft)
+        lin_cols = self._linear_columns(params, linear, sigma, ft, parts)
         n_data = next(iter(lin_cols.values())).shape[0] if lin_cols else 0
         if lin_cols:
             names = sorted(linear)

@@ -481,7 +481,7 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
 def _fit_inputs(problem, start, data, sigma, prior_params, anchor):
     """``(f0, unravel, args)`` of one fit: the profiled start flattened, its unravel, and the
     objective's ``args = (p0, data, sigma, prior)`` (the prior holds the timing anchor)."""
-    p0 = problem.profile(start, data, sigma)[0] if problem.linear else start
+    p0 = start
     u0 = problem.pack_jax(p0, problem.nonlinear)
     prior = problem.pack_jax(prior_params, problem.nonlinear)
     prior["n1_anchor"] = anchor
@@ -541,11 +541,16 @@ def _fit(problem, objective, solver, start, data, sigma, prior_params, anchor, m
 def _finish(problem, out: SolveResult, unravel, p0, data, sigma, prior_params, anchor, with_cov) -> FitSolution:
     """The profiled end point, its residuals and (``with_cov``) the Laplace pieces."""
     u = unravel(out.value)
-    params, m, lin = problem.profiled_model(u, p0, data, sigma)
-    r = (m - data) / sigma
+    if out.keep is not None:
+        # the solver kept the profiled point (residuals_and_linear): no model to evaluate here
+        params, lin, parts = out.keep
+        r = out.residuals[: data.size].reshape(data.shape)
+    else:
+        params, m, lin = problem.profiled_model(u, p0, data, sigma)
+        r, parts = (m - data) / sigma, None
     hessian = dphys = None
     if with_cov and out.aux_jac is not None:
-        hessian, dphys = problem.laplace_from_fit(params, lin, out.jac, out.aux_jac, sigma)
+        hessian, dphys = problem.laplace_from_fit(params, lin, out.jac, out.aux_jac, sigma, parts)
     elif with_cov:
         hessian, dphys, _ = problem.laplace(params, lin, prior_params, data, sigma, anchor)
     return FitSolution(params, lin, out.result, out.steps, out.history, jnp.sum(r**2), r, hessian, dphys)

@@ -57,6 +57,9 @@ class SolveResult(NamedTuple):
     trace: object = None  # solve_marquardt(trace=True): per-step damping, gain ratio, predictions
     jac: object = None  # solve_marquardt: the residuals' Jacobian at ``value``
     aux_jac: object = None  # solve_marquardt with residuals that return (r, aux): aux's Jacobian at ``value``
+    residuals: object = None  # solve_marquardt: the residuals at ``value``
+    aux: object = None  # solve_marquardt with (r, aux): aux at ``value``
+    keep: object = None  # solve_marquardt with (r, aux, keep): keep (not differentiated) at ``value``
 
 
 def _state_loss(state, fallback):
@@ -211,6 +214,7 @@ class MarquardtState(NamedTuple):
     history: jax.Array
     trace: object
     aux_jac: object = None
+    kept: object = None  # with residuals that return (r, aux[, keep]): (aux, keep or None) at the iterate
 
 
 def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0,
@@ -229,7 +233,10 @@ def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int,
     Jacobian of ``aux`` at the iterate, from the same forward pass as ``r``'s (the calibration's
     profiled linear parameters: their derivatives give the Laplace covariance without a second
     Jacobian, :meth:`tofjax.fit._problem.CalibrationProblem.laplace_from_fit`). The result's
-    ``jac`` and ``aux_jac`` are the Jacobians at the end point.
+    ``jac`` and ``aux_jac`` are the Jacobians at the end point, ``residuals`` and ``aux`` the
+    values there. ``(r, aux, keep)`` (``keep`` any pytree of arrays) also keeps ``keep`` at the
+    iterate, not differentiated (the profiled parameters and the model's parts: the fit's end
+    then needs no model evaluation of its own).
     """
     state = marquardt_init(residuals, solver, y0, args, max_steps=max_steps, trace=trace)
     state = marquardt_advance(residuals, solver, state, args, max_steps=max_steps, loss_tol=loss_tol)
@@ -264,7 +271,8 @@ def marquardt_solution(state: MarquardtState) -> SolveResult:
     by its own rules is ``nonlinear_max_steps_reached``."""
     code = optx.RESULTS.where((state.code == optx.RESULTS.successful) & ~state.done,
                               optx.RESULTS.nonlinear_max_steps_reached, state.code)
-    return SolveResult(state.y, code, state.step, state.history, state.trace, state.jac, state.aux_jac)
+    aux, keep = state.kept if state.kept is not None else (None, None)
+    return SolveResult(state.y, code, state.step, state.history, state.trace, state.jac, state.aux_jac, state.r, aux, keep)
 
 
 def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_tol: float, trace: bool):
@@ -272,7 +280,9 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
     ft = y0.dtype
     tiny = jnp.finfo(ft).tiny
     eye = jnp.eye(y0.shape[0], dtype=ft)
-    has_aux = isinstance(jax.eval_shape(lambda z: residuals(z, args), y0), tuple)
+    out_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
+    has_aux = isinstance(out_struct, tuple)
+    has_keep = has_aux and len(out_struct) == 3
 
     def res_of(z):
         """The residuals alone (a trial point needs no aux)."""
@@ -280,13 +290,16 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         return out[0] if has_aux else out
 
     def value_and_jac(y):
-        """``(r, J, J_aux)`` at ``y`` from one forward-mode pass (``J_aux`` None without aux)."""
+        """``(r, J, J_aux, (aux, keep))`` at ``y`` from one forward-mode pass (the last two None
+        without aux; ``keep`` None without it)."""
         def f(z):
             out = residuals(z, args)
-            return out, out
+            return (out[:2] if has_aux else out), out
 
         jac, out = jax.jacfwd(f, has_aux=True)(y)
-        return (out[0], jac[0], jac[1]) if has_aux else (out, jac, None)
+        if not has_aux:
+            return out, jac, None, None
+        return out[0], jac[0], jac[1], (out[1], out[2] if has_keep else None)
 
     def loss_of(r):
         return 0.5 * jnp.sum(r * r)
@@ -309,31 +322,32 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         tr0 = {k: jnp.full((max_steps,), jnp.nan, ft) for k in names} if trace else None
         if trace:
             tr0["y"] = jnp.full((max_steps, y0.shape[0]), jnp.nan, ft)
-        # carry: y, r, J, loss, lambda, nu, step, done, result code, history
+        # carry: y, r, J, loss, lambda, nu, step, done, result code, history, trace, aux Jacobian, (aux, keep)
         if trials:
-            r0, j0, a0 = value_and_jac(y0)
+            r0, j0, a0, k0 = value_and_jac(y0)
             loss0 = loss_of(r0)
             ok0 = jnp.isfinite(loss0) & jnp.all(jnp.isfinite(j0))
             hist0 = jnp.full((max_steps + 1,), jnp.nan, ft).at[0].set(loss0)
             res0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
             carry0 = (y0, r0, j0, loss0, jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(0), ~ok0, res0, hist0, tr0,
-                      a0)
+                      a0, k0)
         else:
             # the residuals and Jacobian at y0 are the loop's own first pass (step -1, which is not
             # a step): the compiled program then holds the Jacobian's code once, not twice (a stored
             # executable's load time grows with its kernels)
-            out_struct = jax.eval_shape(lambda z: residuals(z, args), y0)
             r_struct = out_struct[0] if has_aux else out_struct
             r0 = jnp.zeros(r_struct.shape, r_struct.dtype)
             j0 = jnp.zeros(r_struct.shape + y0.shape, r_struct.dtype)
             a0 = jnp.zeros(out_struct[1].shape + y0.shape, out_struct[1].dtype) if has_aux else None
+            k0 = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), (out_struct[1], out_struct[2] if has_keep else None)) \
+                if has_aux else None
             hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
             carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
-                      jnp.array(False), optx.RESULTS.successful, hist0, tr0, a0)
+                      jnp.array(False), optx.RESULTS.successful, hist0, tr0, a0, k0)
         return MarquardtState(*carry0)
 
     def body(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept = c
         first = step < 0  # the first pass evaluates y0 itself (no step; see carry0)
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
@@ -358,7 +372,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             delta = v
         pred = -(g @ delta + 0.5 * delta @ (a @ delta))
         y_t = jnp.where(first, y, y + delta)
-        r_t, j_t, a_t = value_and_jac(y_t)
+        r_t, j_t, a_t, k_t = value_and_jac(y_t)
         loss_t = loss_of(r_t)
         finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t)) & jnp.all(jnp.isfinite(delta))
         rho = (loss - loss_t) / jnp.maximum(pred, tiny)
@@ -373,16 +387,17 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         y, r, jac, loss = (jnp.where(accept, a_new, a_old) for a_new, a_old in ((y_t, y), (r_t, r), (j_t, jac), (loss_t, loss)))
         if has_aux:
             aux_jac = jnp.where(accept, a_t, aux_jac)
+            kept = jax.tree_util.tree_map(lambda n, o: jnp.where(accept, n, o), k_t, kept)
         if trace:
             vals = {"lam": lam, "rho": rho, "pred": pred, "actual": c[3] - loss_t, "accept": accept.astype(ft),
                     "gn_pred": gauss_newton_left(a_s, g_s)}
             tr = {k: tr[k].at[step].set(vals[k]) for k in names} | {"y": tr["y"].at[step].set(jnp.where(accept, y_t, y))}
         hist = hist.at[step + 1].set(loss)
-        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr, aux_jac)
+        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr, aux_jac, kept)
         # the first pass: the start's residuals, Jacobian and loss, nothing else changes
         ok0 = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t))
         code0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10], a_t)
+        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10], a_t, k_t)
         code = optx.RESULTS.where(first, code0, code)
         pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
         pick[8] = code
@@ -391,7 +406,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
     factors = jnp.asarray(solver.lambda_trials, ft)
 
     def body_trials(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept = c
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         gn_pred = gauss_newton_left(a_s, g_s)
         # every trial damping at once: one small Cholesky each, one residual pass each
@@ -424,7 +439,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         near = ((gn_pred < loss_tol) & ~(loss - lt >= loss_tol)) if loss_tol > 0 else jnp.array(False)
         accept = jnp.isfinite(lt) & (lt <= loss) & (rho > 1e-4) & ~near
         y_new = jnp.where(accept, y + delta, y)
-        r_new, j_new, a_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac, aux_jac), y_new)
+        r_new, j_new, a_new, k_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac, aux_jac, kept), y_new)
         ok_j = jnp.all(jnp.isfinite(j_new))
         lam_new = jnp.where(accept, lk * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * jnp.max(factors) * nu / 2.0)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
@@ -445,6 +460,6 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         # a stop because the model says nothing is left is not a step
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
         return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr,
-                              a_new)
+                              a_new, k_new)
 
     return init, (body_trials if trials else body)
