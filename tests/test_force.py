@@ -380,3 +380,16 @@ def test_cli_train_predict_table(small_data, mlp_run, tmp_path, capsys):
     cfg.write_text('name = "x"\n[training]\nepochz = 3\n')
     assert main(["train", str(cfg)]) == 2
     assert "epochz: unknown key" in capsys.readouterr().err
+
+
+def test_a_test_capture_that_is_also_a_training_capture_is_refused(tmp_path):
+    """Training on the test set makes its MAE measure memory: a capture named in both lists (by another
+    path to the same file, or through a glob) is refused before anything is read."""
+    from tofjax.force.train import DataConfig, load_data
+
+    for name in ("a.h5", "b.h5"):
+        (tmp_path / name).write_bytes(b"not read")
+    same = DataConfig(train=(str(tmp_path / "*.h5"),), test=(str(tmp_path / "sub" / ".." / "b.h5"),))
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(ConfigError, match=r"data.test: .*b.h5 is also in data.train"):
+        load_data(same)

@@ -507,6 +507,9 @@ def _cases() -> list[Case]:
         "rig_bad_select": 'name = "r"\nscene = "optoskin"\nselect = "magic"\n[[sensors]]\nname = "S0"\n',
         "rig_no_sensors": 'name = "r"\nscene = "optoskin"\nbus = 1\n',
         "rig_sensor_count": 'name = "r"\nscene = "optoskin"\n[[sensors]]\nname = "S0"\n',
+        # a multiplexer address no I2C bus can carry (accepted before)
+        "rig_mux_address_out_of_range": 'name = "r"\nscene = "optoskin"\nselect = "mux"\nmux_address = 4096\n'
+        + "".join(f'[[sensors]]\nname = "S{i}"\nmux_channel = {i}\n' for i in range(6)),
     }.items():
         def argv(w, o, name=name, text=text):
             p = d(w) / f"{name}.toml"

@@ -41,6 +41,25 @@ def test_prune_touch_scene_needs_touch_and_shadowing():
     assert r.where["touch"][0] >= 0
 
 
+def test_prune_refuses_a_model_that_is_not_finite(optoskin, monkeypatch):
+    """A model that is NaN somewhere ranks nothing: a one-line error naming it, not a table of nan effects
+    that keeps every component. (Params refuse non-finite values and the scene checks refuse the scenes
+    that made NaN before, so the model is patched here to stand for one that still does.)"""
+    import tofjax.mc.prune as prune_mod
+    from tofjax.errors import UserError
+
+    real = prune_mod.evaluate
+
+    def nan_in_one_bin(model, params):
+        out = np.array(real(model, params), np.float64)
+        out[0, 0, 5] = np.nan
+        return out
+
+    monkeypatch.setattr(prune_mod, "evaluate", nan_in_one_bin)
+    with pytest.raises(UserError, match=r"not finite at its parameters \(model"):
+        prune_model(optoskin)
+
+
 def test_prune_options_validated():
     with pytest.raises(ConfigError, match="noise_floor"):
         PruneOptions(noise_floor=0)

@@ -68,6 +68,8 @@ BAD = [
     ("", "size_m = [0.30, 0.30]", "size_m = [0.30, -0.30]", "waveguide.size_m[1]: must be > 0"),
     ("", "size_m = [0.30, 0.30]", "size_m = [0.30]", "waveguide.size_m: expected a list of 2"),
     ("", "thickness_m = 0.005", "thickness_m = -0.005", "waveguide.thickness_m: must be > 0"),
+    ("", "thickness_m = 0.005", "thickness_m = 1e-300", "waveguide.thickness_m: must be in [1 um, 1 m]"),
+    ("", "size_m = [0.30, 0.30]", "size_m = [0.30, 1e-300]", "waveguide.size_m[1]: must be in [1 mm, 1 km]"),
     ("", "mu_s_per_m = 0.6", "mu_s_per_m = -0.6", "waveguide.mu_s_per_m: must be >= 0"),
     ("", "fov_deg = 29.0", "fov_deg = 0.0", "sensor.fov_deg: must be in (0, 180)"),
     ("", "fov_deg = 29.0", "fov_deg = -5", "sensor.fov_deg: must be in (0, 180)"),

@@ -103,7 +103,13 @@ class Waveguide:
         for i, s in enumerate(self.size_m):
             if s <= 0:
                 raise ConfigError(f"size_m[{i}]: must be > 0, got {s!r}")
+            if not 1e-3 <= s <= 1e3:
+                raise ConfigError(f"size_m[{i}]: must be in [1 mm, 1 km] (a skin's side), got {s!r}")
         _positive(self.thickness_m, "thickness_m")
+        if not 1e-6 <= self.thickness_m <= 1.0:
+            # thinner than a few wavelengths of the 940 nm light is no ray-optics guide; the near field and the
+            # Monte Carlo's steps are lengths of this order and fail on it (they named near_field_m before)
+            raise ConfigError(f"thickness_m: must be in [1 um, 1 m], got {self.thickness_m!r}")
         if self.n1 <= 1.0:
             raise ConfigError(f"n1: must be > 1 for total internal reflection in air, got {self.n1!r}")
         if self.n1 > 4.0:  # no waveguide material; far beyond it the model's light never returns (all-zero captures)

@@ -196,6 +196,11 @@ def load_data(cfg: DataConfig, *, progress: bool = False) -> tuple[list[Capture]
     """Training and test captures (simulated and cached, or read), their names, and where they came from."""
     if cfg.train:
         tr, te = _expand(cfg.train, "train"), _expand(cfg.test, "test")
+        seen = {p.resolve(): p for p in tr}
+        both = [str(p) for p in te if p.resolve() in seen]
+        if both:
+            raise ConfigError(f"data.test: {', '.join(both)} {'is' if len(both) == 1 else 'are'} also in data.train; "
+                              "a test capture must be unseen in training (its MAE would measure memory)")
         info = {"source": "captures"}
     else:
         d = Path(cfg.cache_dir) / protocol_key(cfg.protocol)

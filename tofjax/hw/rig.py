@@ -110,6 +110,9 @@ class Rig:
             raise ConfigError("sensors: with enable pins every sensor needs its own address")
         if self.select == "pins" and len(addrs) > 1 and P.ADDRESS in addrs:
             raise ConfigError(f"sensors: with enable pins no sensor may keep {P.ADDRESS:#x} (sensors power up there)")
+        if self.select == "mux" and not 0x08 <= self.mux_address <= 0x77:
+            raise ConfigError(f"mux_address: must be a 7-bit address in [0x08, 0x77] (a TCA9548A answers at 0x70-0x77), "
+                              f"got {self.mux_address:#x}")
         if self.select == "mux" and self.mux_address in addrs:
             raise ConfigError(f"mux_address {self.mux_address:#x} is also a sensor address")
 

@@ -21,6 +21,7 @@ import equinox as eqx
 import numpy as np
 
 from ..config import ConfigError
+from ..errors import UserError
 from ..model import ModelOptions, Params, build_model
 from ..model.forward import _trace_switches
 from ..scene import COMPONENTS, Scene
@@ -156,6 +157,11 @@ def prune_model(scene: Scene, options: PruneOptions = PruneOptions(), params: Pa
     params = Params.from_scene(scene, opts.jnp_dtype) if params is None else params
     comps = tuple(scene.components())
     full, diffs = _effects(scene, opts, comps, params)
+    bad = [c for c in ("model",) + tuple(diffs) if not np.all(np.isfinite(full if c == "model" else diffs[c]))]
+    if bad:
+        # effects of NaN would rank nothing and keep everything (printed as nan before the scene checks)
+        raise UserError(f"scene '{scene.name}': the model is not finite at its parameters ({', '.join(bad)}): "
+                        "no component's effect can be measured; check the scene's optics and sensor values")
     sigma = np.sqrt(np.maximum(full, 1.0) / options.frames)
 
     def effect(dropped):
