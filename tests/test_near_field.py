@@ -157,36 +157,32 @@ def test_double_wheres_hold_when_their_conditions_disagree(case, monkeypatch):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300, err_msg=f"{case}: wheres {flip} negated")
 
 
-def test_node_terms_derivative_as_a_matrix_product_equals_the_direct_one(optoskin, monkeypatch):
-    """``ForwardModel._node_terms`` gives the distributed terms' (K,) node densities a derivative
-    ``J @ dx`` (so XLA does not recompute their tangents for every sensor and zone): the masses and
-    their forward-mode, reverse-mode and second-order derivatives equal those of the direct
-    computation to rounding, with the near field's shape free (p = 3)."""
+def test_node_terms_derivative_as_a_matrix_product_equals_the_direct_one(optoskin):
+    """``linear_masses(..., node_jvp=True)`` (the calibration's forward-mode Jacobian) gives the
+    distributed terms' (K,) node densities a derivative ``J @ dx`` (so XLA does not recompute their
+    tangents for every sensor and zone): the masses and their forward-mode, reverse-mode and
+    second-order derivatives equal those of the direct computation to rounding, with the near
+    field's shape free (p = 3)."""
     from tofjax.model import Params, build_model
-    from tofjax.model.forward import ForwardModel
 
     # every scalar parameter but the pulse's and the edge's (written out: a list the model forgot would pass)
-    NODE_SCALARS = ("n1", "emission_time_s", "near_field_m", "near_field_shape", "mu_s_per_m", "mu_a_per_m",
+    node_scalars = ("n1", "emission_time_s", "near_field_m", "near_field_shape", "mu_s_per_m", "mu_a_per_m",
                     "interface_backscatter_per_m", "volume_backscatter_fraction", "multiple_scattering")
-
     model = build_model(optoskin)
     p = Params.from_scene(optoskin, jnp.float64).replace(near_field_shape=jnp.asarray(3.0))
-    x0 = jnp.stack([getattr(p, k) for k in NODE_SCALARS] + [p.end_reflectance])
-
-    def masses(x):  # (the masses are at unit gain)
-        q = p.replace(**{k: x[i] for i, k in enumerate(NODE_SCALARS)}, end_reflectance=x[-1])
-        return model.linear_masses(q)[0]
-
-    def loss(x):
-        return jnp.sum(model(p.replace(**{k: x[i] for i, k in enumerate(NODE_SCALARS)})) ** 2)
-
+    x0 = jnp.stack([getattr(p, k) for k in node_scalars] + [p.end_reflectance])
     v = jnp.linspace(0.5, 1.5, x0.shape[0]) * jnp.abs(x0)
-    got = [jax.jit(masses)(x0), jax.jit(jax.jacfwd(masses))(x0), jax.jit(jax.grad(loss))(x0[: len(NODE_SCALARS)]),
-           jax.jit(lambda x: jax.jvp(lambda y: jax.jvp(masses, (y,), (v,))[1], (x,), (v,))[1])(x0)]
-    monkeypatch.setattr(ForwardModel, "_node_terms", ForwardModel._node_terms_direct)
-    want = [jax.jit(masses)(x0), jax.jit(jax.jacfwd(masses))(x0), jax.jit(jax.grad(loss))(x0[: len(NODE_SCALARS)]),
-            jax.jit(lambda x: jax.jvp(lambda y: jax.jvp(masses, (y,), (v,))[1], (x,), (v,))[1])(x0)]
-    np.testing.assert_array_equal(np.asarray(got[0]), np.asarray(want[0]))
+
+    def pieces(node_jvp):
+        def masses(x):  # (at unit gain)
+            q = p.replace(**{k: x[i] for i, k in enumerate(node_scalars)}, end_reflectance=x[-1])
+            return model.linear_masses(q, node_jvp=node_jvp)[0]
+
+        return [jax.jit(masses)(x0), jax.jit(jax.jacfwd(masses))(x0), jax.jit(jax.grad(lambda x: jnp.sum(masses(x) ** 2)))(x0),
+                jax.jit(lambda x: jax.jvp(lambda y: jax.jvp(masses, (y,), (v,))[1], (x,), (v,))[1])(x0)]
+
+    got, want = pieces(True), pieces(False)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-13, atol=1e-300)  # the same ops, fused apart
     for i, (g, w) in enumerate(zip(got[1:], want[1:])):
         g, w = np.asarray(g), np.asarray(w)
         assert np.all(np.isfinite(g))

@@ -581,7 +581,7 @@ def _parts_jvp(problem, unravel, primals, tangents):
 
     q, B = model.options.quadrature, model.n_bins
     has_cross = "crosstalk" in model.components
-    stack, j_mass = sub_jac(lambda p: model.linear_masses(p, sep)[0], i_mass)
+    stack, j_mass = sub_jac(lambda p: model.linear_masses(p, sep, node_jvp=True)[0], i_mass)
     kernels, j_kern = sub_jac(model.pulse_kernels, i_pulse)
     binned = apply_kernels(stack, kernels, B, q)  # (parts, S, Z, B)
     # d binned = apply(d masses, K) + apply(masses, d K)

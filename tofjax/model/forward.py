@@ -163,8 +163,10 @@ class ForwardModel(eqx.Module):
             edge_cos=self.edge_cos,
         )
 
-    def _node_masses(self, params: Params, separate: bool = False) -> dict[str, jax.Array]:
-        """Counts at the time nodes, before the pulse: summed, or per component with ``separate``."""
+    def _node_masses(self, params: Params, separate: bool = False, node_jvp: bool = False) -> dict[str, jax.Array]:
+        """Counts at the time nodes, before the pulse: summed, or per component with ``separate``.
+        ``node_jvp``: the distributed terms' node densities with their forward derivative as a matrix
+        product (:meth:`_node_terms`; for forward-mode Jacobians, same values)."""
         ctx = self._context(params)
         if self.guided is not None:
             from .guided import guided_node_masses
@@ -180,7 +182,7 @@ class ForwardModel(eqx.Module):
             coverage = params.gain[:, None, None] * jnp.clip(1.0 - ended, 0.0, 1.0)
             if shadow_ctx.contacts is not None:
                 coverage = coverage * C.shadow(jnp.broadcast_to(ctx.range, coverage.shape), ctx.contacts, params)
-            densities, offset = self._node_terms(params, dist)
+            densities, offset = (self._node_terms if node_jvp else self._node_terms_direct)(params, dist)
             if separate:
                 out.update({n: C.smooth_like_deposit(coverage * d, offset) for n, d in densities.items()})
             else:
@@ -215,7 +217,11 @@ class ForwardModel(eqx.Module):
         masses' Jacobian by the fit's 9 model coordinates took 10 ms, 20x their value. Here the
         derivative is ``J @ dx``, ``J`` the (K, scalars) Jacobian computed once: the product is a
         separate kernel, so the tangents are materialised before they meet the sensors and zones.
-        Values are exactly :meth:`_node_terms_direct`'s; derivatives equal to rounding (tested)."""
+        Values are exactly :meth:`_node_terms_direct`'s; derivatives equal to rounding (tested).
+
+        For forward-mode Jacobians only (``node_jvp=True``: the calibration's structured Jacobian,
+        :func:`tofjax.fit._problem._parts_jvp`): differentiated in reverse mode the product's ``J``
+        costs a forward pass per scalar, and the model's value and gradient took 1.17x as long."""
         x = jnp.stack([jnp.asarray(getattr(params, k), params.n1.dtype) for k in NODE_SCALARS])
 
         def direct(x, params):
@@ -314,7 +320,7 @@ class ForwardModel(eqx.Module):
     def _unit(self, params: Params) -> Params:
         return params.replace(gain=jnp.ones_like(params.gain), crosstalk_counts=jnp.ones_like(params.crosstalk_counts))
 
-    def linear_masses(self, params: Params, separate_end: bool = False) -> tuple[jax.Array, bool]:
+    def linear_masses(self, params: Params, separate_end: bool = False, node_jvp: bool = False) -> tuple[jax.Array, bool]:
         """The node masses behind :meth:`linear_parts`, before the pulse: ``(stack, has_cross)``,
         ``stack`` (1 or 2, S, Z, K) (``R`` and, with ``separate_end``, ``E``) and whether the
         scene has the light-entry peak. Pieces of :meth:`linear_parts` so a calibration can
@@ -326,7 +332,7 @@ class ForwardModel(eqx.Module):
         unit = self._unit(params)
         if separate_end:
             unit = unit.replace(end_reflectance=1.0)
-        masses = self._node_masses(unit)
+        masses = self._node_masses(unit, node_jvp=node_jvp)
         zero = jnp.zeros((S, Z, B * self.options.quadrature), params.n1.dtype)
         has_cross = masses.pop("crosstalk", None) is not None
         parts = []
