@@ -19,34 +19,10 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from ..jvp import dense_jvp  # re-exported: the fit's non-Marquardt solvers drive their residuals through it
+
 __all__ = ["MarquardtLM", "MarquardtState", "SolveResult", "dense_jvp", "marquardt_advance", "marquardt_init", "marquardt_solution",
            "solve_marquardt", "solve_with_history"]
-
-
-def dense_jvp(fn):
-    """``fn(y, args)`` (y a flat vector) whose forward-mode derivative is a dense Jacobian
-    computed once: the primal pass builds ``J = jacfwd(fn)`` and the tangent is ``J @ dy``.
-
-    Gauss-Newton-type solvers in optimistix ``jax.linearize`` the residuals and then apply
-    the linearisation many times per step (to materialise it for the QR solve, to predict
-    the reduction); every application re-runs the model's tangent, and the loop carries all
-    the linearisation's intermediates. With this wrapper a step costs one Jacobian (a
-    batched forward pass over the few parameters) and carries only ``J``. Derivatives with
-    respect to ``args`` are not propagated (the solvers differentiate ``y`` only).
-    """
-
-    @jax.custom_jvp
-    def wrapped(y, args):
-        return fn(y, args)
-
-    @wrapped.defjvp
-    def _jvp(primals, tangents):
-        y, args = primals
-        dy, _ = tangents
-        jac, out = jax.jacfwd(lambda z: (fn(z, args), fn(z, args)), has_aux=True)(y)
-        return out, jac @ dy
-
-    return wrapped
 
 
 class SolveResult(NamedTuple):
