@@ -479,8 +479,10 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
 
 
 def _fit_inputs(problem, start, data, sigma, prior_params, anchor):
-    """``(f0, unravel, args)`` of one fit: the profiled start flattened, its unravel, and the
-    objective's ``args = (p0, data, sigma, prior)`` (the prior holds the timing anchor)."""
+    """``(f0, unravel, args)`` of one fit: the start's nonlinear coordinates flattened, their unravel,
+    and the objective's ``args = (p0, data, sigma, prior)`` (the prior holds the timing anchor).
+    ``p0`` is the start itself: the residuals profile every linear value afresh, so a profile of
+    the start here (what it was) changed nothing but the compiled program's size."""
     p0 = start
     u0 = problem.pack_jax(p0, problem.nonlinear)
     prior = problem.pack_jax(prior_params, problem.nonlinear)

@@ -218,11 +218,16 @@ class ForwardModel(eqx.Module):
         masses' Jacobian by the fit's 9 model coordinates took 10 ms, 20x their value. Here the
         derivative is ``J @ dx``, ``J`` the (K, scalars) Jacobian computed once: the product is a
         separate kernel, so the tangents are materialised before they meet the sensors and zones.
-        Values are exactly :meth:`_node_terms_direct`'s; derivatives equal to rounding (tested).
+        The same computation (values equal to rounding: fused apart); derivatives equal to rounding
+        (tested).
 
-        For forward-mode Jacobians only (``node_jvp=True``: the calibration's structured Jacobian,
-        :func:`tofjax.fit._problem._parts_jvp`): differentiated in reverse mode the product's ``J``
-        costs a forward pass per scalar, and the model's value and gradient took 1.17x as long."""
+        Opt-in (``node_jvp=True``), taken by the calibration's structured Jacobian
+        (:func:`tofjax.fit._problem._parts_jvp`), the one forward-mode Jacobian by these scalars.
+        Reverse mode through it computes ``J`` (a forward pass per scalar) where the direct
+        derivative needs one backward pass: the masses' value and gradient by four scalars took
+        1.2x as long, their forward Jacobian by the same four 0.25x
+        (``experiments/node_terms_jvp.py``, ``docs/results/node_terms_jvp_modes.json``); elsewhere
+        the scalars' tangents are mostly zero and ``J`` would be computed for nothing."""
         x = jnp.stack([jnp.asarray(getattr(params, k), params.n1.dtype) for k in NODE_SCALARS])
 
         def direct(x, params):  # the terms depend on ``params`` only through the scalars in ``x``
