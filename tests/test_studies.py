@@ -68,3 +68,17 @@ def test_tree_compare_refuses_bad_arguments(tmp_path):
             study.main(argv)
         assert e.value.code == 2
     assert not (tmp_path / "x.json").exists()
+
+
+def test_node_terms_jvp_benchmark_fast(tmp_path):
+    """experiments/node_terms_jvp.py with one round of two calls: its record, and the two derivatives' Jacobians agree."""
+    study = load("node_terms_jvp")
+    for argv in ([], ["--out", str(tmp_path / "x.json"), "--rounds", "0"]):
+        with pytest.raises(SystemExit) as e:
+            study.main(argv)
+        assert e.value.code == 2
+    assert study.main(["--out", str(tmp_path / "n.json"), "--rounds", "1", "--calls", "2"]) == 0
+    rec = json.loads((tmp_path / "n.json").read_text())
+    assert set(rec["median_s"]) == {"reverse_direct", "reverse_matrix_product", "jacfwd4_direct", "jacfwd4_matrix_product"}
+    assert all(v > 0 for v in rec["median_s"].values())
+    assert rec["jacobian_max_relative_difference"] < 1e-10
