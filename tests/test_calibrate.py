@@ -851,3 +851,32 @@ def test_laplace_pieces_from_the_fits_own_jacobians(small, zone_gain):
         np.testing.assert_allclose(np.asarray(sol.linear[k]), np.asarray(lin_ref[k]), rtol=1e-9, atol=1e-12)
     for a, b in zip(jax.tree_util.tree_leaves(sol.params), jax.tree_util.tree_leaves(p_ref)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+
+
+def test_envelope_grid_rows_and_columns_are_the_grid_points(small):
+    """The envelope grid (two nested vmaps: what depends on n1 alone computed once per n1) gives at
+    entry (j, i) the profiled chi-square at (n1[j], mu_t[i]), the albedo held: checked against
+    single points, to rounding."""
+    import importlib
+
+    import jax.numpy as jnp
+
+    C = importlib.import_module("tofjax.fit.calibrate")
+    S = importlib.import_module("tofjax.fit._start")
+    cfg = FitConfig()
+    scene = small.without_touches()
+    problem = build_problem(scene, cfg)
+    cap = simulate(scene, 20, seed=3)
+    dtype = problem.model.geometry.ray_length.dtype
+    data, sigma = C._data(cap, dtype)
+    start = C.base_params(scene, cfg, dtype)
+    n1 = jnp.asarray([1.38, 1.42, 1.47], dtype)
+    mu_t = jnp.asarray([0.05, 0.7, 4.0, 20.0], dtype)
+    grid = np.asarray(S.envelope_grid(problem, start, data, sigma, n1, mu_t))
+    assert grid.shape == (3, 4) and np.all(np.isfinite(grid))
+    albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
+    for j, i in [(0, 0), (1, 2), (2, 3), (2, 1)]:
+        p = start.replace(n1=n1[j], mu_s_per_m=mu_t[i] * albedo, mu_a_per_m=mu_t[i] * (1 - albedo))
+        _, m, _, _ = problem.profile(p, data, sigma)
+        np.testing.assert_allclose(grid[j, i], float(np.sum(((np.asarray(m) - np.asarray(data)) / np.asarray(sigma)) ** 2)),
+                                   rtol=1e-9)

@@ -135,8 +135,10 @@ def timing_start(problem: CalibrationProblem, data: np.ndarray, frames: int, sce
 
 @eqx.filter_jit
 def envelope_grid(problem: CalibrationProblem, start: Params, data, sigma, n1, mu_t):
-    """Step 2: profiled chi-square at every (n1, mu_t) pair (flat arrays of equal length),
-    the albedo and everything else held at ``start``; one compiled, vmapped call."""
+    """Step 2: profiled chi-square on the grid ``n1`` (N,) x ``mu_t`` (M,), returned (N, M), the
+    albedo and everything else held at ``start``; one compiled call of two nested vmaps, so what
+    depends on n1 alone (the node integrals of the near field, the rays past the far edge) is
+    computed once per n1, not once per grid point."""
     albedo = start.mu_s_per_m / (start.mu_s_per_m + start.mu_a_per_m)
 
     def chi2(n, mt):
@@ -148,7 +150,7 @@ def envelope_grid(problem: CalibrationProblem, start: Params, data, sigma, n1, m
         c = jnp.sum(((m - data) / sigma) ** 2)
         return jnp.where(jnp.isfinite(c), c, jnp.inf)
 
-    return jax.vmap(chi2)(n1, mu_t)
+    return jax.vmap(lambda n: jax.vmap(lambda mt: chi2(n, mt))(mu_t))(n1)
 
 
 def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma, count: int, with_basins: bool = False):
@@ -169,8 +171,9 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     n = np.asarray([g[0] for g in grid])
     m = np.asarray([g[1] for g in grid])
     dt = start.n1.dtype
+    n_axis = np.asarray([n1_0 * (1 + dn) for dn in ENVELOPE_N1])  # the same values as ``n``, row by row
     chi = np.asarray(_stored("calibration envelope grid", envelope_grid,
-                             (problem, start, data, sigma, jnp.asarray(n, dt), jnp.asarray(m, dt))))
+                             (problem, start, data, sigma, jnp.asarray(n_axis, dt), jnp.asarray(ENVELOPE_MU_T, dt))))
     # the sum in NumPy (same dtype, same rounding): a JAX add would compile a small program in a new process
     albedo = float(start.mu_s_per_m) / float(np.asarray(start.mu_s_per_m) + np.asarray(start.mu_a_per_m))
     order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
