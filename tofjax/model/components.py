@@ -286,11 +286,19 @@ def smooth_like_deposit(masses, offset=None):
         d = jnp.broadcast_to(offset, masses.shape)
         var = 0.0
     # three weights with mean d and variance 1/4 + var (second moment 1/4 + var + d^2 <= 1/2),
-    # all non-negative for |d| <= 1/2 and var <= 1/4 - d^2
+    # all non-negative for |d| <= 1/2 and var <= 1/4 - d^2: what stays, what goes to the node
+    # before, what goes to the node after
     second = 0.25 + var + d**2
-    early = jnp.pad(masses * 0.5 * (second - d), pad)  # to the node before
-    late = jnp.pad(masses * 0.5 * (second + d), pad)  # to the node after
-    return masses * (1.0 - second) + early[..., 2:] + late[..., :-2]
+    shares = jnp.stack([masses * (1.0 - second), masses * 0.5 * (second - d), masses * 0.5 * (second + d)], axis=-2)
+    # summed by a 3-tap convolution (out[k] = stay[k] + before[k + 1] + after[k - 1]), not by shifted
+    # slices: XLA fuses slices into their consumer and recomputed the shares' operand (and, in a
+    # Jacobian, its tangents) at all three places; a convolution's operand is computed once
+    # (the calibration's step 4.8 against 6.0 ms; equal to 2e-16)
+    K = masses.shape[-1]
+    taps = jnp.asarray([[[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]], masses.dtype)  # (out 1, in 3, width 3)
+    rows = math.prod(masses.shape[:-1])
+    out = jax.lax.conv_general_dilated(shares.reshape((rows, 3, K)), taps, (1,), [(1, 1)], dimension_numbers=("NCH", "OIH", "NCH"))
+    return out.reshape(masses.shape)
 
 
 def node_falloff_after_emission(nodes: Nodes, near_field, shape=2.0):
