@@ -297,7 +297,9 @@ def smooth_like_deposit(masses, offset=None):
     K = masses.shape[-1]
     taps = jnp.asarray([[[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]], masses.dtype)  # (out 1, in 3, width 3)
     rows = math.prod(masses.shape[:-1])
-    out = jax.lax.conv_general_dilated(shares.reshape((rows, 3, K)), taps, (1,), [(1, 1)], dimension_numbers=("NCH", "OIH", "NCH"))
+    # HIGHEST: a float32 convolution on a GPU may round its inputs to TF32 (10 bits); the sum must stay exact
+    out = jax.lax.conv_general_dilated(shares.reshape((rows, 3, K)), taps, (1,), [(1, 1)], dimension_numbers=("NCH", "OIH", "NCH"),
+                                       precision=jax.lax.Precision.HIGHEST)
     return out.reshape(masses.shape)
 
 
