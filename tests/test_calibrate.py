@@ -814,24 +814,30 @@ def test_a_guided_switch_keys_the_fits_programs(monkeypatch):
     assert out[0].sum() > out[1].sum() > 0  # the walls' later bounces add light
 
 
+def _fit_pieces(small, cfg, seed):
+    """What one fit of the small scene's simulated 20-frame baseline starts from: ``(calibrate module,
+    scene, problem, capture, data, sigma, base parameters)``."""
+    import importlib
+
+    C = importlib.import_module("tofjax.fit.calibrate")
+    scene = small.without_touches()
+    problem = build_problem(scene, cfg)
+    cap = simulate(scene, 20, seed=seed)
+    dtype = problem.model.geometry.ray_length.dtype
+    data, sigma = C._data(cap, dtype)
+    return C, scene, problem, cap, data, sigma, C.base_params(scene, cfg, dtype)
+
+
 @pytest.mark.parametrize("zone_gain", [True, False])
 def test_laplace_pieces_from_the_fits_own_jacobians(small, zone_gain):
     """The default fit (Marquardt LM on the chi-square) takes its Laplace pieces from the Jacobians it
     already has at the optimum (the profiled residuals' and the profiled linear values', chain rule):
     the same J^T J as differentiating the full residuals again (``CalibrationProblem.laplace``), to
     rounding, and the same d(physical)/d(coordinates)."""
-    import importlib
-
     import jax
 
-    C = importlib.import_module("tofjax.fit.calibrate")
     cfg = FitConfig(zone_gain=zone_gain)
-    scene = small.without_touches()
-    problem = build_problem(scene, cfg)
-    cap = simulate(scene, 20, seed=5)
-    dtype = problem.model.geometry.ray_length.dtype
-    data, sigma = C._data(cap, dtype)
-    base = C.base_params(scene, cfg, dtype)
+    C, scene, problem, cap, data, sigma, base = _fit_pieces(small, cfg, seed=5)
     _, _, anchor, starts, _, _ = C._starts(problem, cfg, scene, cap, data, sigma, base)
     assert C._cov_in_fit(cfg.make_objective(), cfg.make_solver())
     sol = C.fit_problem(problem, cfg.make_objective(), cfg.make_solver(), starts[0], data, sigma, base, anchor,
@@ -861,15 +867,9 @@ def test_envelope_grid_rows_and_columns_are_the_grid_points(small):
 
     import jax.numpy as jnp
 
-    C = importlib.import_module("tofjax.fit.calibrate")
     S = importlib.import_module("tofjax.fit._start")
-    cfg = FitConfig()
-    scene = small.without_touches()
-    problem = build_problem(scene, cfg)
-    cap = simulate(scene, 20, seed=3)
+    _, _, problem, _, data, sigma, start = _fit_pieces(small, FitConfig(), seed=3)
     dtype = problem.model.geometry.ray_length.dtype
-    data, sigma = C._data(cap, dtype)
-    start = C.base_params(scene, cfg, dtype)
     n1 = jnp.asarray([1.38, 1.42, 1.47], dtype)
     mu_t = jnp.asarray([0.05, 0.7, 4.0, 20.0], dtype)
     grid = np.asarray(S.envelope_grid(problem, start, data, sigma, n1, mu_t))

@@ -358,19 +358,29 @@ class CalibrationProblem(eqx.Module):
             parts.append(jnp.ravel((self.transform("n1").to_physical(u["n1"]) - centre) / width))
         return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.result_type(float))
 
-    def profiled_model(self, u, base: Params, data, sigma):
+    def _profiled(self, u, base: Params, data, sigma):
+        """``(params, model, linear, parts)`` at the coordinates ``u``: the profiled parameters,
+        the model at them, the linear values by name and the model's parts
+        (:meth:`_linear_parts`; None without linear parameters)."""
         params = self.unpack(u, base)
         if not self.linear:
-            return params, self.model(params), {}
-        p, m, _, lin = self.profile(params, data, sigma, self._parts_of(u, base))
-        return p, m, lin
+            return params, self.model(params), {}, None
+        parts = self._parts_of(u, base)
+        p, m, _, lin = self.profile(params, data, sigma, parts)
+        return p, m, lin, parts
+
+    def profiled_model(self, u, base: Params, data, sigma):
+        return self._profiled(u, base, data, sigma)[:3]
+
+    def _residual_vector(self, u, m, data, sigma, prior):
+        """The Poisson-weighted data residuals of the model ``m``, then the prior's."""
+        data_part = ((m - data) / sigma).ravel()
+        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
 
     def residuals(self, u, args):
         """Profiled, Poisson-weighted residuals and the prior; ``args = (base, data, sigma, prior)``."""
         base, data, sigma, prior = args
-        _, m, _ = self.profiled_model(u, base, data, sigma)
-        data_part = ((m - data) / sigma).ravel()
-        return jnp.concatenate([data_part.astype(jnp.result_type(float)), self.prior_residuals(u, prior)])
+        return self._residual_vector(u, self.profiled_model(u, base, data, sigma)[1], data, sigma, prior)
 
     def deviance(self, u, args):
         """Poisson deviance per bin of the profiled model, plus the prior."""
@@ -468,17 +478,10 @@ class CalibrationProblem(eqx.Module):
         keeps both Jacobians and the profiled point (:meth:`laplace_from_fit`): its end evaluates
         no model of its own."""
         base, data, sigma, prior = args
-        params = self.unpack(u, base)
-        if self.linear:
-            parts = self._parts_of(u, base)
-            params, m, _, lin = self.profile(params, data, sigma, parts)
-        else:
-            parts, m, lin = None, self.model(params), {}
-        data_part = ((m - data) / sigma).ravel()
+        params, m, lin, parts = self._profiled(u, base, data, sigma)
         ft = jnp.result_type(float)
-        r = jnp.concatenate([data_part.astype(ft), self.prior_residuals(u, prior)])
         flat = jnp.concatenate([jnp.ravel(lin[k]).astype(ft) for k in sorted(lin)] or [jnp.zeros((0,), ft)])
-        return r, flat, (params, lin, parts)
+        return self._residual_vector(u, m, data, sigma, prior), flat, (params, lin, parts)
 
     def laplace_from_fit(self, params: Params, linear: dict, jac, jac_linear, sigma, parts=None):
         """:meth:`laplace`'s pieces from the fit's own Jacobians at the optimum, no new derivative:

@@ -167,21 +167,18 @@ def envelope_candidates(problem: CalibrationProblem, start: Params, data, sigma,
     The two ends of the grid never count as a basin's minimum here (a profile still falling
     at 30 /m is the light-entry peak alone, not a guide)."""
     n1_0 = float(start.n1)
-    grid = [(n1_0 * (1 + dn), mt) for dn in ENVELOPE_N1 for mt in ENVELOPE_MU_T]
-    n = np.asarray([g[0] for g in grid])
-    m = np.asarray([g[1] for g in grid])
+    n_axis = np.asarray([n1_0 * (1 + dn) for dn in ENVELOPE_N1])
+    m_axis = np.asarray(ENVELOPE_MU_T)
     dt = start.n1.dtype
-    n_axis = np.asarray([n1_0 * (1 + dn) for dn in ENVELOPE_N1])  # the same values as ``n``, row by row
     chi = np.asarray(_stored("calibration envelope grid", envelope_grid,
-                             (problem, start, data, sigma, jnp.asarray(n_axis, dt), jnp.asarray(ENVELOPE_MU_T, dt))))
+                             (problem, start, data, sigma, jnp.asarray(n_axis, dt), jnp.asarray(m_axis, dt))))
     # the sum in NumPy (same dtype, same rounding): a JAX add would compile a small program in a new process
     albedo = float(start.mu_s_per_m) / float(np.asarray(start.mu_s_per_m) + np.asarray(start.mu_a_per_m))
-    order, n_basins = basin_order(chi.reshape(len(ENVELOPE_N1), len(ENVELOPE_MU_T)))
+    order, n_basins = basin_order(chi)
     out = []
     for j, i in order[:count]:
-        k = j * len(ENVELOPE_MU_T) + i
-        out.append(start.replace(n1=np.asarray(n[k], dt), mu_s_per_m=np.asarray(m[k] * albedo, dt),
-                                 mu_a_per_m=np.asarray(m[k] * (1 - albedo), dt)))  # arrays: no small program to compile
+        out.append(start.replace(n1=np.asarray(n_axis[j], dt), mu_s_per_m=np.asarray(m_axis[i] * albedo, dt),
+                                 mu_a_per_m=np.asarray(m_axis[i] * (1 - albedo), dt)))  # arrays: no small program to compile
     if with_basins:
         return (out or [start]), max(min(n_basins, len(out)), 1)
     return out or [start]

@@ -480,15 +480,14 @@ def base_params(scene: Scene, config: FitConfig, dtype) -> Params:
 
 def _fit_inputs(problem, start, data, sigma, prior_params, anchor):
     """``(f0, unravel, args)`` of one fit: the start's nonlinear coordinates flattened, their unravel,
-    and the objective's ``args = (p0, data, sigma, prior)`` (the prior holds the timing anchor).
-    ``p0`` is the start itself: the residuals profile every linear value afresh, so a profile of
-    the start here (what it was) changed nothing but the compiled program's size."""
-    p0 = start
-    u0 = problem.pack_jax(p0, problem.nonlinear)
+    and the objective's ``args = (start, data, sigma, prior)`` (the prior holds the timing anchor).
+    The start is not profiled here: the residuals profile every linear value afresh, so a profile
+    of the start (what it was) changed nothing but the compiled program's size."""
+    u0 = problem.pack_jax(start, problem.nonlinear)
     prior = problem.pack_jax(prior_params, problem.nonlinear)
     prior["n1_anchor"] = anchor
     f0, unravel = jax.flatten_util.ravel_pytree(u0)
-    return f0, unravel, (p0, data, sigma, prior)
+    return f0, unravel, (start, data, sigma, prior)
 
 
 def _solver_loss_tol(objective, loss_tol, n_data):

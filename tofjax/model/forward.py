@@ -143,9 +143,14 @@ class ForwardModel(eqx.Module):
         S, Z, _ = self.geometry.ray_length.shape
         return (S, Z, self.n_bins)
 
-    def _context(self, params: Params) -> _Context:
+    def _node_grid(self, params: Params):
+        """The time nodes, their one-way range clipped at 0 and the round-trip transmittance there."""
         nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
         r = jnp.maximum(nodes.r, 0.0)
+        return nodes, r, C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m)
+
+    def _context(self, params: Params) -> _Context:
+        nodes, r, trans = self._node_grid(params)
         wants_contacts = ("touch" in self.components or "shadowing" in self.components) and params.n_touches
         return _Context(
             params=params,
@@ -156,7 +161,7 @@ class ForwardModel(eqx.Module):
             # (with the near field's shape); the guided optics' interface term uses it, and the
             # guided optics have no near-field shape (p = 2, FitConfig refuses it free there)
             falloff=C.node_falloff(nodes, params.near_field_m),
-            transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m),
+            transmittance=trans,
             end_times=params.emission_time_s + 2.0 * self.geometry.ray_length / nodes.c1,
             contacts=C.contact_geometry(self.geometry, params) if wants_contacts else None,
             shadowing="shadowing" in self.components,
@@ -200,11 +205,9 @@ class ForwardModel(eqx.Module):
         sits: ``({name: (K,)}, NodeSpread)``, functions of the scalar parameters alone (G over the
         part of each node after emission, exactly, and where in the node that mass sits: the near
         field is about one node deep, its timing is the emission time's)."""
-        nodes = C.make_nodes(params, self.bin_width_s, self.n_bins, self.options.quadrature)
-        r = jnp.maximum(nodes.r, 0.0)
+        nodes, r, trans = self._node_grid(params)
         fall, offset = C.node_falloff_after_emission(nodes, params.near_field_m, params.near_field_shape)
-        ctx = _Context(params=params, geom=None, nodes=nodes, range=r, falloff=fall,
-                       transmittance=C.transmittance(r, params.mu_s_per_m + params.mu_a_per_m), end_times=None,
+        ctx = _Context(params=params, geom=None, nodes=nodes, range=r, falloff=fall, transmittance=trans, end_times=None,
                        contacts=None, shadowing=False, touch_samples=self.options.touch_samples)
         return {n: C.DISTRIBUTED[n](ctx) for n in names}, offset
 
