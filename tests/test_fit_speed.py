@@ -210,3 +210,57 @@ def test_lambda_trials_never_report_success_far_from_the_minimum():
         assert not ok or loss < 1e-2, (a, loss, int(out.steps))
         assert ok or out.result == optx.RESULTS.nonlinear_max_steps_reached
     assert codes[0]  # the easiest valley is followed to its minimum
+
+
+def _large_residual(x, a):
+    """Dennis and Schnabel's large-residual problem (their example 10.2.4: ``(x + 1, a x^2 + x - 1)``,
+    where Gauss-Newton does not converge locally for ``|a| > 1``) with a second, coupled coordinate."""
+    return jnp.stack([x[0] + 1.0, a * x[0] ** 2 + x[0] - 1.0, 0.1 * (x[1] - 2.0), x[1] * x[0]])
+
+
+@pytest.mark.parametrize("a, trials", [(-2.0, ()), (2.0, ()), (2.0, (0.1, 1.0, 10.0))])
+def test_secant_term_takes_fewer_steps_to_the_same_optimum_on_a_large_residual_problem(a, trials):
+    """``MarquardtLM(secant=True)``: where the residuals' own curvature is as large as ``J^T J``'s
+    (here beyond it, so Gauss-Newton alone zigzags), the structured secant term reaches the same
+    optimum (scipy's to 1e-6) in at most two thirds of the steps without it, in both loop bodies
+    (measured: 43 -> 24 and 54 -> 22 steps; with ``lambda_trials`` 53 -> 20)."""
+    x0 = jnp.array([1.0, 1.0])
+    runs = {}
+    for sec in (False, True):
+        solver = MarquardtLM(rtol=1e-10, atol=1e-10, secant=sec, lambda_trials=trials)
+        runs[sec] = jax.jit(lambda y, s=solver: solve_marquardt(_large_residual, s, y, a, max_steps=300))(x0)
+        assert runs[sec].result == optx.RESULTS.successful
+    ref = least_squares(lambda p: np.asarray(_large_residual(jnp.asarray(p), a)), np.asarray(x0), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    for out in runs.values():
+        np.testing.assert_allclose(np.asarray(out.value), ref.x, rtol=0, atol=1e-6)
+        h = np.asarray(out.history)[: int(out.steps) + 1]
+        assert np.all(np.diff(h) <= 0)
+    assert int(runs[True].steps) <= (2 * int(runs[False].steps)) // 3
+
+
+def test_secant_update_satisfies_the_secant_equation_and_sizes_down():
+    """The Dennis-Gay-Welsch update after an accepted step ``s`` gives ``S s = (J_t - J)^T r_t``
+    (the secant equation) and stays symmetric; a rejected step leaves ``S`` as it was."""
+    from tofjax.fit.solve import _secant_update
+
+    rng = np.random.default_rng(3)
+    n, m = 4, 9
+    jac, j_t = jnp.asarray(rng.standard_normal((m, n))), jnp.asarray(rng.standard_normal((m, n)))
+    r, r_t = jnp.asarray(rng.standard_normal(m)), jnp.asarray(rng.standard_normal(m))
+    g, a = jac.T @ r, jac.T @ jac
+    s_ = jnp.asarray(rng.standard_normal(n))
+    # a step along which the gradient grows (y_g . s > 0), as on an accepted step of a convex model
+    j_t = jac + 0.1 * (j_t - jac)
+    r_t = r + jac @ s_
+    A0 = jnp.asarray(rng.standard_normal((n, n)))
+    tiny = jnp.finfo(jnp.float64).tiny
+    assert float((j_t.T @ r_t - g) @ s_) > 0
+    y_sharp = (j_t - jac).T @ r_t
+    for scale in (0.01, 100.0):  # 100: the old estimate is sized down first (tau < 1)
+        S0 = scale * (A0 + A0.T)
+        S1, _ = _secant_update((S0, jnp.array(False)), g, a, s_, r_t, j_t, jac, 1.0, jnp.array(True), jnp.array(True), tiny)
+        np.testing.assert_allclose(np.asarray(S1 @ s_), np.asarray(y_sharp), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(S1), np.asarray(S1.T), rtol=0, atol=1e-14 * scale)
+    assert abs(float(s_ @ (S0 @ s_))) > abs(float(s_ @ y_sharp))  # the large one was sized down
+    S2, use = _secant_update((S0, jnp.array(True)), g, a, s_, r_t, j_t, jac, 1.0, jnp.array(False), jnp.array(True), tiny)
+    np.testing.assert_array_equal(np.asarray(S2), np.asarray(S0))

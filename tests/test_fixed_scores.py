@@ -51,8 +51,12 @@ def test_a_true_held_value_is_not_contradicted(fits):
 
 def test_a_wrong_held_value_is_contradicted_and_the_step_points_back(fits):
     """Held 30% wide, the pulse's width is the most contradicted, the report says so, and one Gauss-Newton step
-    lands near the fit that frees it (the two methods agree), far nearer the truth than the held value."""
+    from the held fit's optimum moves the width most of the way to the fit that frees it, far nearer the truth
+    than the held value. (The held fit reaches its optimum, refused for its chi-square: without the solver's
+    secant term every start crawled to the step limit, at a reduced chi-square of 16.3 against 10.2, and the
+    step from there happened to land nearer.)"""
     scene, _, held_wrong, freed, _, _ = fits
+    assert held_wrong.result == "refused_reduced_chi2"
     rec = held_wrong.discrepancy["fixed_parameters"]
     row = rec["parameters"][0]
     assert row["name"] == "pulse_sigma_s" and row["contradicted"] and rec["contradicted"][0] == "pulse_sigma_s"
@@ -61,7 +65,8 @@ def test_a_wrong_held_value_is_contradicted_and_the_step_points_back(fits):
     assert row["value"] == pytest.approx(held)
     free_value = float(freed.params.pulse_sigma_s)
     assert abs(free_value - truth) < 0.05 * truth
-    assert abs(row["gauss_newton_value"] - free_value) < 0.25 * (held - truth)
+    assert free_value < row["gauss_newton_value"] < held
+    assert abs(row["gauss_newton_value"] - free_value) < 0.5 * (held - free_value)
     text = fit_report(held_wrong)
     assert "held parameters the data contradict" in text and "pulse_sigma_s" in text
 

@@ -57,8 +57,9 @@ def test_auto_fits_one_tail_without_a_slow_tail_and_two_with_one(auto_fits):
     assert none.pulse_tails == 1 and not none.pulse_tail_test["two_tails"]
     assert none.pulse_tail_test["z"] <= none.pulse_tail_test["threshold"]
     assert "pulse_slow_weight" not in none.free and float(none.params.pulse_slow_weight) == 0.0
-    # a slow tail of share 0.1: far above the threshold, two tails fitted from the one-tail end point
-    assert slow.pulse_tails == 2 and slow.pulse_tail_test["z"] > 5 * slow.pulse_tail_test["threshold"]
+    # a slow tail of share 0.1: well above the threshold (12.6 at the converged one-tail optimum, where the near
+    # field bends to mimic part of the tail; 47 where the one-tail fit stopped at its step limit), two tails fitted
+    assert slow.pulse_tails == 2 and slow.pulse_tail_test["z"] > 2.5 * slow.pulse_tail_test["threshold"]
     assert float(slow.values["pulse_slow_weight"]) == pytest.approx(0.1, abs=5 * float(slow.stderr["pulse_slow_weight"]))
     assert float(slow.values["n1"]) == pytest.approx(1.4, abs=5 * float(slow.stderr["n1"]))
     # the chosen model's chi-square: the last fit's stage, not the one-tail fit's

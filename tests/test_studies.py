@@ -82,3 +82,24 @@ def test_node_terms_jvp_benchmark_fast(tmp_path):
     assert set(rec["median_s"]) == {"reverse_direct", "reverse_matrix_product", "jacfwd4_direct", "jacfwd4_matrix_product"}
     assert all(v > 0 for v in rec["median_s"].values())
     assert rec["jacobian_max_relative_difference"] < 1e-10
+
+
+def test_solver_secant_study_fast(tmp_path):
+    """experiments/solver_secant.py --quick: both solvers fit one own and one independent baseline of
+    a small scene, converge, and end at the same optimum; its record has the paired summary."""
+    study = load("solver_secant")
+    sys.path.insert(0, str(ROOT / "experiments"))
+    out = tmp_path / "s.json"
+    assert study.main(["--quick", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert [r["baseline"] for r in rec["fits"]] == ["own", "independent"]
+    for r in rec["fits"]:
+        assert r["plain"]["converged"] and r["secant"]["converged"]
+        assert r["plain"]["steps"] > 0 and r["secant"]["steps"] > 0
+        assert abs(r["secant"]["n1"] / r["plain"]["n1"] - 1) < 1e-4
+        assert abs(r["secant"]["reduced_chi2"] - r["plain"]["reduced_chi2"]) < 1e-3
+    assert set(rec["summary"]) == {"quick", "all"}
+    assert rec["summary"]["all"]["plain"]["fits"] == 2
+    with pytest.raises(SystemExit) as e:  # an existing record is not overwritten without --overwrite
+        study.main(["--quick", "--out", str(out)])
+    assert e.value.code == 2

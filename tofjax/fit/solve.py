@@ -134,6 +134,19 @@ class MarquardtLM(eqx.Module):
       acceleration to velocity): the poorly determined directions (albedo, interface
       backscatter, edge reflectance) form a curved valley along which plain damped steps
       are rejected and crawl.
+    - ``secant``: add NL2SOL's structured secant term (Dennis, Gay and Welsch 1981): the
+      Gauss-Newton matrix ``J^T J`` leaves out the residuals' own curvature ``sum r_i H_i``,
+      negligible where the residuals are noise but not on data the model did not make, where
+      the residuals at the optimum are partly the model's error. Along a poorly determined
+      direction that term is then as large as ``J^T J``, each Gauss-Newton step overshoots, and
+      the iterates zigzag to the optimum (consecutive steps antiparallel; 75-131 steps on the
+      independent simulator's default-scene baselines). ``S``, the secant estimate of the term,
+      is updated after every accepted step so that ``S s = (J_new - J_old)^T r_new`` (sized down
+      first, ``min(1, |s^T y#| / |s^T S s|)``), and the next step uses ``J^T J + S`` where that
+      model predicted the last step's decrease better than ``J^T J`` alone and is positive
+      definite with the damping; no extra residual or Jacobian pass. Off here, on in
+      :class:`~tofjax.fit.calibrate.FitConfig` (``experiments/solver_secant.py``,
+      docs/calibration.md, "The structured secant term").
     - ``lambda0``: the initial relative damping, updated by Nielsen's rule (Madsen, Nielsen
       and Tingleff 2004, eq. 2.21).
     - ``lambda_trials``: each step tries every damping ``lambda x factor`` at once (one 12 x 12
@@ -170,6 +183,7 @@ class MarquardtLM(eqx.Module):
     geodesic: bool = False
     geodesic_h: float = 0.0
     geodesic_alpha: float = 0.75
+    secant: bool = False
 
 
 class MarquardtState(NamedTuple):
@@ -191,6 +205,7 @@ class MarquardtState(NamedTuple):
     trace: object
     aux_jac: object = None
     kept: object = None  # with residuals that return (r, aux[, keep]): (aux, keep or None) at the iterate
+    secant: object = None  # with MarquardtLM(secant=True): (S, use): the secant estimate of sum r_i H_i, and whether to use it
 
 
 def solve_marquardt(residuals, solver: MarquardtLM, y0, args, *, max_steps: int, loss_tol: float = 0.0,
@@ -292,6 +307,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         return 0.5 * g_s @ jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s + 1e-12 * eye), True), g_s)
 
     trials = bool(solver.lambda_trials) and not solver.geodesic
+    secant = solver.secant
     names = ("lam", "rho", "pred", "actual", "accept", "gn_pred")
 
     def init():
@@ -320,13 +336,24 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             hist0 = jnp.full((max_steps + 1,), jnp.nan, ft)
             carry0 = (y0, r0, j0, jnp.asarray(0.0, ft), jnp.asarray(solver.lambda0, ft), jnp.asarray(2.0, ft), jnp.array(-1),
                       jnp.array(False), optx.RESULTS.successful, hist0, tr0, a0, k0)
-        return MarquardtState(*carry0)
+        sec0 = (jnp.zeros((y0.shape[0], y0.shape[0]), ft), jnp.array(False)) if secant else None
+        return MarquardtState(*carry0, sec0)
 
     def body(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept, sec = c
         first = step < 0  # the first pass evaluates y0 itself (no step; see carry0)
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
+        if secant:
+            # the Gauss-Newton model plus the secant estimate S of the residuals' own curvature
+            # (sum r_i H_i), where it predicted the last step better and keeps the model positive definite
+            S, use_s = sec
+            chol_s = jnp.linalg.cholesky(a_s + S / (d[:, None] * d[None, :]) + lam * eye)
+            on = use_s & jnp.all(jnp.isfinite(chol_s))
+            chol = jnp.where(on, chol_s, chol)
+            a_m = jnp.where(on, a + S, a)
+        else:
+            a_m = a
         v = jax.scipy.linalg.cho_solve((chol, True), -g_s) / d
         if solver.geodesic:
             # geodesic acceleration (Transtrum and Sethna 2012): the second directional
@@ -346,7 +373,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         else:
             ok_acc = jnp.array(True)
             delta = v
-        pred = -(g @ delta + 0.5 * delta @ (a @ delta))
+        pred = -(g @ delta + 0.5 * delta @ (a_m @ delta))
         y_t = jnp.where(first, y, y + delta)
         r_t, j_t, a_t, k_t = value_and_jac(y_t)
         loss_t = loss_of(r_t)
@@ -360,6 +387,8 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         stalled = lam_new > 1e16
         done = small_step | small_gain | stalled
         code = optx.RESULTS.where(stalled & ~(small_step | small_gain), optx.RESULTS.nonlinear_divergence, code)
+        if secant:
+            sec = _secant_update(sec, g, a, delta, r_t, j_t, jac, loss - loss_t, accept, finite, tiny)
         y, r, jac, loss = (jnp.where(accept, a_new, a_old) for a_new, a_old in ((y_t, y), (r_t, r), (j_t, jac), (loss_t, loss)))
         if has_aux:
             aux_jac = jnp.where(accept, a_t, aux_jac)
@@ -369,11 +398,11 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
                     "gn_pred": gauss_newton_left(a_s, g_s)}
             tr = {k: tr[k].at[step].set(vals[k]) for k in names} | {"y": tr["y"].at[step].set(jnp.where(accept, y_t, y))}
         hist = hist.at[step + 1].set(loss)
-        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr, aux_jac, kept)
+        out = (y, r, jac, loss, lam_new, nu_new, step + 1, done, code, hist, tr, aux_jac, kept, sec)
         # the first pass: the start's residuals, Jacobian and loss, nothing else changes
         ok0 = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(j_t))
         code0 = optx.RESULTS.where(ok0, optx.RESULTS.successful, optx.RESULTS.nonfinite)
-        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10], a_t, k_t)
+        start = (c[0], r_t, j_t, loss_t, lam, nu, step + 1, ~ok0, code0, c[9].at[0].set(loss_t), c[10], a_t, k_t, c[13])
         code = optx.RESULTS.where(first, code0, code)
         pick = [jax.tree_util.tree_map(lambda s0, o: jnp.where(first, s0, o), s0, o) for s0, o in zip(start, out)]
         pick[8] = code
@@ -382,12 +411,19 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
     factors = jnp.asarray(solver.lambda_trials, ft)
 
     def body_trials(c):
-        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept = c
+        y, r, jac, loss, lam, nu, step, _, code, hist, tr, aux_jac, kept, sec = c
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         gn_pred = gauss_newton_left(a_s, g_s)
         # every trial damping at once: one small Cholesky each, one residual pass each
         lams = lam * factors
         chol = jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + lk * eye))(lams)
+        a_m = a
+        if secant:
+            S, use_s = sec
+            chol_s = jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + S / (d[:, None] * d[None, :]) + lk * eye))(lams)
+            on = use_s & jnp.all(jnp.isfinite(chol_s))
+            chol = jnp.where(on, chol_s, chol)
+            a_m = jnp.where(on, a + S, a)
         v = jax.vmap(lambda ck: jax.scipy.linalg.cho_solve((ck, True), -g_s))(chol) / d
         if solver.trial_geodesic:
             # each damped step also with its geodesic acceleration (Transtrum and Sethna 2012):
@@ -398,7 +434,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
             acc = jax.vmap(lambda ck, rk: jax.scipy.linalg.cho_solve((ck, True), -(jac.T @ rk) / d))(chol, r_vv) / d
             v = jnp.concatenate([v, v + 0.5 * acc])
             lams = jnp.concatenate([lams, lams])
-        pred = -(v @ g + 0.5 * jnp.sum((v @ a) * v, axis=-1))
+        pred = -(v @ g + 0.5 * jnp.sum((v @ a_m) * v, axis=-1))
         r_t = jax.vmap(res_of)(y + v)
         loss_t = 0.5 * jnp.sum(r_t * r_t, axis=-1)
         finite = jnp.isfinite(loss_t) & jnp.all(jnp.isfinite(v), axis=-1) & jnp.all(jnp.isfinite(r_t), axis=-1)
@@ -416,6 +452,8 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         accept = jnp.isfinite(lt) & (lt <= loss) & (rho > 1e-4) & ~near
         y_new = jnp.where(accept, y + delta, y)
         r_new, j_new, a_new, k_new = jax.lax.cond(accept, value_and_jac, lambda z: (r, jac, aux_jac, kept), y_new)
+        if secant:
+            sec = _secant_update(sec, g, a, delta, r_new, j_new, jac, loss - lt, accept, jnp.isfinite(lt), tiny)
         ok_j = jnp.all(jnp.isfinite(j_new))
         lam_new = jnp.where(accept, lk * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * jnp.max(factors) * nu / 2.0)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
@@ -436,6 +474,32 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         # a stop because the model says nothing is left is not a step
         hist = jnp.where(near, hist, hist.at[step + 1].set(loss_new))
         return MarquardtState(y_new, r_new, j_new, loss_new, lam_new, nu_new, step + jnp.where(near, 0, 1), done, code, hist, tr,
-                              a_new, k_new)
+                              a_new, k_new, sec)
 
     return init, (body_trials if trials else body)
+
+
+def _secant_update(sec, g, a, delta, r_t, j_t, jac, actual, accept, finite, tiny):
+    """NL2SOL's structured secant step (Dennis, Gay and Welsch 1981): after the step ``delta``
+    from the iterate (gradient ``g``, Gauss-Newton matrix ``a``, Jacobian ``jac``) to the trial
+    (residuals ``r_t``, Jacobian ``j_t``), the estimate ``S`` of ``sum r_i H_i`` is sized down
+    (``tau = min(1, |s^T y#| / |s^T S s|)``) and updated so that ``S s = y# = (J_t - J)^T r_t``
+    (the DGW update, symmetric, weighted by the gradient change); only on an accepted step. The
+    next step uses ``a + S`` where it predicted this step's decrease (``actual``) better than
+    ``a`` alone."""
+    S, use_s = sec
+    s_ = delta
+    y_sharp = (j_t - jac).T @ r_t
+    y_g = j_t.T @ r_t - g
+    sSs = s_ @ (S @ s_)
+    tau = jnp.minimum(1.0, jnp.abs(s_ @ y_sharp) / jnp.maximum(jnp.abs(sSs), tiny))
+    S1 = tau * S
+    w = y_sharp - S1 @ s_
+    den = y_g @ s_
+    ok = accept & finite & (den > tiny) & jnp.all(jnp.isfinite(y_sharp))
+    den = jnp.where(ok, den, 1.0)
+    S_new = S1 + (jnp.outer(w, y_g) + jnp.outer(y_g, w)) / den - (w @ s_) / den**2 * jnp.outer(y_g, y_g)
+    pred_gn = -(g @ s_ + 0.5 * s_ @ (a @ s_))
+    pred_s = pred_gn - 0.5 * sSs
+    use_new = jnp.where(finite, jnp.abs(actual - pred_s) < jnp.abs(actual - pred_gn), use_s)
+    return jnp.where(ok, S_new, S), use_new
