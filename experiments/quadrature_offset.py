@@ -26,7 +26,7 @@ from tofjax.scene import load_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from study_calib_independent import ALBEDO, FULL, _scene  # noqa: E402
+from study_calib_independent import ALBEDO, FULL, _scene, truth_scene  # noqa: E402
 from study_mu_low import MU_T, _fit_row, _noise_free  # noqa: E402
 
 
@@ -50,8 +50,7 @@ def main(argv=None):
     cals = {q: Calibrator(nominal, dataclasses.replace(FitConfig(), quadrature=q)) for q in args.fit_quadrature}
     rows = {}
     for n1 in args.n1:
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * args.mu_t, mu_a_per_m=(1 - ALBEDO) * args.mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth = truth_scene(nominal, n1, args.mu_t)
         lam = np.asarray(expected_counts(truth, ModelOptions(quadrature=8)))
         cap = _noise_free(lam, truth, args.frames, "simulated (tofjax expected counts at quadrature 8), noise-free")
         rows[str(n1)] = {}

@@ -29,7 +29,6 @@ scene (the fast test's size).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 import json
 import os
@@ -50,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from indep_sim import CONVERGED, IndepRig  # noqa: E402
 from indep_sim import simulate as simulate_independent  # noqa: E402
-from study_calib_independent import ALBEDO, FULL, QUICK, _scene  # noqa: E402
+from study_calib_independent import FULL, QUICK, _scene, truth_scene  # noqa: E402
 
 SOLVERS = ("plain", "secant")  # MarquardtLM without the secant term, and with it (the default since 2026-11-29)
 
@@ -62,14 +61,12 @@ def _fit(cal: Calibrator, cap) -> tuple[object, float]:
     return res, time.perf_counter() - t
 
 
-def _row(res, seconds, n1=None, mu_t=None) -> dict:
+def _row(res, seconds, n1, mu_t) -> dict:
     steps = [int(s["steps"]) for s in res.stages if "steps" in s]
     f_n1, f_mu = float(res.params.n1), float(res.params.mu_s_per_m + res.params.mu_a_per_m)
-    row = {"result": res.result, "converged": bool(res.converged), "steps": int(sum(steps)), "steps_per_start": steps,
-           "n1": f_n1, "mu_t_per_m": f_mu, "reduced_chi2": float(res.reduced_chi2), "seconds": seconds}
-    if n1 is not None:
-        row |= {"n1_rel_error": f_n1 / n1 - 1, "mu_t_rel_error": f_mu / mu_t - 1}
-    return row
+    return {"result": res.result, "converged": bool(res.converged), "steps": int(sum(steps)), "steps_per_start": steps,
+            "n1": f_n1, "mu_t_per_m": f_mu, "reduced_chi2": float(res.reduced_chi2), "seconds": seconds,
+            "n1_rel_error": f_n1 / n1 - 1, "mu_t_rel_error": f_mu / mu_t - 1}
 
 
 def _baselines(quick: bool):
@@ -80,8 +77,7 @@ def _baselines(quick: bool):
         p = QUICK
         nominal = _scene(load_scene("optoskin"), p["sensors"], p["zones"], p["bins"])
         n1, mu_t = p["n1"][0], p["mu_t"][0]
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth = truth_scene(nominal, n1, mu_t)
         yield "quick", "own", nominal, simulate(truth, p["frames"], seed=100), n1, mu_t
         rig = IndepRig.from_scene(truth, seed=200)
         yield "quick", "independent", nominal, simulate_independent(rig, contacts=np.zeros((0, 3)), frames=p["frames"], seed=300), n1, mu_t
@@ -97,8 +93,7 @@ def _baselines(quick: bool):
     p = FULL
     nominal = _scene(load_scene("optoskin"), p["sensors"], p["zones"], p["bins"])
     for k, (n1, mu_t) in enumerate(itertools.product(p["n1"], p["mu_t"])):
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth = truth_scene(nominal, n1, mu_t)
         yield "grid", f"own n1 {n1} mu_t {mu_t}", nominal, simulate(truth, p["frames"], seed=100 + k), n1, mu_t
         rig = IndepRig.from_scene(truth, seed=200 + k, options=CONVERGED)
         cap = simulate_independent(rig, contacts=np.zeros((0, 3)), frames=p["frames"], seed=300 + k)

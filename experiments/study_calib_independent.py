@@ -69,6 +69,12 @@ def _scene(base, sensors, zones, bins):
     return base.replace(sensor=small, sensors=base.sensors[:sensors])
 
 
+def truth_scene(nominal, n1: float, mu_t: float):
+    """``nominal`` with the truth's optics: n1 and mu_s + mu_a = ``mu_t`` at the studies' albedo (:data:`ALBEDO`)."""
+    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
+    return nominal.replace(waveguide=wg)
+
+
 def _mu_t_stderr(res):
     """Laplace standard error of mu_s + mu_a (None where the covariance does not hold both)."""
     try:
@@ -198,8 +204,7 @@ def run(out: Path, quick: bool = False, config: FitConfig = FitConfig(), progres
     rows = {k: [] for k in columns}
     truths = []
     for k, n1, mu_t in keep:
-        wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
-        truth = nominal.replace(waveguide=wg)
+        truth = truth_scene(nominal, n1, mu_t)
         truths.append({"n1": n1, "mu_t_per_m": mu_t, "albedo": ALBEDO, "grid_index": k})
         own = simulate(truth, p["frames"], seed=100 + k) if "own" in columns else None
         rig = IndepRig.from_scene(truth, seed=200 + k, options=RESOLUTIONS[resolution])

@@ -62,7 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from indep_sim import CONVERGED, IndepOptions, IndepRig  # noqa: E402
 from indep_sim import simulate as simulate_independent  # noqa: E402
-from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene  # noqa: E402
+from study_calib_independent import ALBEDO, FULL, _mu_t_stderr, _scene, truth_scene  # noqa: E402
 
 MU_T = 0.05
 # independent_dense: the same rigs (same per-zone draws) with the geometry sampled 4x denser
@@ -112,8 +112,7 @@ def _full_scene():
 
 def _truth(nominal, n1: float, mu_t: float):
     """``nominal`` at (n1, mu_t) with the study's albedo, and its grid index (:func:`_grid_index`)."""
-    wg = dataclasses.replace(nominal.waveguide, n1=n1, mu_s_per_m=ALBEDO * mu_t, mu_a_per_m=(1 - ALBEDO) * mu_t)
-    return nominal.replace(waveguide=wg), _grid_index(n1, mu_t)
+    return truth_scene(nominal, n1, mu_t), _grid_index(n1, mu_t)
 
 
 def _group(rows: list[dict], resid: np.ndarray | None) -> dict:

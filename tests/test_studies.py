@@ -88,7 +88,6 @@ def test_solver_secant_study_fast(tmp_path):
     """experiments/solver_secant.py --quick: both solvers fit one own and one independent baseline of
     a small scene, converge, and end at the same optimum; its record has the paired summary."""
     study = load("solver_secant")
-    sys.path.insert(0, str(ROOT / "experiments"))
     out = tmp_path / "s.json"
     assert study.main(["--quick", "--out", str(out)]) == 0
     rec = json.loads(out.read_text())

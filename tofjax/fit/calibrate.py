@@ -1230,8 +1230,7 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
         # from the batch's own starts, as calibrate's first two-tail start (not the one-tail end
         # points: a converged one-tail fit can bend the near field to mimic the slow tail)
         slow = {k: getattr(base2, k) for k in SLOW_TAIL}
-        starts2 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[jax.tree_util.tree_map(lambda x: x[i], starts).replace(**slow)
-                                                                     for i in two])
+        starts2 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_row(starts, i).replace(**slow) for i in two])
         idx = np.asarray(two)
         sols2 = jax.device_get(fit_batch(problem, objective, solver, starts2, data[idx], sigma[idx], base2, anchors[idx], **kw))
         for k, i in enumerate(two):
@@ -1241,8 +1240,9 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     return out
 
 
-def _row(sols: FitSolution, i: int) -> FitSolution:
-    return jax.tree_util.tree_map(lambda x: x[i], sols)
+def _row(stacked, i: int):
+    """Entry ``i`` of a pytree stacked along its leading axis (a batch's solutions or starts)."""
+    return jax.tree_util.tree_map(lambda x: x[i], stacked)
 
 
 class Calibrator:

@@ -308,6 +308,18 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
 
     trials = bool(solver.lambda_trials) and not solver.geodesic
     secant = solver.secant
+
+    def with_secant(sec, a, d, chol, factor):
+        """The step's model: ``(chol, a_m)``, the Gauss-Newton model (``chol`` of its scaled, damped
+        matrix and ``a``) or, with ``secant``, that plus the secant estimate ``S`` of the residuals' own
+        curvature (``factor(S scaled)``: the Cholesky with ``S`` added) where it predicted the last step
+        better and keeps the model positive definite."""
+        if not secant:
+            return chol, a
+        S, use_s = sec
+        chol_s = factor(S / (d[:, None] * d[None, :]))
+        on = use_s & jnp.all(jnp.isfinite(chol_s))
+        return jnp.where(on, chol_s, chol), jnp.where(on, a + S, a)
     names = ("lam", "rho", "pred", "actual", "accept", "gn_pred")
 
     def init():
@@ -344,16 +356,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         first = step < 0  # the first pass evaluates y0 itself (no step; see carry0)
         g, a, d, a_s, g_s = scaled_normal(jac, r)
         chol = jnp.linalg.cholesky(a_s + lam * eye)
-        if secant:
-            # the Gauss-Newton model plus the secant estimate S of the residuals' own curvature
-            # (sum r_i H_i), where it predicted the last step better and keeps the model positive definite
-            S, use_s = sec
-            chol_s = jnp.linalg.cholesky(a_s + S / (d[:, None] * d[None, :]) + lam * eye)
-            on = use_s & jnp.all(jnp.isfinite(chol_s))
-            chol = jnp.where(on, chol_s, chol)
-            a_m = jnp.where(on, a + S, a)
-        else:
-            a_m = a
+        chol, a_m = with_secant(sec, a, d, chol, lambda extra: jnp.linalg.cholesky(a_s + extra + lam * eye))
         v = jax.scipy.linalg.cho_solve((chol, True), -g_s) / d
         if solver.geodesic:
             # geodesic acceleration (Transtrum and Sethna 2012): the second directional
@@ -417,13 +420,7 @@ def _marquardt(residuals, solver: MarquardtLM, y0, args, max_steps: int, loss_to
         # every trial damping at once: one small Cholesky each, one residual pass each
         lams = lam * factors
         chol = jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + lk * eye))(lams)
-        a_m = a
-        if secant:
-            S, use_s = sec
-            chol_s = jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + S / (d[:, None] * d[None, :]) + lk * eye))(lams)
-            on = use_s & jnp.all(jnp.isfinite(chol_s))
-            chol = jnp.where(on, chol_s, chol)
-            a_m = jnp.where(on, a + S, a)
+        chol, a_m = with_secant(sec, a, d, chol, lambda extra: jax.vmap(lambda lk: jnp.linalg.cholesky(a_s + extra + lk * eye))(lams))
         v = jax.vmap(lambda ck: jax.scipy.linalg.cho_solve((ck, True), -g_s))(chol) / d
         if solver.trial_geodesic:
             # each damped step also with its geodesic acceleration (Transtrum and Sethna 2012):
@@ -488,7 +485,7 @@ def _secant_update(sec, g, a, delta, r_t, j_t, jac, actual, accept, finite, tiny
     next step uses ``a + S`` where it predicted this step's decrease (``actual``) better than
     ``a`` alone."""
     S, use_s = sec
-    s_ = delta
+    s_ = delta  # the step, ``s`` in the papers
     y_sharp = (j_t - jac).T @ r_t
     y_g = j_t.T @ r_t - g
     sSs = s_ @ (S @ s_)
