@@ -72,6 +72,51 @@ def test_says_what_a_baseline_cannot_tell(fitted):
     assert sum_err < 0.5 * min(np.sqrt(c[i, i]), np.sqrt(c[j, j]))
 
 
+def test_data_share_closed_forms():
+    """The data's share of each coordinate's Laplace variance (``C (H - P) C`` of ``C = H^-1``)."""
+    from tofjax.fit._laplace import data_share
+
+    h, p = np.array([4.0, 0.5, 9.0]), np.array([1.0, 1.0, 0.0])
+    np.testing.assert_allclose(data_share(np.diag(h + p), p), h / (h + p), rtol=1e-12)  # independent coordinates
+    # an exact gauge: the data see x0 + x1 (weight c^2 each) and x2, never x0 - x1; the prior (p each) alone holds it
+    c2, q = 400.0, 0.1
+    H = c2 * np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) + q * np.eye(3)
+    var0 = 1 / (2 * q) + 1 / (2 * (2 * c2 + q))
+    prior0 = 1 / (2 * q) + q / (2 * (2 * c2 + q) ** 2)
+    np.testing.assert_allclose(data_share(H, q), [1 - prior0 / var0, 1 - prior0 / var0, c2 / (c2 + q)], rtol=0, atol=1e-10)
+    assert data_share(H, q)[0] < 1e-3
+    # invariant to the coordinates' units, in [0, 1], and 1 without a prior
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        J = rng.normal(size=(30, 5)) * rng.uniform(0, 1, 5)
+        p = rng.uniform(0, 1, 5)
+        D = np.diag(10.0 ** rng.uniform(-4, 4, 5))
+        s = data_share(J.T @ J + np.diag(p), p)
+        np.testing.assert_allclose(data_share(D @ (J.T @ J + np.diag(p)) @ D, p * np.diag(D) ** 2), s, atol=1e-9)
+        assert np.all((s >= 0) & (s <= 1))
+        np.testing.assert_allclose(data_share(J.T @ J + 1e-9 * np.eye(5), 0.0), 1.0)
+
+
+def test_the_report_says_which_values_the_prior_sets(fitted):
+    """With a gain per zone profiled out, the scale of the interface backscatter, the edge reflectance and the
+    gains is a direction the data barely see (experiments/fit_valley.py): the weak prior sets it, and the
+    report says so; n1 and mu_s + mu_a are the data's."""
+    from tofjax.fit._result import fit_report, prior_set_lines
+
+    _, res, _ = fitted
+    sh = res.data_share
+    assert {"n1", "extinction", "albedo", "gain", "interface_backscatter_per_m", "end_reflectance"} <= set(sh)
+    assert sh["n1"] > 0.9 and sh["extinction"] > 0.9
+    for k in ("interface_backscatter_per_m", "end_reflectance", "gain"):
+        assert sh[k] < 0.5, (k, sh[k])
+    listed = fit_report(res).split("set mostly by the weak prior")[1].splitlines()[1]
+    names = [e.rsplit(" ", 1)[0] for e in listed.strip().split(", ")]
+    assert {"end_reflectance", "interface_backscatter_per_m", "gain (median of the zones)"} <= set(names)
+    assert "n1" not in names and "mu_s + mu_a" not in names
+    assert res.to_json()["data_share"] == pytest.approx(sh)
+    assert prior_set_lines({}) == [] and prior_set_lines({"n1": 0.99}) == []
+
+
 def test_json_is_complete(fitted):
     _, res, _ = fitted
     out = res.to_json()

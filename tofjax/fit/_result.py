@@ -114,6 +114,9 @@ class CalibrationResult:
     precision: PrecisionPlan | None = None  # the frames a baseline needs (FitConfig.precision_target_*)
     pulse_tails: int = 2  # the pulse model fitted (FitConfig.pulse_tails; "auto" chooses 1 or 2)
     pulse_tail_test: dict[str, Any] | None = None  # with pulse_tails = "auto": the score test that chose it
+    # per fit coordinate, the share of its Laplace variance the data account for (not the weak prior):
+    # tofjax.fit._laplace.data_shares; "extinction" is mu_s + mu_a, "albedo" mu_s / (mu_s + mu_a)
+    data_share: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         def pack(k):
@@ -141,6 +144,7 @@ class CalibrationResult:
             "optics": self.optics,
             "pulse_tails": int(self.pulse_tails),
             "pulse_tail_test": self.pulse_tail_test,
+            "data_share": dict(self.data_share),
             "frames": self.frames,
             "stages": self.stages,
             "precision": None if self.precision is None else self.precision.to_json(),
@@ -326,6 +330,7 @@ def fit_report(result: CalibrationResult) -> str:
             f"correlation(mu_s, mu_a) = {corr:+.2f}"
             + ("  (strong: a baseline alone barely separates scattering from absorption)" if abs(corr) > 0.8 else "")
         )
+    lines += prior_set_lines(result.data_share)
     if result.precision is not None and result.precision.targets:
         lines.append("precision (photon noise, 95%):")
         lines += ["  " + x for x in result.precision.lines()]
@@ -347,6 +352,22 @@ def fit_report(result: CalibrationResult) -> str:
         )
     lines += fixed_score_lines(result.discrepancy.get("fixed_parameters"))
     return "\n".join(lines)
+
+
+#: below this share of its Laplace variance from the data, the report says a parameter is set by the prior
+PRIOR_SET_SHARE = 0.5
+_SHARE_NAMES = {"extinction": "mu_s + mu_a", "albedo": "albedo mu_s / (mu_s + mu_a)", "gain": "gain (median of the zones)"}
+
+
+def prior_set_lines(shares: dict[str, float] | None) -> list[str]:
+    """The report's line on coordinates the weak prior, not the data, sets (:attr:`CalibrationResult.data_share`
+    below :data:`PRIOR_SET_SHARE`), least determined first; none where there are none."""
+    low = sorted((v, k) for k, v in (shares or {}).items() if v < PRIOR_SET_SHARE)
+    if not low:
+        return []
+    return [f"set mostly by the weak prior, not the data (share of the Laplace variance from the data < {PRIOR_SET_SHARE:g}; "
+            "their values depend on the prior, FitConfig.prior_width about the scene's values: not measurements):",
+            "  " + ", ".join(f"{_SHARE_NAMES.get(k, k)} {v:.2g}" for v, k in low)]
 
 
 def fixed_score_lines(record: dict | None) -> list[str]:

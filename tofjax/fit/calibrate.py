@@ -40,7 +40,7 @@ from ..model import OPTICS, ModelOptions, Params, build_model
 from ..scene import Scene
 from ._batch import CompactBatch, solve_marquardt_compact
 from ._discrepancy import discrepancy_report
-from ._laplace import laplace_covariance
+from ._laplace import data_shares, laplace_covariance
 from ._precision import check_target, precision_plan
 from ._problem import LINEAR, CalibrationProblem
 from ._result import (
@@ -888,6 +888,7 @@ def _assemble(problem, scene, config, sol: FitSolution, frames: int, stages, fin
         residuals=residuals,
         optics=config.optics,
         precision=plan,
+        data_share=data_shares(problem, physical, sol.hessian),
     )
 
 
