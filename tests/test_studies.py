@@ -84,6 +84,30 @@ def test_node_terms_jvp_benchmark_fast(tmp_path):
     assert rec["jacobian_max_relative_difference"] < 1e-10
 
 
+def test_fit_valley_study_fast(tmp_path):
+    """experiments/fit_valley.py --quick: at the default fit's optimum the interface backscatter, the edge
+    reflectance and the zones' gains are nearly one direction (the amplitude near-gauge the study measures),
+    and holding the backscatter removes it: the held fit converges, within about a standard error of the
+    free one, at a chi-square no more than a few units above it."""
+    study = load("fit_valley")
+    out = tmp_path / "v.json"
+    assert study.main(["--quick", "--variants", "ib_held", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert [r["baseline"] for r in rec["fits"]] == ["own", "independent"]
+    for r in rec["fits"]:
+        c = r["correlations"]
+        assert c["ib_R"] > 0.9 and c["ib_gain_median"] < -0.9
+        assert c["relative_stderr"]["end_reflectance"] > 0.3  # the gauge: R's scale is barely determined
+        assert c["mu_t_relative_stderr"] < c["relative_stderr"]["mu_a_per_m"]
+        assert r["default"]["converged"] and r["ib_held"]["converged"]
+        assert max(abs(x) for x in r["ib_held"]["shift_in_stderr"].values()) < 2.0
+        assert -1.0 < r["ib_held"]["chi2_minus_default"] < 5.0  # either may stop short along the flat valley by < 1
+    assert set(rec["summary"]) == {"default", "ib_held"}
+    with pytest.raises(SystemExit) as e:
+        study.main(["--quick", "--variants", "newton", "--out", str(tmp_path / "w.json")])
+    assert e.value.code == 2
+
+
 def test_solver_secant_study_fast(tmp_path):
     """experiments/solver_secant.py --quick: both solvers fit one own and one independent baseline of
     a small scene, converge, and end at the same optimum; its record has the paired summary."""
