@@ -8,7 +8,8 @@ fit's last tens of steps crawl along this nearly flat, curved valley (consecutiv
 gaining a tenth of what the Gauss-Newton model says is left. This study measures the valley and the
 solver levers tofjax has against it, on the default scene's baselines:
 
-- the Laplace correlations of ``ib``, ``R``, ``mu_s`` and the zones' gains at the default fit's optimum;
+- the Laplace correlations of ``ib``, ``R``, ``mu_s`` and the zones' gains at the default fit's optimum, and
+  each coordinate's data share of its Laplace variance (``CalibrationResult.data_share``);
 - the default solver against three variants, side by side (round robin, each fit warm, median of
   ``--rounds``): geodesic acceleration (``FitConfig.geodesic``), three trial dampings per step
   (``MarquardtLM(lambda_trials=(1e-2, 1, 10))``), and ``ib`` held at the scene's value (the gauge
@@ -103,7 +104,7 @@ def run(out: Path, quick: bool = False, rounds: int = 3, overwrite: bool = False
                 results[v] = fits[v](cap)
                 seconds[v].append(time.perf_counter() - t)
         ref = results["default"]
-        row = {"set": group, "baseline": name, "correlations": _correlations(ref)}
+        row = {"set": group, "baseline": name, "correlations": _correlations(ref), "data_share": dict(ref.data_share)}
         for v in variants:
             r = results[v]
             row[v] = _row(r, float(np.median(seconds[v])), n1, mu_t) | {

@@ -99,6 +99,7 @@ def test_fit_valley_study_fast(tmp_path):
         assert c["ib_R"] > 0.9 and c["ib_gain_median"] < -0.9
         assert c["relative_stderr"]["end_reflectance"] > 0.3  # the gauge: R's scale is barely determined
         assert c["mu_t_relative_stderr"] < c["relative_stderr"]["mu_a_per_m"]
+        assert r["data_share"]["end_reflectance"] < 0.5 < r["data_share"]["extinction"]
         assert r["default"]["converged"] and r["ib_held"]["converged"]
         assert max(abs(x) for x in r["ib_held"]["shift_in_stderr"].values()) < 2.0
         assert -1.0 < r["ib_held"]["chi2_minus_default"] < 5.0  # either may stop short along the flat valley by < 1
