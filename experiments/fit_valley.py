@@ -51,18 +51,17 @@ VARIANTS = ("default", "geodesic", "trials", "ib_held")
 SHIFTED = ("n1", "mu_s_per_m", "mu_a_per_m", "end_reflectance")
 
 
-def _fitters(scene):
-    """``{variant: fit(capture) -> CalibrationResult}``, each with its own compiled fit."""
+def _fitters(scene, variants):
+    """``{variant: fit(capture) -> CalibrationResult}`` for ``variants`` (the default among them), each with its
+    own compiled fit."""
     cfg = FitConfig()
-    cals = {
-        "default": Calibrator(scene, cfg),
-        "geodesic": Calibrator(scene, dataclasses.replace(cfg, geodesic=True)),
-        "ib_held": Calibrator(scene, dataclasses.replace(cfg, free=tuple(k for k in cfg.free if k != "interface_backscatter_per_m"))),
-    }
-    trials = MarquardtLM(rtol=cfg.rtol, atol=cfg.atol, lambda_trials=(1e-2, 1.0, 10.0), secant=cfg.secant)
-    base = cals["default"]
-    fits = {k: c.fit for k, c in cals.items()}
-    fits["trials"] = lambda cap: calibrate(cap, base.config, scene=scene, solver=trials, problem=base.problem)
+    configs = {"default": cfg, "geodesic": dataclasses.replace(cfg, geodesic=True),
+               "ib_held": dataclasses.replace(cfg, free=tuple(k for k in cfg.free if k != "interface_backscatter_per_m"))}
+    base = Calibrator(scene, cfg)
+    fits = {v: (base if v == "default" else Calibrator(scene, configs[v])).fit for v in variants if v in configs}
+    if "trials" in variants:
+        trials = MarquardtLM(rtol=cfg.rtol, atol=cfg.atol, lambda_trials=(1e-2, 1.0, 10.0), secant=cfg.secant)
+        fits["trials"] = lambda cap: calibrate(cap, base.config, scene=scene, solver=trials, problem=base.problem)
     return fits
 
 
@@ -112,7 +111,7 @@ def run(out: Path, quick: bool = False, rounds: int = 3, overwrite: bool = False
         if group == "grid":
             break
         if id(scene) not in fitters:
-            fitters[id(scene)] = _fitters(scene)
+            fitters[id(scene)] = _fitters(scene, variants)
         fits = fitters[id(scene)]
         results, seconds = {}, {v: [] for v in variants}
         for v in variants:
