@@ -128,7 +128,12 @@ def run(out: Path, quick: bool = False, rounds: int = 3, overwrite: bool = False
             row[v] = _row(r, float(np.median(seconds[v])), n1, mu_t) | {
                 "shift_in_stderr": {k: (float(getattr(r.params, k)) - float(getattr(ref.params, k))) / float(ref.stderr[k])
                                     for k in SHIFTED},
-                "chi2_minus_default": float(np.sum(np.asarray(r.residuals) ** 2) - np.sum(np.asarray(ref.residuals) ** 2))}
+                "chi2_minus_default": float(np.sum(np.asarray(r.residuals) ** 2) - np.sum(np.asarray(ref.residuals) ** 2)),
+                "gain_data_share": r.data_share.get("gain"),
+                "gain_over_default": float(np.median(np.asarray(r.values["gain"]) / np.asarray(ref.values["gain"]))),
+                # tofjax's own data are made with the scene's gains (one per sensor): the fitted ones against them
+                "gain_over_truth": float(np.median(np.asarray(r.values["gain"]) / np.asarray(scene.gains(), float)[:, None]))
+                if name.startswith("own") else None}
         rows.append(row)
         if progress:
             cr = row["correlations"]

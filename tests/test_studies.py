@@ -103,6 +103,8 @@ def test_fit_valley_study_fast(tmp_path):
         assert r["default"]["converged"] and r["ib_held"]["converged"]
         assert max(abs(x) for x in r["ib_held"]["shift_in_stderr"].values()) < 2.0
         assert -1.0 < r["ib_held"]["chi2_minus_default"] < 5.0  # either may stop short along the flat valley by < 1
+        # the held value fixes the scale: the gains are then the data's
+        assert r["ib_held"]["gain_data_share"] > 0.5 > r["default"]["gain_data_share"]
     assert set(rec["summary"]) == {"default", "ib_held"}
     with pytest.raises(SystemExit) as e:
         study.main(["--quick", "--variants", "newton", "--out", str(tmp_path / "w.json")])
