@@ -204,6 +204,7 @@ def test_cli_calibrate_and_touch_capture_refused(tmp_path, small, capsys):
     data = json.loads(out.read_text())
     assert data["converged"] and abs(data["parameters"]["n1"]["value"] - 1.4) < 0.007
     assert (tmp_path / "plots" / "fit_sensor0.png").exists() and (tmp_path / "plots" / "loss.png").exists()
+    assert (tmp_path / "plots" / "data_share.png").exists() and set(data["data_share"]) >= {"n1", "extinction", "gain"}
     # a touch capture passed as a baseline: the fit is poor, and the user is told so in one line
     touched = small.replace(touches=(Touch(position_m=(0.12, 0.1), radius_m=0.01, strength=3.0),))
     touch = write_capture(tmp_path / "touch.h5", simulate(touched, 40, seed=2))

@@ -176,7 +176,7 @@ def _cmd_calibrate(a) -> int:
             print(f"wrote corner.png and traces.png to {a.plots}/")
     if a.plots:
         from .fit._discrepancy import plot_residual_map
-        from .plot import plot_fit, plot_loss
+        from .plot import plot_data_share, plot_fit, plot_loss
 
         used = (scene or cap.scene).without_touches()
         data = cap.mean()
@@ -185,6 +185,8 @@ def _cmd_calibrate(a) -> int:
         paths = plot_fit(data, model, sigma, used, a.plots)
         paths.append(plot_loss(result.loss_history, Path(a.plots) / "loss.png"))
         paths.append(plot_residual_map(result.residuals, Path(a.plots) / "residual_map.png", used.sensor.bin_width_s))
+        if result.data_share:
+            paths.append(plot_data_share(result.data_share, Path(a.plots) / "data_share.png"))
         print(f"wrote {len(paths)} figures to {a.plots}/ (residual_map.png: what the model does not describe)")
     print(f"wrote {out}")
     if result.result == "refused_reduced_chi2" and not a.allow_unconverged:

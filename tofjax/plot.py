@@ -21,7 +21,8 @@ from .model.geometry import zone_edges  # noqa: E402
 from .outputs import save_figure  # noqa: E402
 from .scene import Scene  # noqa: E402
 
-__all__ = ["plot_capture", "plot_components", "plot_fit", "plot_loss", "plot_posterior", "plot_scene", "plot_traces"]
+__all__ = ["plot_capture", "plot_components", "plot_data_share", "plot_fit", "plot_loss", "plot_posterior", "plot_scene",
+           "plot_traces"]
 
 
 def _sensor_label(scene: Scene, i: int) -> str:
@@ -166,6 +167,29 @@ def plot_loss(history, path: str | Path) -> Path:
     ax.set_xlabel("solver step (all stages)")
     ax.set_ylabel("loss")
     ax.set_title("calibration: loss history")
+    return _save(fig, path)
+
+
+def plot_data_share(shares: dict[str, float], path: str | Path, threshold: float = 0.5) -> Path:
+    """The data's share of each fit coordinate's Laplace variance (``CalibrationResult.data_share``) as bars,
+    least determined at the top; those below ``threshold`` (the report's "set mostly by the weak prior") in red."""
+    if not shares:
+        raise ValueError("no data shares to plot (a calibration without a prior has none)")
+    from .fit._result import SHARE_LABELS
+
+    items = sorted(shares.items(), key=lambda kv: -kv[1])
+    names = [SHARE_LABELS.get(k, k) for k, _ in items]
+    vals = np.array([v for _, v in items])
+    fig, ax = plt.subplots(figsize=(6, 0.28 * len(items) + 1.2))
+    y = np.arange(len(items))
+    ax.barh(y, vals, color=np.where(vals < threshold, "tab:red", "tab:blue"))
+    for yi, v in zip(y, vals):  # the value beside each bar: a share near 0 has no visible bar
+        ax.text(min(v, 0.85) + 0.01, yi, f"{v:.2g}", va="center", fontsize=7)
+    ax.axvline(threshold, color="k", lw=0.8, ls="--")
+    ax.set_yticks(y, names, fontsize=8)
+    ax.set_xlim(0, 1)
+    ax.set_xlabel("share of the Laplace variance from the data\n(1: the data alone; 0: the weak prior alone)", fontsize=9)
+    ax.set_title("calibration: which values the data set", fontsize=10)
     return _save(fig, path)
 
 

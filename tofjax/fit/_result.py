@@ -356,7 +356,8 @@ def fit_report(result: CalibrationResult) -> str:
 
 #: below this share of its Laplace variance from the data, the report says a parameter is set by the prior
 PRIOR_SET_SHARE = 0.5
-_SHARE_NAMES = {"extinction": "mu_s + mu_a", "albedo": "albedo mu_s / (mu_s + mu_a)", "gain": "gain (median of the zones)"}
+#: how the report and plots name the data shares' coordinates (the rest by their parameter names)
+SHARE_LABELS = {"extinction": "mu_s + mu_a", "albedo": "albedo mu_s / (mu_s + mu_a)", "gain": "gain (median of the zones)"}
 
 
 def prior_set_lines(shares: dict[str, float] | None) -> list[str]:
@@ -367,7 +368,7 @@ def prior_set_lines(shares: dict[str, float] | None) -> list[str]:
         return []
     return [f"set mostly by the weak prior, not the data (share of the Laplace variance from the data < {PRIOR_SET_SHARE:g}; "
             "their values depend on the prior, FitConfig.prior_width about the scene's values: not measurements):",
-            "  " + ", ".join(f"{_SHARE_NAMES.get(k, k)} {v:.2g}" for v, k in low)]
+            "  " + ", ".join(f"{SHARE_LABELS.get(k, k)} {v:.2g}" for v, k in low)]
 
 
 def fixed_score_lines(record: dict | None) -> list[str]:
