@@ -170,11 +170,13 @@ def plot_loss(history, path: str | Path) -> Path:
     return _save(fig, path)
 
 
-def plot_data_share(shares: dict[str, float], path: str | Path, threshold: float = 0.5) -> Path:
+def plot_data_share(shares: dict[str, float], path: str | Path) -> Path:
     """The data's share of each fit coordinate's Laplace variance (``CalibrationResult.data_share``) as bars,
-    least determined at the top; those below ``threshold`` (the report's "set mostly by the weak prior") in red."""
+    least determined at the top; those the report calls "set mostly by the weak prior" (below
+    ``PRIOR_SET_SHARE``) in red."""
     if not shares:
         raise ValueError("no data shares to plot (a calibration without a prior has none)")
+    from .fit._result import PRIOR_SET_SHARE as threshold
     from .fit._result import SHARE_LABELS
 
     items = sorted(shares.items(), key=lambda kv: -kv[1])

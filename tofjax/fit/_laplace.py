@@ -58,7 +58,7 @@ def data_shares(problem: CalibrationProblem, values: dict, hessian) -> dict[str,
         return {}
     sizes = _layout(problem, values)
     names = sorted(sizes)  # ravel_pytree orders dict keys sorted
-    prior = np.concatenate([np.full(sizes[k], 0.0 if k in problem.linear else problem.prior_width**-2.0) for k in names])
+    prior = np.concatenate([np.full(sizes[k], problem.prior_precision(k)) for k in names])
     share = data_share(hessian, prior)
     out, pos = {}, 0
     for k in names:

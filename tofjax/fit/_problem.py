@@ -126,6 +126,11 @@ class CalibrationProblem(eqx.Module):
     def transform(self, name: str) -> Transform:
         return dict(self.transforms)[name]
 
+    def prior_precision(self, name: str) -> float:
+        """The weak prior's weight ``1 / prior_width^2`` on a coordinate (:meth:`prior_residuals`): 0 on a
+        linear (profiled) one and without a prior."""
+        return self.prior_width**-2.0 if self.prior_width > 0 and name not in self.linear else 0.0
+
     # ---- coordinates ------------------------------------------------------------------
 
     def pack(self, params: Params, names=None) -> dict[str, jax.Array]:
@@ -348,9 +353,7 @@ class CalibrationProblem(eqx.Module):
     def prior_residuals(self, u, prior):
         """A weak Gaussian prior ``(u - prior) / width`` on the nonlinear coordinates: keeps a
         parameter the data cannot pin (mu_a -> 0 in log space) finite, barely moves the rest."""
-        parts = []
-        if self.prior_width > 0:
-            parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if k not in self.linear]
+        parts = [jnp.ravel((u[k] - prior[k]) / self.prior_width) for k in sorted(u) if self.prior_precision(k) > 0]
         if "n1" in u and "n1_anchor" in prior:
             # the timing estimate of n1 (edge returns, known geometry) as a measurement:
             # (centre, width); an infinite width (no edge seen) makes it zero

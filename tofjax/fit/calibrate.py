@@ -1046,6 +1046,11 @@ def _two_tail_start(p: Params, test: dict) -> Params:
     return p.replace(pulse_slow_weight=np.asarray(test["slow_weight_start"]), pulse_slow_tail_s=np.asarray(test["slow_tail_start_s"]))
 
 
+def _with_slow_tail_of(p: Params, base2: Params) -> Params:
+    """A one-tail start ``p`` made a two-tail one with the slow tail of ``base2`` (the scene's)."""
+    return p.replace(**{k: getattr(base2, k) for k in SLOW_TAIL})
+
+
 def _calibrate_auto(capture, config, scene, two, solver, objective, data, sigma, fingerprint):
     """``pulse_tails = "auto"``: one tail from the first start; the score test there; then either
     the one-tail calibration's restarts, or the two-tail calibration from the envelope's best
@@ -1072,8 +1077,7 @@ def _calibrate_auto(capture, config, scene, two, solver, objective, data, sigma,
         # one-tail fit on data with a slow tail bends the near field and the optics to mimic it (on
         # the small test scene, once converged: near field 0.11 m, shape 9, n1 1.379), and two
         # tails fitted from there stayed in that basin (reduced chi-square 3.63 against 1.07)
-        slow = {k: getattr(base2, k) for k in SLOW_TAIL}
-        starts = [c.replace(**slow) for c in candidates]
+        starts = [_with_slow_tail_of(c, base2) for c in candidates]
         starts = starts[:1] + [_two_tail_start(first.params, test)] + starts[1:]
         best = _fit_starts(two, cfg2, scene, objective, solver, starts, n_basins + 1, data, sigma, base2, anchor, frames, stages,
                            fingerprint, label=" (2 tails)")
@@ -1230,8 +1234,7 @@ def fit_batch_tails(problem, config: FitConfig, objective, solver, starts: Param
     if two:
         # from the batch's own starts, as calibrate's first two-tail start (not the one-tail end
         # points: a converged one-tail fit can bend the near field to mimic the slow tail)
-        slow = {k: getattr(base2, k) for k in SLOW_TAIL}
-        starts2 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_row(starts, i).replace(**slow) for i in two])
+        starts2 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_with_slow_tail_of(_row(starts, i), base2) for i in two])
         idx = np.asarray(two)
         sols2 = jax.device_get(fit_batch(problem, objective, solver, starts2, data[idx], sigma[idx], base2, anchors[idx], **kw))
         for k, i in enumerate(two):
