@@ -354,6 +354,16 @@ def detect_column(scene, base_expected: np.ndarray, touch_expected: list[np.ndar
                 fit_det = build_fit_detector(scene, base.mean(), dataclasses.replace(optical), base_opts,
                                              n_baseline=baseline_frames)
                 out["sensitivity_fit"] = fit_map_summary(fit_sensitivity_of(fit_det), contacts, exposure)
+                from position_bound import bound_of_set
+
+                out["position_bound"] = {
+                    "what": "the recall a detector that finds every contact and places it as well as the data allow "
+                            "would score: per true contact, the probability that a fit reaching the joint position "
+                            "Cramer-Rao bound (six contacts fitted together, the detector's calibrated model and noise) "
+                            "lands within the match radius (experiments/position_bound.py); on the Monte Carlo column "
+                            "it is the model's account of the information, not the Monte Carlo's",
+                    **{k: v for k, v in bound_of_set(fit_det, scene, contacts, cfg.match_radius_m, cfg.border_m).items()
+                       if k != "per_contact"}}
             inv = fit_det if m == "fit" else fit_det.with_options(
                 dataclasses.replace(base_opts, **fit_variants[m[4:]]))
             bases = [(m, inv.options)] + ([(f"fit:{v}", dataclasses.replace(inv.options, **o))

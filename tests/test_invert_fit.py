@@ -192,6 +192,76 @@ def test_fast_contact_standard_errors_match_the_scatter(smooth_stand_in):
     assert {"x_stderr_m", "y_stderr_m", "strength_stderr"} <= set(js) and js["x_stderr_m"] > 0
 
 
+def test_fast_position_bound_is_the_fits_scatter(smooth_stand_in):
+    """``FitDetector.position_bound`` (the Cramer-Rao bound of contacts fitted together): two contacts 4 cm apart,
+    refitted from the truth on 80 Poisson frames; each coordinate's scatter is the bound's standard deviation
+    (within the sampling error of 80 draws), the share of fits within a radius is ``match_probability``'s, summed
+    frames divide the covariance, a contact of strength 0 has no position (inf), and bad input is refused."""
+    from tofjax.invert.sensitivity import match_probability
+
+    sc, base, optical = smooth_stand_in
+    K = 2
+    truth = np.array([[0.05, 0.08, 0.8], [0.09, 0.08, 0.6]])
+    opts = FitDetectOptions(cell_m=0.01, max_contacts=K, iterations=8, model_error=0.0)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=10**6)
+    cov = det.position_bound(truth)
+    assert cov.shape == (2, 2, 2) and np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
+    np.testing.assert_allclose(det.position_bound(truth, frames=4), cov / 4, rtol=1e-9)
+    sig = np.asarray(_stand_in_change(sc, K, smooth=True)(jnp.asarray(truth.T.ravel()))).reshape(sc.shape)
+    frames = np.random.default_rng(5).poisson(base + sig, size=(80, *sc.shape)).astype(float)
+    t0 = truth.T.ravel().copy()
+    fits = []
+    for h in frames:
+        t, _, _ = det._refit(t0, np.arange(K), (h.ravel() - det.base) / det.sigma)
+        fits.append([t[:K], t[K : 2 * K]])
+    fits = np.asarray(fits)  # (frames, 2: x y, K)
+    for k in range(K):
+        for i in range(2):
+            ratio = np.std(fits[:, i, k]) / np.sqrt(cov[k, i, i])
+            assert 0.75 < ratio < 1.3, (k, i, ratio)
+    # the share within a radius of 1.5 x the larger standard deviation (about two thirds)
+    r = 1.5 * float(np.sqrt(np.linalg.eigvalsh(cov[0])[1]))
+    inside = np.mean(np.hypot(fits[:, 0, 0] - truth[0, 0], fits[:, 1, 0] - truth[0, 1]) < r)
+    assert abs(inside - float(match_probability(cov[0], r))) < 0.15, (inside, match_probability(cov[0], r))
+    none = det.position_bound(np.array([[0.05, 0.08, 0.0]]))
+    assert np.all(np.isinf(none)) and float(match_probability(none[0], 0.02)) == 0.0
+    assert det.position_bound(np.zeros((0, 3))).shape == (0, 2, 2)
+    for bad, what in ((np.zeros((3, 3)), "at most max_contacts"), (np.zeros(3), "shape"),
+                      (np.array([[np.nan, 0.1, 1.0]]), "finite")):
+        with pytest.raises(ConfigError, match=what):
+            det.position_bound(bad)
+    with pytest.raises(ConfigError, match="frames"):
+        det.position_bound(truth, frames=0)
+
+
+def test_fast_match_probability_closed_forms():
+    """``match_probability``: a round error ``1 - exp(-r^2 / 2 s^2)``, an error along a line ``erf(r / s sqrt 2)``,
+    an elongated tilted one as its Monte Carlo share, an unconstrained one 0; bad input refused."""
+    from scipy.special import erf
+
+    from tofjax.invert.sensitivity import match_probability
+
+    r = 0.02
+    for s in (0.004, 0.01, 0.02, 0.05):
+        assert abs(float(match_probability(np.eye(2) * s * s, r)) - (1 - np.exp(-r * r / (2 * s * s)))) < 1e-10
+        assert abs(float(match_probability(np.diag([0.0, s * s]), r)) - erf(r / (s * np.sqrt(2)))) < 1e-5
+    rng = np.random.default_rng(0)
+    covs = []
+    for _ in range(3):
+        L = rng.normal(size=(2, 2)) * 0.015
+        covs.append(L @ L.T)
+    p = match_probability(np.asarray(covs), r)
+    for c, pk in zip(covs, p):
+        z = rng.standard_normal((200_000, 2)) @ np.linalg.cholesky(c).T
+        assert abs(pk - np.mean(np.hypot(*z.T) < r)) < 0.004, (pk, np.mean(np.hypot(*z.T) < r))
+    assert float(match_probability(np.full((2, 2), np.inf), r)) == 0.0
+    assert float(match_probability(np.zeros((2, 2)), r)) == 1.0
+    with pytest.raises(ConfigError, match="radius_m"):
+        match_probability(np.eye(2), 0.0)
+    with pytest.raises(ConfigError, match="cov"):
+        match_probability(np.eye(3), r)
+
+
 def test_fast_options_and_inputs_rejected(stand_in):
     sc, base, optical = stand_in
     with pytest.raises(ConfigError, match="n_sigma"):
@@ -344,6 +414,45 @@ def test_fast_fit_sensitivity_map_is_the_fit_threshold(stand_in):
         frame = base + np.asarray(one(jnp.asarray([*xy, f * s_min]))).reshape(sc.shape)
         found.append(len(det.process(frame[None]).detections[0].touches))
     assert 0 < s_min < 0.8 and found == [1, 0], (s_min, found)
+
+
+def test_fast_fit_sensitivity_position_maps_are_the_lone_bound(smooth_stand_in, tmp_path):
+    """``SensitivityOptions(position=True)``: the fit map's ``position_sd`` at a cell is the larger standard
+    deviation of ``FitDetector.position_bound`` of a lone contact there (the vmapped map and the detector's own
+    Jacobian agree), ``match_share`` is ``match_probability`` of it, four frames halve the deviation, the summary,
+    JSON and plot carry both, and the model method's map refuses the option."""
+    from tofjax.invert.sensitivity import SensitivityOptions, fit_sensitivity, match_probability, sensitivity
+
+    sc, base, optical = smooth_stand_in
+    opts = FitDetectOptions(cell_m=0.02, max_contacts=1)
+    det = build_fit_detector(sc, base, optical, opts, n_baseline=10**6)
+    so = SensitivityOptions(strength=0.7, position=True, match_radius_m=0.01)
+    m1 = fit_sensitivity(sc, base, optical, so, fit=opts, n_baseline=10**6)
+    m4 = fit_sensitivity(sc, base, optical, dataclasses.replace(so, frames=4), fit=opts, n_baseline=10**6)
+    sensed = m1.sensed & np.isfinite(m1.position_sd)
+    assert sensed.sum() > 10
+    for xy in det.centres[[3, len(det.centres) // 2, -4]]:
+        cov = det.position_bound(np.array([[*xy, 0.7]]))[0]
+        j, i = int(xy[1] / m1.grid.dy), int(xy[0] / m1.grid.dx)
+        assert abs(m1.position_sd[j, i] / np.sqrt(np.linalg.eigvalsh(cov)[1]) - 1) < 1e-6
+        assert abs(m1.match_share[j, i] - float(match_probability(cov, 0.01))) < 1e-9
+    np.testing.assert_allclose(m4.position_sd[sensed], m1.position_sd[sensed] / 2, rtol=1e-9)
+    assert np.all(m4.match_share[sensed] >= m1.match_share[sensed])
+    s = m1.summary()["placed_within_match_radius"]
+    assert s["match_radius_m"] == 0.01 and 0 < s["all"] < 1
+    js = m1.to_json()
+    assert js["options"]["position"] is True and len(js["maps"]["position_sd_m"]) == m1.grid.ny
+    plain = fit_sensitivity(sc, base, optical, fit=opts, n_baseline=10**6)
+    assert "position_sd_m" not in plain.to_json()["maps"] and plain.position_sd is None
+    from tofjax.invert.plots import plot_position_bound
+
+    assert plot_position_bound(m1, tmp_path / "p.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="position"):
+        plot_position_bound(plain, tmp_path / "q.png")
+    with pytest.raises(ConfigError, match="position"):
+        sensitivity(sc, base, optical, so)
+    with pytest.raises(ConfigError, match="match_radius_m"):
+        SensitivityOptions(match_radius_m=-1.0)
 
 
 def test_fast_fit_sensitivity_rejects_what_it_would_ignore(stand_in):

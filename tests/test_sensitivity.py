@@ -180,6 +180,8 @@ def test_cli_writes_json_and_png(files, small, capsys):
     (["--calibration", "refused.json"], "refused"),
     (["--baseline", "other.h5"], "different scenes"),
     (["--baseline", "missing.h5"], "missing.h5"),
+    (["--position"], "add --method fit"),
+    (["--method", "fit", "--position", "--match-radius-m", "0"], "--match-radius-m"),
 ])
 def test_cli_bad_input_is_one_line(files, extra, message, capsys):
     args = ["sensitivity", str(files / "small.toml"), "--baseline", str(files / "base.h5"), "--out", str(files / "bad")]

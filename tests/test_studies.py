@@ -111,6 +111,32 @@ def test_fit_valley_study_fast(tmp_path):
     assert e.value.code == 2
 
 
+def test_position_bound_study_fast(tmp_path):
+    """experiments/position_bound.py --quick: the joint position bound of two six-contact configurations on
+    OptoSkin at 64x; border contacts are placed less well than interior ones (the bound's recall lower, their
+    standard deviation larger), every probability is one, and an eval_mc_data.py result is set beside the
+    bound of its contact set and exposure. Bad arguments exit 2."""
+    study = load("position_bound")
+    obs = tmp_path / "eval.json"
+    obs.write_text(json.dumps({"settings": {"config_seed": 6, "exposure": 64.0, "configs": 2}, "detection": {
+        "own": {"methods": {"fit": {"recall": 0.9, "recall_border": 0.8, "recall_interior": 1.0, "precision": 0.95}}}}}))
+    out = tmp_path / "b.json"
+    assert study.main(["--quick", "--out", str(out), "--observed", str(obs)]) == 0
+    rec = json.loads(out.read_text())
+    (b,) = rec["bound"]
+    assert (b["config_seed"], b["exposure"], b["contacts"]) == (6, 64.0, 12) and 0 < b["border_contacts"] < 12
+    assert b["recall_bound_border"] < b["recall_bound_interior"]
+    sd_b, sd_i = b["position_sd_major_cm_border_quantiles_10_50_90"][1], b["position_sd_major_cm_interior_quantiles_10_50_90"][1]
+    assert sd_b > sd_i > 0
+    assert all(0.0 <= p <= 1.0 for p in b["per_contact"]["match_probability"])
+    (o,) = rec["observed"]
+    assert o["column"] == "own" and o["recall_bound_border"] == b["recall_bound_border"]
+    for bad in (["--exposures", "x"], ["--exposures", "-1"]):
+        with pytest.raises(SystemExit) as e:
+            study.main(["--out", str(tmp_path / "c.json"), *bad])
+        assert e.value.code == 2
+
+
 def test_solver_secant_study_fast(tmp_path):
     """experiments/solver_secant.py --quick: both solvers fit one own and one independent baseline of
     a small scene, converge, and end at the same optimum; its record has the paired summary."""

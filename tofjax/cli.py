@@ -244,6 +244,7 @@ _RANGES = {
     "n_sigma": (0.0, 1e6),
     "strength": (1e-12, 1e12),
     "min_strength": (0.0, 1e12),
+    "match_radius_m": (1e-6, 100.0),
     "walkers": (2, 100_000),
     "max_steps": (1, 10**8),
     "chains": (1, 1024),

@@ -292,11 +292,15 @@ def _cmd_sensitivity(a) -> int:
     from ..scene import load_scene
     from .correction import check_compatible
     from .pipeline import load_optics
-    from .plots import plot_sensitivity
+    from ..config import ConfigError
+    from .plots import plot_position_bound, plot_sensitivity
     from .sensitivity import SensitivityOptions, fit_sensitivity, sensitivity
 
-    changes = {"n_sigma": a.n_sigma, "response": a.contact_response}
-    options = SensitivityOptions(strength=a.strength, frames=a.frames, **{k: v for k, v in changes.items() if v is not None})
+    changes = {"n_sigma": a.n_sigma, "response": a.contact_response, "match_radius_m": a.match_radius_m}
+    if a.position and a.method != "fit":
+        raise ConfigError("--position: the position bound is the contact fit's map (add --method fit)")
+    options = SensitivityOptions(strength=a.strength, frames=a.frames, position=a.position,
+                                 **{k: v for k, v in changes.items() if v is not None})
     scene = load_scene(a.scene).require_waveguide("tofjax sensitivity", a.scene).without_touches()
     base = read_capture(a.baseline)
     check_compatible(scene, base.scene, what="baseline", other="scene")
@@ -309,7 +313,7 @@ def _cmd_sensitivity(a) -> int:
     print(f"tofjax {a.command}: building the {what} noise (the forward model's response at every cell; tens of "
           "seconds) ...", file=sys.stderr, flush=True)
     if a.method == "fit":
-        res = fit_sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
+        res = fit_sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames, progress=a.position)
     else:
         res = sensitivity(scene, base.mean(), optical, options, n_baseline=base.n_frames)
     out = Path(a.out)
@@ -318,6 +322,8 @@ def _cmd_sensitivity(a) -> int:
                       "optics_source": optical.source}
     atomic_write_text(out / "sensitivity.json", json.dumps(data, indent=1))
     plot_sensitivity(res, out / "sensitivity.png")
+    if res.position_sd is not None:
+        plot_position_bound(res, out / "position.png")
     s = data["summary"]
     one, many, sure = s["detectable_one_frame"], s["detectable_with_frames"], s["detectable_one_frame_with_margin_2"]
 
@@ -330,6 +336,11 @@ def _cmd_sensitivity(a) -> int:
           + (f", {pct(many['all'])} with {a.frames} frames summed" if a.frames > 1 else "")
           + f"; frames needed, median {s['frames_needed_quantiles_10_50_90'][1]:.0f}, most "
             f"{s['frames_needed_max']:.0f}")
+    if res.position_sd is not None:
+        pl = s["placed_within_match_radius"]
+        print(f"wrote {out}/position.png: a lone contact of strength {a.strength:g} is placed within "
+              f"{100 * options.match_radius_m:g} cm with probability {pct(pl['all'])} on average (border "
+              f"{pct(pl['border'])}, interior {pct(pl['interior'])}) at its position bound, {a.frames} frame(s)")
     return 0
 
 
@@ -377,5 +388,12 @@ def register(sub) -> None:
 
     s.add_argument("--contact-response", choices=RESPONSES,
                    help="the contact response, as for detect --method model (default auto)")
-    s.add_argument("--out", required=True, help="output folder: sensitivity.json, sensitivity.png")
+    s.add_argument("--position", action="store_true",
+                   help="with --method fit: also where a contact can be placed, the Cramer-Rao bound of a lone contact's "
+                   "position per cell and the probability that a fit lands within --match-radius-m (OUT/position.png; "
+                   "the guided model's Jacobian at every cell: tens of seconds more)")
+    s.add_argument("--match-radius-m", type=float,
+                   help="with --position: the radius a placement must fall within (default 0.02, the evaluations' match "
+                   "radius)")
+    s.add_argument("--out", required=True, help="output folder: sensitivity.json, sensitivity.png (and position.png)")
     s.set_defaults(func=_cmd_sensitivity)

@@ -61,7 +61,7 @@ from .detect import Detection
 from .maps import Grid
 
 __all__ = ["PRUNE_OPTIONS", "FitDetectOptions", "FitDetector", "ProposalResponses", "build_fit_detector",
-           "proposal_responses"]
+           "lone_position_bounds", "position_covariance", "proposal_responses"]
 
 #: the options of the backward pruning only (:meth:`FitDetector.finish_frame`): variants that differ in these
 #: share one search (:meth:`FitDetector.process_variants`)
@@ -442,6 +442,34 @@ class FitDetector:
         sd = np.where((np.diag(F) > 0) & (var > 0), np.sqrt(np.abs(var)), np.inf)
         return sd.reshape(3, n).T
 
+    def position_bound(self, contacts, frames: int = 1) -> np.ndarray:
+        """The Cramer-Rao bound on the positions of ``contacts`` (n, 3: x_m, y_m, strength; at most
+        ``max_contacts``) fitted together, the number of contacts known: (n, 2, 2), each contact's position
+        covariance [m^2] with ``frames`` frames summed (the baseline on the same exposure).
+
+        It is the inverse of the Fisher information ``J^T J`` of the noise-weighted model change in every
+        contact's x, y and strength jointly, at the true values: no unbiased estimate does better, and the fit
+        method (a maximum-likelihood fit) reaches it where the evidence is strong. Each contact's neighbours
+        are in it (their shadows on each other, and how far their signals overlap). A direction the data do not
+        constrain at all (a contact seen by one zone of one sensor) is ``inf``. See
+        :func:`tofjax.invert.sensitivity.match_probability` for the share of fits within a match radius."""
+        c = np.asarray(contacts, float)
+        if c.ndim != 2 or c.shape[1] != 3 or not np.all(np.isfinite(c)):
+            raise ConfigError(f"contacts: must be finite (n, 3) x_m, y_m, strength, got shape {c.shape}")
+        n, K = len(c), self.K
+        if n > K:
+            raise ConfigError(f"contacts: at most max_contacts = {K} fitted together, got {n}")
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise ConfigError(f"frames: must be an integer >= 1, got {frames!r}")
+        if n == 0:
+            return np.zeros((0, 2, 2))
+        theta = np.zeros(3 * K)
+        theta[:K], theta[K : 2 * K] = self.centres[0]
+        theta[:n], theta[K : K + n], theta[2 * K : 2 * K + n] = c[:, 0], c[:, 1], c[:, 2]
+        idx = np.arange(n)
+        J = np.asarray(self._jac(jnp.asarray(theta, self._dtype)), float)[:, np.concatenate([idx, idx + K, idx + 2 * K])]
+        return position_covariance(J.T @ J * frames)
+
     def _search(self, theta, active, chi, r, y, thr_add, first):
         """Forward selection, relocation and splits from the current fit, in rounds (see ``rounds``)."""
         o = self.options
@@ -806,6 +834,52 @@ class FitDetector:
         m = maps.reshape(F, self.grid.ny, self.grid.nx)
         return [FitResult(m, ok, self.grid, "fit", dets[lv] if detect else None, None, chi2[lv], int(self.sigma.size))
                 for lv in range(L)]
+
+
+def position_covariance(F) -> np.ndarray:
+    """Each contact's position covariance (..., n, 2, 2) from the Fisher information ``F`` (..., 3n, 3n) of n
+    contacts in the fit's order (x_1..x_n, y_1..y_n, strength_1..strength_n): the x, y blocks of ``F^-1``
+    (a pseudo-inverse in the diagonal's units). A contact whose position the data do not see (a zero diagonal, or a
+    block that is not positive definite: a direction the inverse dropped) is ``inf``."""
+    F = np.asarray(F, float)
+    n = F.shape[-1] // 3
+    d = np.diagonal(F, axis1=-2, axis2=-1)
+    scale = np.sqrt(np.where(d > 0, d, 1.0))
+    outer = scale[..., :, None] * scale[..., None, :]
+    cov = np.linalg.pinv(F / outer, rcond=1e-12, hermitian=True) / outer
+    i = np.arange(n)
+    out = np.stack([np.stack([cov[..., i, i], cov[..., i, n + i]], -1),
+                    np.stack([cov[..., n + i, i], cov[..., n + i, n + i]], -1)], -2)
+    bad = (d[..., i] <= 0) | (d[..., n + i] <= 0) | ~(np.linalg.eigvalsh(out)[..., 0] > 0)
+    return np.where(bad[..., None, None], np.inf, out)
+
+
+def lone_position_bounds(scene: Scene, optical: OpticalParams, sigma, centres, strength: float, radius_m: float,
+                         frames: int = 1, *, chunk: int = 64, progress: bool = False) -> np.ndarray:
+    """The position bound of a contact of ``strength`` *alone* at each of ``centres`` (n, 2) [m]: (n, 2, 2)
+    covariances [m^2] with ``frames`` summed, as :meth:`FitDetector.position_bound` of one contact (the guided
+    model's exact Jacobian in x, y and strength, over the noise ``sigma`` (S*Z*B,) of a frame minus the
+    baseline), vmapped over ``chunk`` centres at a time (``progress``: a progress bar). What the sensitivity map's
+    position maps are made of (:func:`tofjax.invert.sensitivity.fit_sensitivity`, ``position``)."""
+    from tqdm.auto import tqdm
+
+    c = np.asarray(centres, float).reshape(-1, 2)
+    change, dtype = _contact_change(scene, optical, 1, radius_m)
+    sig = jnp.asarray(sigma, dtype)
+    out = np.empty((len(c), 2, 2))
+    for i in tqdm(range(0, len(c), chunk), desc="position bound", unit="chunk", disable=not progress, leave=False):
+        part = c[i : i + chunk]
+        t = np.c_[part, np.full(len(part), float(strength))]
+        if len(t) < chunk:  # one compiled size: pad with the last centre
+            t = np.concatenate([t, np.repeat(t[-1:], chunk - len(t), 0)])
+        J = np.asarray(_lone_jacobians(change, sig, jnp.asarray(t, dtype)), float)[: len(part)]  # (m, bins, 3)
+        out[i : i + len(part)] = position_covariance(np.einsum("mbi,mbj->mij", J, J) * frames)[:, 0]
+    return out
+
+
+@eqx.filter_jit
+def _lone_jacobians(change, sig, thetas):
+    return jax.vmap(jax.jacfwd(lambda t: change(t) / sig))(thetas)
 
 
 def _contact_change(scene: Scene, optical: OpticalParams, K: int, radius_m: float):

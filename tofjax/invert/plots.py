@@ -15,7 +15,7 @@ from .detect import Detection  # noqa: E402
 from .maps import Grid  # noqa: E402
 from ..outputs import save_figure  # noqa: E402
 
-__all__ = ["draw_map", "plot_map", "plot_map_grid", "plot_sensitivity"]
+__all__ = ["draw_map", "plot_map", "plot_map_grid", "plot_position_bound", "plot_sensitivity"]
 
 
 def draw_map(
@@ -112,6 +112,47 @@ def plot_sensitivity(result, path, *, title=None) -> Path:
     share = result.summary()["detectable_one_frame"]["all"]
     ax.set_title(title or f"{result.scene.name}: strength {o.strength:g} detectable on "
                  f"{'-' if share is None else f'{100 * share:.0f}%'} (1 frame)", fontsize=9)
+    fig.subplots_adjust(bottom=0.24)
+    return _save(fig, path)
+
+
+def plot_position_bound(result, path, *, title=None) -> Path:
+    """Where a contact can be placed (:class:`tofjax.invert.sensitivity.SensitivityResult` with ``position``): the
+    larger standard deviation of a lone contact's position per cell at its Cramer-Rao bound (log colour scale, cm;
+    grey: not placed at all), the sensors, and the contours where a fit lands within ``match_radius_m`` with
+    probability 0.5 (dashed) and 0.9 (solid)."""
+    from matplotlib.colors import LogNorm
+
+    if result.position_sd is None:
+        raise ValueError("plot_position_bound: the result has no position maps (SensitivityOptions(position=True))")
+    g, o = result.grid, result.options
+    m = np.where(result.sensed & np.isfinite(result.position_sd), 100.0 * result.position_sd, np.nan)
+    fin = m[np.isfinite(m)]
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    ax.set_facecolor("0.8")
+    if fin.size:
+        im = ax.imshow(m, origin="lower", extent=g.extent, cmap="magma_r", interpolation="nearest",
+                       norm=LogNorm(vmin=max(float(fin.min()), 1e-3), vmax=max(float(fin.max()), 2e-3)))
+        fig.colorbar(im, ax=ax, shrink=0.85, label="position standard deviation [cm] (larger axis)")
+        share = np.where(result.sensed, result.match_share, 0.0)
+        handles = []
+        for lev, ls in ((0.5, "--"), (0.9, "-")):
+            if share.min() < lev < share.max():
+                ax.contour(g.x, g.y, share, levels=[lev], colors="c", linestyles=ls, linewidths=1.2)
+                handles.append(plt.Line2D([], [], color="c", ls=ls, lw=1.2,
+                                          label=f"placed within {100 * o.match_radius_m:g} cm with probability {lev:g}"))
+        if handles:
+            ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
+    for s in result.scene.sensors:
+        ax.plot(*s.position_m, "s", color="#4fc3f7", ms=6, mec="k", clip_on=False)
+    ax.set_xlim(0, g.nx * g.dx)
+    ax.set_ylim(0, g.ny * g.dy)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    pl = result.summary()["placed_within_match_radius"]["all"]
+    ax.set_title(title or f"{result.scene.name}: a lone contact of strength {o.strength:g}, {o.frames} frame(s), placed "
+                 f"within {100 * o.match_radius_m:g} cm: {'-' if pl is None else f'{100 * pl:.0f}%'} on average", fontsize=9)
     fig.subplots_adjust(bottom=0.24)
     return _save(fig, path)
 

@@ -55,7 +55,7 @@ from .maps import Grid
 from .reconstruct import RESPONSES, ReconstructOptions, Reconstructor, build_reconstructor
 
 __all__ = ["RELIABLE_MARGIN", "SensitivityOptions", "SensitivityResult", "fit_sensitivity", "fit_sensitivity_of",
-           "sensitivity", "sensitivity_of"]
+           "match_probability", "sensitivity", "sensitivity_of"]
 
 #: strength / min_strength above which the simulated six-contact study at mu_s + mu_a = 4 /m found 96-97%
 #: of the contacts (``docs/results/sensitivity_vs_recall.json``); ``min_strength`` itself is a 50% point
@@ -81,7 +81,11 @@ class SensitivityOptions:
     - ``response``: the contact column, as ``detect --contact-response`` (``auto``, ``added``, ``signed``).
     - ``border_m``: cells whose centre is nearer an edge than this are "border" in the summaries.
     - ``reconstruct``: the rest of the model method's options (cell size, lasso ``tau``, ...);
-      its ``n_sigma`` and ``response`` are replaced by the two fields above."""
+      its ``n_sigma`` and ``response`` are replaced by the two fields above.
+    - ``position`` (fit method only): also where a contact of ``strength`` can be *placed*: per cell the
+      Cramer-Rao bound on a lone contact's position with ``frames`` summed, and the probability that a fit
+      reaching it lands within ``match_radius_m`` of the contact (the guided model's Jacobian at every cell:
+      tens of seconds more)."""
 
     strength: float = 1.0
     n_sigma: float | None = None
@@ -89,6 +93,8 @@ class SensitivityOptions:
     response: str = "auto"
     border_m: float = 0.05
     reconstruct: ReconstructOptions = field(default_factory=ReconstructOptions)
+    position: bool = False
+    match_radius_m: float = 0.02
 
     def __post_init__(self):
         if not (isinstance(self.strength, (int, float)) and math.isfinite(self.strength) and self.strength > 0):
@@ -103,6 +109,10 @@ class SensitivityOptions:
             raise ConfigError(f"border_m: must be a finite number >= 0, got {self.border_m!r}")
         if not isinstance(self.reconstruct, ReconstructOptions):
             raise ConfigError("reconstruct: must be a ReconstructOptions")
+        if not isinstance(self.position, bool):
+            raise ConfigError(f"position: must be true or false, got {self.position!r}")
+        if not (isinstance(self.match_radius_m, (int, float)) and math.isfinite(self.match_radius_m) and self.match_radius_m > 0):
+            raise ConfigError(f"match_radius_m: must be a finite number > 0, got {self.match_radius_m!r}")
 
     def reconstruct_options(self) -> ReconstructOptions:
         """The model method's options the map describes (what ``detect --method model`` would use)."""
@@ -125,7 +135,12 @@ class SensitivityResult:
     - ``min_strength``: smallest strength detected in one frame, ``shrinkage + n_sigma * noise``.
     - ``threshold_snr``: the same in matched-filter SNR units, ``min_strength / cell_noise``.
     - ``snr``: matched-filter SNR of a contact of ``options.strength`` alone at the cell, with ``frames`` summed.
-    - ``frames_needed``: frames summed for that contact to reach ``min_strength`` (``(min_strength / strength)^2``, rounded up)."""
+    - ``frames_needed``: frames summed for that contact to reach ``min_strength`` (``(min_strength / strength)^2``, rounded up).
+    - ``position_sd`` (fit method with ``options.position``; else None): the larger standard deviation [m] of a lone
+      contact's position at the cell, ``options.strength`` and ``options.frames`` (the Cramer-Rao bound; inf where
+      the data do not place it).
+    - ``match_share`` (likewise): the probability that a fit reaching the bound lands within
+      ``options.match_radius_m`` of the contact (:func:`match_probability`)."""
 
     grid: Grid
     scene: Scene
@@ -141,6 +156,8 @@ class SensitivityResult:
     snr: np.ndarray
     frames_needed: np.ndarray
     method: str = "model"
+    position_sd: np.ndarray | None = None
+    match_share: np.ndarray | None = None
 
     @property
     def sensed(self) -> np.ndarray:
@@ -176,6 +193,9 @@ class SensitivityResult:
             n = int(region.sum())
             return float(mask[region].mean()) if n else None
 
+        def mean_of(values, region):
+            return float(values[region].mean()) if region.any() else None
+
         one, many = self.detectable(1), self.detectable()
         sure = sensed & (self.options.strength >= RELIABLE_MARGIN * self.min_strength)
         fin = self.min_strength[sensed]
@@ -199,6 +219,15 @@ class SensitivityResult:
             "threshold_snr_quantiles_10_50_90": q(self.threshold_snr[sensed]),
             "frames_needed_quantiles_10_50_90": q(self.frames_needed[sensed]),
             "frames_needed_max": float(self.frames_needed[sensed].max()) if sensed.any() else None,
+            **({} if self.match_share is None else {"placed_within_match_radius": {
+                "what": "mean over the sensed cells of the probability that a lone contact of options.strength, "
+                        "options.frames summed, fitted at its position bound, lands within match_radius_m",
+                "match_radius_m": self.options.match_radius_m, "frames": self.options.frames,
+                "all": mean_of(self.match_share, sensed), "border": mean_of(self.match_share, sensed & border),
+                "interior": mean_of(self.match_share, sensed & ~border)},
+                "position_sd_cm_median_border_interior": [
+                    float(100 * np.median(self.position_sd[sensed & border])) if (sensed & border).any() else None,
+                    float(100 * np.median(self.position_sd[sensed & ~border])) if (sensed & ~border).any() else None]}),
         }
 
     def to_json(self) -> dict:
@@ -215,14 +244,17 @@ class SensitivityResult:
                     "of the baseline); see docs/inversion.md, 'Sensitivity map'",
             "scene": self.scene.name,
             "options": {"method": self.method, "strength": o.strength, "frames": o.frames, "n_sigma": self.n_sigma, "tau": self.tau,
-                        "response": self.response, "border_m": o.border_m, "cell_m": self.grid.dx},
+                        "response": self.response, "border_m": o.border_m, "cell_m": self.grid.dx,
+                        "position": o.position, "match_radius_m": o.match_radius_m},
             "summary": self.summary(),
             "grid": {"nx": self.grid.nx, "ny": self.grid.ny, "dx_m": self.grid.dx, "dy_m": self.grid.dy,
                      "x_m": self.grid.x.tolist(), "y_m": self.grid.y.tolist()},
             "maps": {"cell_noise": arr(self.cell_noise), "noise": arr(self.noise), "shrinkage": arr(self.shrinkage),
                      "min_strength": arr(self.min_strength),
                      "threshold_snr": arr(self.threshold_snr), "snr": arr(self.snr),
-                     "frames_needed": arr(self.frames_needed)},
+                     "frames_needed": arr(self.frames_needed),
+                     **({} if self.position_sd is None else {"position_sd_m": arr(self.position_sd),
+                                                             "match_share": arr(self.match_share)})},
         }
 
 
@@ -231,6 +263,8 @@ def sensitivity_of(reconstructor: Reconstructor, options: SensitivityOptions = S
     the one place the threshold formula lives (see the module docstring). ``options``' ``n_sigma``
     (if given) replaces the reconstructor's; the other reconstruct options are the reconstructor's."""
     ro = reconstructor.options
+    if options.position:
+        raise ConfigError("position: the position bound is the fit method's map (fit_sensitivity, --method fit)")
     if options.response not in ("auto", reconstructor.response):
         raise ConfigError(f"response: the reconstructor's contact response is {reconstructor.response!r}, the options "
                           f"ask for {options.response!r} (build it with that response, or use sensitivity())")
@@ -249,6 +283,40 @@ def sensitivity_of(reconstructor: Reconstructor, options: SensitivityOptions = S
         min_strength=s_min, threshold_snr=thr, snr=snr,
         frames_needed=need,
     )
+
+
+def match_probability(cov, radius_m: float, *, nodes: int = 512) -> np.ndarray:
+    """The probability that a position error ``e ~ N(0, cov)`` lies within ``radius_m`` of the truth: the share
+    of fits an evaluation matches to their contact (``match_radius_m``) when the fit reaches its bound
+    (:meth:`tofjax.invert.greedy.FitDetector.position_bound`). ``cov`` (..., 2, 2) [m^2]; a covariance with an
+    infinite or non-finite entry gives 0.
+
+    In the covariance's axes, ``e = (u, v)`` with standard deviations ``a <= b``; with ``v = r sin(phi)``,
+    ``P = int_{-pi/2}^{pi/2} N(r sin(phi); 0, b^2) erf(r cos(phi) / (a sqrt 2)) r cos(phi) dphi`` (the ``u``
+    integral over the chord in closed form). The integrand is smooth and its peak is ``b / r`` wide, so the
+    midpoint rule on ``nodes`` points is exact to ~1e-12 for ``b >= r / 8``; below that ``P > 1 - 1e-14`` and is 1.
+    ``a = b = s`` gives ``1 - exp(-r^2 / 2 s^2)``; ``a = 0`` gives ``erf(r / (b sqrt 2))``."""
+    from scipy.special import erf
+
+    if not (isinstance(radius_m, (int, float)) and math.isfinite(radius_m) and radius_m > 0):
+        raise ConfigError(f"radius_m: must be a finite number > 0, got {radius_m!r}")
+    c = np.asarray(cov, float)
+    if c.ndim < 2 or c.shape[-2:] != (2, 2):
+        raise ConfigError(f"cov: must have shape (..., 2, 2), got {c.shape}")
+    ok = np.all(np.isfinite(c), axis=(-2, -1))
+    ev = np.linalg.eigvalsh(np.where(ok[..., None, None], c, np.eye(2)))
+    a = np.sqrt(np.maximum(ev[..., 0], 0.0))[..., None]
+    b = np.sqrt(np.maximum(ev[..., 1], 0.0))[..., None]
+    r = float(radius_m)
+    phi = (np.arange(nodes) + 0.5) * (np.pi / nodes) - 0.5 * np.pi
+    v, chord = r * np.sin(phi), r * np.cos(phi)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        bb = np.maximum(b, 1e-300)
+        dens = np.exp(-0.5 * (v / bb) ** 2) / (bb * math.sqrt(2.0 * math.pi))
+        inner = np.where(a > 0, erf(chord / (np.maximum(a, 1e-300) * math.sqrt(2.0))), 1.0)
+        p = np.sum(dens * inner * chord, axis=-1) * (np.pi / nodes)
+    p = np.where(b[..., 0] < r / 8.0, 1.0, p)
+    return np.where(ok, np.clip(p, 0.0, 1.0), 0.0)
 
 
 def _snr_and_frames(sensed, sig, s_min, options: SensitivityOptions):
@@ -283,15 +351,18 @@ def sensitivity(
     b = np.asarray(baseline, float)
     if b.shape != scene.shape:
         raise ConfigError(f"baseline: histograms have shape {b.shape} (sensors, zones, bins), the scene {scene.shape}")
+    if options.position:
+        raise ConfigError("position: the position bound is the fit method's map (fit_sensitivity, --method fit)")
     optical = OpticalParams.from_scene(scene) if optical is None else optical
     rec = build_reconstructor(scene.without_touches(), b, optical, options.reconstruct_options(), n_baseline=n_baseline)
     return sensitivity_of(rec, options)
 
 
 def _fit_map(grid: Grid, cells: np.ndarray, gdiag: np.ndarray, scene: Scene, options: SensitivityOptions,
-             n_sigma: float) -> SensitivityResult:
+             n_sigma: float, position_cov: np.ndarray | None = None) -> SensitivityResult:
     """The fit method's map from its proposal grid: ``gdiag`` (per cell in ``cells``) is the squared
-    matched-filter SNR of a strength-1 contact alone in one frame; cells outside ``cells`` are never sensed."""
+    matched-filter SNR of a strength-1 contact alone in one frame; cells outside ``cells`` are never sensed.
+    ``position_cov`` (per cell in ``cells``, (n, 2, 2)): a lone contact's position bound, for the position maps."""
     sig = np.full(grid.ny * grid.nx, np.inf)
     g = np.asarray(gdiag, float)
     sig[cells] = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), np.inf)  # double where: no 1/0
@@ -300,10 +371,20 @@ def _fit_map(grid: Grid, cells: np.ndarray, gdiag: np.ndarray, scene: Scene, opt
     with np.errstate(invalid="ignore"):
         s_min = np.where(sensed, n_sigma * sig, np.inf)
     snr, need = _snr_and_frames(sensed, sig, s_min, options)
+    sd = share = None
+    if position_cov is not None:
+        cov = np.asarray(position_cov, float)
+        finite = np.all(np.isfinite(cov), axis=(1, 2))
+        major = np.where(finite, np.sqrt(np.linalg.eigvalsh(np.where(finite[:, None, None], cov, np.eye(2)))[:, 1]), np.inf)
+        sd, share = np.full(grid.ny * grid.nx, np.inf), np.zeros(grid.ny * grid.nx)
+        sd[cells], share[cells] = major, match_probability(cov, options.match_radius_m)
+        sd = np.where(sensed, sd.reshape(grid.ny, grid.nx), np.inf)
+        share = np.where(sensed, share.reshape(grid.ny, grid.nx), 0.0)
     return SensitivityResult(
         grid=grid, scene=scene, options=options, tau=0.0, n_sigma=n_sigma, response="signed", cell_noise=sig,
         noise=sig, shrinkage=np.where(sensed, 0.0, np.inf), min_strength=s_min,
-        threshold_snr=np.where(sensed, n_sigma, np.inf), snr=snr, frames_needed=need, method="fit")
+        threshold_snr=np.where(sensed, n_sigma, np.inf), snr=snr, frames_needed=need, method="fit",
+        position_sd=sd, match_share=share)
 
 
 def _check_fit_options(options: SensitivityOptions) -> None:
@@ -313,12 +394,25 @@ def _check_fit_options(options: SensitivityOptions) -> None:
         raise ConfigError("reconstruct: the fit method has no reconstruction options (leave them at their defaults)")
 
 
-def fit_sensitivity_of(detector, options: SensitivityOptions = SensitivityOptions()) -> SensitivityResult:
+def fit_sensitivity_of(detector, options: SensitivityOptions = SensitivityOptions(), *,
+                       progress: bool = False) -> SensitivityResult:
     """The fit method's sensitivity map of a built :class:`tofjax.invert.greedy.FitDetector` (its proposal grid,
     responses and noise; ``options.n_sigma``, when given, replaces its ``n_sigma``). See the module docstring."""
     _check_fit_options(options)
     n_sigma = detector.options.n_sigma if options.n_sigma is None else float(options.n_sigma)
-    return _fit_map(detector.grid, detector.cells, detector._gdiag, detector.scene, options, n_sigma)
+    cov = _lone_bounds(detector.scene, detector.optical, detector.sigma, detector.centres, detector.options, options,
+                       progress)
+    return _fit_map(detector.grid, detector.cells, detector._gdiag, detector.scene, options, n_sigma, cov)
+
+
+def _lone_bounds(scene, optical, sigma, centres, fit, options: SensitivityOptions, progress: bool):
+    """A lone contact's position bound at every proposal centre, or None without ``options.position``."""
+    if not options.position:
+        return None
+    from .greedy import lone_position_bounds
+
+    return lone_position_bounds(scene, optical, sigma, centres, options.strength, fit.contact_radius_m, options.frames,
+                                progress=progress)
 
 
 def fit_sensitivity(
@@ -329,9 +423,11 @@ def fit_sensitivity(
     fit=None,
     *,
     n_baseline: int = 1,
+    progress: bool = False,
 ) -> SensitivityResult:
     """The fit method's (``detect --method fit``) sensitivity map of ``scene`` (its contacts are ignored),
-    without compiling the fit's model (the responses on its proposal grid only).
+    without compiling the fit's model (the responses on its proposal grid only; with ``options.position`` the
+    model's Jacobian at every cell, ``progress`` a progress bar).
 
     **Arguments:**
 
@@ -360,4 +456,5 @@ def fit_sensitivity(
     sc = scene.without_touches()
     p = proposal_responses(sc, b, optical, fit, n_baseline)
     n_sigma = fit.n_sigma if options.n_sigma is None else float(options.n_sigma)
-    return _fit_map(p.grid, p.cells, p.gdiag, sc, options, n_sigma)
+    cov = _lone_bounds(sc, optical, p.sigma, p.centres, fit, options, progress)
+    return _fit_map(p.grid, p.cells, p.gdiag, sc, options, n_sigma, cov)
