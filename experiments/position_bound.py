@@ -17,7 +17,11 @@ contact and places it as well as the data allow, split border / interior as the 
 put beside the bound's for its contact set and exposure.
 
     python experiments/position_bound.py --out docs/results/position_bound.json \\
-        [--config-seeds 6,7,8] [--exposures 16,64,256,1024] [--observed RESULT.json ...] [--quick]
+        [--config-seeds 6,7,8] [--exposures 16,64,256,1024] [--observed RESULT.json ...] [--quick] \\
+        [--map docs/img/position_bound_64x.png --map-exposure 64 --map-strength 0.85]
+
+``--map``: also the lone-contact position map of ``tofjax sensitivity --method fit --position`` (the bound of one
+contact alone at every 5 mm cell; tens of seconds) as a PNG, its summary in the JSON.
 
 ``--quick``: one contact set of two configurations at one exposure, the detector's proposal grid 2 cm (the fast
 test's size; the bound does not depend on the grid, only the reported SNR's nearest cell does). **Simulated** (the
@@ -90,19 +94,20 @@ def bound_of_set(det, scene, contacts: np.ndarray, match_radius_m: float = 0.02,
 
 
 def observed(paths: list[str]) -> list[dict]:
-    """The fit method's recall (all, border, interior) of each ``eval_mc_data.py`` result, with its set and exposure."""
+    """The fit method's recall (all, border, interior) of each ``eval_mc_data.py`` result, with its set and exposure:
+    one row per detection column and fit variant (``fit``, ``fit:NAME``)."""
     rows = []
     for path in paths:
         r = json.loads(Path(path).read_text())
         s = r["settings"]
         for col, d in r["detection"].items():
-            m = d["methods"].get("fit")
-            if m is None:
-                continue
-            rows.append({"file": Path(path).name, "column": col, "config_seed": s.get("config_seed", 6),
-                         "exposure": s["exposure"], "configs": s["configs"], "recall": m["recall"],
-                         "recall_border": m["recall_border"], "recall_interior": m["recall_interior"],
-                         "precision": m["precision"]})
+            for name, m in d["methods"].items():  # the fit method and its variants (fit:NAME), not its n_sigma levels
+                if not (name == "fit" or name.startswith("fit:")) or "_n_sigma_" in name:
+                    continue
+                rows.append({"file": Path(path).name, "column": col, "method": name,
+                             "config_seed": s.get("config_seed", 6), "exposure": s["exposure"], "configs": s["configs"],
+                             "recall": m["recall"], "recall_border": m["recall_border"],
+                             "recall_interior": m["recall_interior"], "precision": m["precision"]})
     return rows
 
 
@@ -113,6 +118,10 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", type=int, default=12, help="configurations of six contacts per set")
     ap.add_argument("--exposures", default="16,64,256,1024", help="exposures (eval_mc_data.py --exposure)")
     ap.add_argument("--observed", nargs="*", default=[], help="eval_mc_data.py results to set beside the bound")
+    ap.add_argument("--map", help="also the lone-contact position map (tofjax sensitivity --method fit --position) at the "
+                    "--map-exposure, strength --map-strength, written to this PNG; its summary goes in the JSON")
+    ap.add_argument("--map-exposure", type=float, default=64.0)
+    ap.add_argument("--map-strength", type=float, default=0.85, help="the study's contacts are 0.7-1.0")
     ap.add_argument("--quick", action="store_true", help="one set of two configurations at 64x")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -125,6 +134,8 @@ def main(argv=None) -> int:
         seeds, exposures, a.configs = seeds[:1], [64.0], 2
     if a.configs < 1 or not all(e > 0 for e in exposures):
         ap.error("--configs must be >= 1 and every exposure > 0")
+    if not (a.map_exposure > 0 and a.map_strength > 0):
+        ap.error("--map-exposure and --map-strength must be > 0")
     sys.path.insert(0, str(HERE.parent))
     sys.path.insert(0, str(HERE))
     from tofjax import enable_x64
@@ -133,6 +144,8 @@ def main(argv=None) -> int:
 
     try:
         path = check_output(Path(a.out), overwrite=a.overwrite)
+        if a.map:
+            check_output(Path(a.map), overwrite=a.overwrite, flag="--map")
     except OutputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -157,11 +170,29 @@ def main(argv=None) -> int:
             out["bound"].append({"config_seed": cs, "exposure": exposure, **res})
             print(f"exposure {exposure:g} set {cs}: recall bound {res['recall_bound']:.3f}, border "
                   f"{res['recall_bound_border']:.3f}, interior {res['recall_bound_interior']:.3f}", flush=True)
+    if a.map:
+        from tofjax.invert.plots import plot_position_bound
+        from tofjax.invert.sensitivity import SensitivityOptions, fit_sensitivity_of
+
+        det, _ = detector_at(scene, a.map_exposure)
+        t = time.perf_counter()
+        res = fit_sensitivity_of(det, SensitivityOptions(strength=a.map_strength, position=True), progress=True)
+        summ = res.summary()
+        out["map"] = {"exposure": a.map_exposure, "strength": a.map_strength, "png": a.map,
+                      "seconds": time.perf_counter() - t, "cells": int(res.sensed.sum()),
+                      "placed_within_match_radius": summ["placed_within_match_radius"],
+                      "position_sd_cm_median_border_interior": summ["position_sd_cm_median_border_interior"],
+                      "detectable_one_frame": summ["detectable_one_frame"]}
+        plot_position_bound(res, a.map, title=f"OptoSkin (simulated), {a.map_exposure:g}x, strength {a.map_strength:g}: "
+                            f"placed within 2 cm {100 * summ['placed_within_match_radius']['all']:.0f}% on average")
+        pl = summ["placed_within_match_radius"]
+        print(f"map ({a.map_exposure:g}x, strength {a.map_strength:g}): placed within 2 cm {pl['all']:.3f} (border "
+              f"{pl['border']:.3f}, interior {pl['interior']:.3f}), {out['map']['seconds']:.0f} s; wrote {a.map}")
     for row in out["observed"]:
         b = [x for x in out["bound"] if x["config_seed"] == row["config_seed"] and x["exposure"] == row["exposure"]]
         if b:
             row["recall_bound_border"], row["recall_bound_interior"] = b[0]["recall_bound_border"], b[0]["recall_bound_interior"]
-        print(f"observed {row['file']} ({row['column']}, set {row['config_seed']}, {row['exposure']:g}x): border "
+        print(f"observed {row['file']} ({row['column']}, {row['method']}, set {row['config_seed']}, {row['exposure']:g}x): border "
               f"{row['recall_border']:.3f}, interior {row['recall_interior']:.3f}"
               + (f" (bound {row['recall_bound_border']:.3f} / {row['recall_bound_interior']:.3f})" if b else ""))
     out["seconds"] = time.perf_counter() - t0
