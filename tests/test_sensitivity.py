@@ -173,6 +173,25 @@ def test_cli_writes_json_and_png(files, small, capsys):
     assert "no calibration given" in captured.err and "sensitivity.json" in captured.out
 
 
+def test_cli_fit_position_map(files, small, capsys):
+    """``--method fit --position`` with a guided calibration: the position maps in the JSON (a standard deviation
+    where the map senses a contact, a share in [0, 1]), position.png, and the printed placement shares."""
+    cal = json.loads((files / "refused.json").read_text())
+    cal.update(converged=True, result="successful", optics="guided")
+    (files / "guided.json").write_text(json.dumps(cal))
+    out = files / "pos"
+    rc = main(["sensitivity", str(files / "small.toml"), "--baseline", str(files / "base.h5"), "--calibration",
+               str(files / "guided.json"), "--method", "fit", "--position", "--strength", "0.5", "--out", str(out)])
+    assert rc == 0
+    data = json.loads((out / "sensitivity.json").read_text())
+    assert data["options"]["position"] is True and data["options"]["match_radius_m"] == 0.02
+    sd = np.array([[np.inf if v is None else v for v in row] for row in data["maps"]["position_sd_m"]])
+    share = np.array(data["maps"]["match_share"], float)
+    assert np.isfinite(sd).any() and np.all((share >= 0) & (share <= 1))
+    assert (out / "position.png").stat().st_size > 1000
+    assert "placed within 2 cm" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--strength", "-1"], "--strength"),
     (["--frames", "0"], "--frames"),
