@@ -289,10 +289,10 @@ def _cmd_sensitivity(a) -> int:
     """``tofjax sensitivity``: where a contact of ``--strength`` is detectable (model or fit method), JSON and PNG."""
     from ..capture import read_capture
     from ..outputs import atomic_write_text
+    from ..config import ConfigError
     from ..scene import load_scene
     from .correction import check_compatible
     from .pipeline import load_optics
-    from ..config import ConfigError
     from .plots import plot_position_bound, plot_sensitivity
     from .sensitivity import SensitivityOptions, fit_sensitivity, sensitivity
 

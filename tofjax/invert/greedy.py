@@ -450,8 +450,8 @@ class FitDetector:
         It is the inverse of the Fisher information ``J^T J`` of the noise-weighted model change in every
         contact's x, y and strength jointly, at the true values: no unbiased estimate does better, and the fit
         method (a maximum-likelihood fit) reaches it where the evidence is strong. Each contact's neighbours
-        are in it (their shadows on each other, and how far their signals overlap). A direction the data do not
-        constrain at all (a contact seen by one zone of one sensor) is ``inf``. See
+        are in it (their shadows on each other, and how far their signals overlap). A contact whose position the
+        data do not see at all (strength 0, or outside every zone's view) is ``inf``. See
         :func:`tofjax.invert.sensitivity.match_probability` for the share of fits within a match radius."""
         c = np.asarray(contacts, float)
         if c.ndim != 2 or c.shape[1] != 3 or not np.all(np.isfinite(c)):

@@ -182,7 +182,9 @@ class SensitivityResult:
         xy = np.asarray(xy, float)
         i = np.clip((xy[..., 0] / self.grid.dx).astype(int), 0, self.grid.nx - 1)
         j = np.clip((xy[..., 1] / self.grid.dy).astype(int), 0, self.grid.ny - 1)
-        return {k: getattr(self, k)[j, i] for k in ("cell_noise", "noise", "shrinkage", "min_strength", "threshold_snr")}
+        keys = ("cell_noise", "noise", "shrinkage", "min_strength", "threshold_snr")
+        keys += () if self.position_sd is None else ("position_sd", "match_share")
+        return {k: getattr(self, k)[j, i] for k in keys}
 
     def summary(self) -> dict:
         """Shares of the sensed area where ``options.strength`` is detectable in one frame and with
@@ -294,7 +296,8 @@ def match_probability(cov, radius_m: float, *, nodes: int = 512) -> np.ndarray:
     In the covariance's axes, ``e = (u, v)`` with standard deviations ``a <= b``; with ``v = r sin(phi)``,
     ``P = int_{-pi/2}^{pi/2} N(r sin(phi); 0, b^2) erf(r cos(phi) / (a sqrt 2)) r cos(phi) dphi`` (the ``u``
     integral over the chord in closed form). The integrand is smooth and its peak is ``b / r`` wide, so the
-    midpoint rule on ``nodes`` points is exact to ~1e-12 for ``b >= r / 8``; below that ``P > 1 - 1e-14`` and is 1.
+    midpoint rule on ``nodes`` points is accurate to 1e-6 or better for ``b >= r / 8`` (to rounding for a round
+    error); below that ``P > 1 - 1e-14`` and is 1.
     ``a = b = s`` gives ``1 - exp(-r^2 / 2 s^2)``; ``a = 0`` gives ``erf(r / (b sqrt 2))``."""
     from scipy.special import erf
 
