@@ -84,6 +84,7 @@ def plot_sensitivity(result, path, *, title=None) -> Path:
     fin = m[np.isfinite(m)]
     fig, ax = plt.subplots(figsize=(6.4, 5.2))
     ax.set_facecolor("0.8")
+    handles = []
     if fin.size:
         im = ax.imshow(m, origin="lower", extent=g.extent, cmap="viridis", interpolation="nearest",
                        norm=LogNorm(vmin=float(fin.min()), vmax=float(fin.max())))
@@ -94,21 +95,11 @@ def plot_sensitivity(result, path, *, title=None) -> Path:
         levels = [(o.strength, "-", "1 frame"), (o.strength / RELIABLE_MARGIN, ":", f"1 frame, x{RELIABLE_MARGIN:g} margin")]
         if o.frames > 1:
             levels.append((o.strength * np.sqrt(o.frames), "--", f"{o.frames} frames"))
-        handles = []
         for lev, ls, lab in levels:
             if fin.min() < lev < filled.max():
                 ax.contour(g.x, g.y, filled, levels=[lev], colors="w", linestyles=ls, linewidths=1.2)
                 handles.append(plt.Line2D([], [], color="k", ls=ls, lw=1.2, label=f"strength {o.strength:g}: {lab}"))
-        if handles:
-            ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1,
-                      frameon=False)
-    for s in result.scene.sensors:
-        ax.plot(*s.position_m, "s", color="#4fc3f7", ms=6, mec="k", clip_on=False)
-    ax.set_xlim(0, g.nx * g.dx)
-    ax.set_ylim(0, g.ny * g.dy)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
+    _finish_guide_axes(ax, result, handles)
     share = result.summary()["detectable_one_frame"]["all"]
     ax.set_title(title or f"{result.scene.name}: strength {o.strength:g} detectable on "
                  f"{'-' if share is None else f'{100 * share:.0f}%'} (1 frame)", fontsize=9)
@@ -130,19 +121,30 @@ def plot_position_bound(result, path, *, title=None) -> Path:
     fin = m[np.isfinite(m)]
     fig, ax = plt.subplots(figsize=(6.4, 5.2))
     ax.set_facecolor("0.8")
+    handles = []
     if fin.size:
         im = ax.imshow(m, origin="lower", extent=g.extent, cmap="magma_r", interpolation="nearest",
                        norm=LogNorm(vmin=max(float(fin.min()), 1e-3), vmax=max(float(fin.max()), 2e-3)))
         fig.colorbar(im, ax=ax, shrink=0.85, label="position standard deviation [cm] (larger axis)")
         share = np.where(result.sensed, result.match_share, 0.0)
-        handles = []
         for lev, ls in ((0.5, "--"), (0.9, "-")):
             if share.min() < lev < share.max():
                 ax.contour(g.x, g.y, share, levels=[lev], colors="c", linestyles=ls, linewidths=1.2)
                 handles.append(plt.Line2D([], [], color="c", ls=ls, lw=1.2,
                                           label=f"placed within {100 * o.match_radius_m:g} cm with probability {lev:g}"))
-        if handles:
-            ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
+    _finish_guide_axes(ax, result, handles)
+    pl = result.summary()["placed_within_match_radius"]["all"]
+    ax.set_title(title or f"{result.scene.name}: a lone contact of strength {o.strength:g}, {o.frames} frame(s), placed "
+                 f"within {100 * o.match_radius_m:g} cm: {'-' if pl is None else f'{100 * pl:.0f}%'} on average", fontsize=9)
+    fig.subplots_adjust(bottom=0.24)
+    return _save(fig, path)
+
+
+def _finish_guide_axes(ax, result, handles) -> None:
+    """A sensitivity map's axes: the legend of ``handles`` below the guide, the sensors, the guide's extent, labels."""
+    g = result.grid
+    if handles:
+        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
     for s in result.scene.sensors:
         ax.plot(*s.position_m, "s", color="#4fc3f7", ms=6, mec="k", clip_on=False)
     ax.set_xlim(0, g.nx * g.dx)
@@ -150,11 +152,6 @@ def plot_position_bound(result, path, *, title=None) -> Path:
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    pl = result.summary()["placed_within_match_radius"]["all"]
-    ax.set_title(title or f"{result.scene.name}: a lone contact of strength {o.strength:g}, {o.frames} frame(s), placed "
-                 f"within {100 * o.match_radius_m:g} cm: {'-' if pl is None else f'{100 * pl:.0f}%'} on average", fontsize=9)
-    fig.subplots_adjust(bottom=0.24)
-    return _save(fig, path)
 
 
 def _save(fig, path) -> Path:
