@@ -64,15 +64,13 @@ def bound_of_set(det, scene, contacts: np.ndarray, match_radius_m: float = 0.02,
     sys.path.insert(0, str(HERE))
     import eval_touch
 
-    from tofjax.invert.sensitivity import match_probability
+    from tofjax.invert.sensitivity import major_sd, match_probability
 
     p, sd, border, snr = [], [], [], []
     for c in contacts:
         cov = det.position_bound(c)
         p.append(match_probability(cov, match_radius_m))
-        with np.errstate(invalid="ignore"):
-            sd.append(np.sqrt(np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[:, 1]))
-        sd[-1][~np.all(np.isfinite(cov), axis=(1, 2))] = np.inf
+        sd.append(major_sd(cov))
         border.append(eval_touch._edge_distance(scene, c[:, :2]) < border_m)
         j = [int(np.argmin(np.hypot(*(det.centres - xy).T))) for xy in c[:, :2]]
         snr.append(c[:, 2] * np.sqrt(det._gdiag[j]))

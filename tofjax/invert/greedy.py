@@ -436,9 +436,7 @@ class FitDetector:
             J = J * w[:, None]
         phi = max(1.0, chi / max(len(y) - 3 * n, 1))
         F = J.T @ J
-        scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
-        cov = np.linalg.pinv(F / np.outer(scale, scale), rcond=1e-12, hermitian=True) / np.outer(scale, scale)
-        var = np.diag(cov) * phi
+        var = np.diag(_fisher_inverse(F)) * phi
         sd = np.where((np.diag(F) > 0) & (var > 0), np.sqrt(np.abs(var)), np.inf)
         return sd.reshape(3, n).T
 
@@ -836,6 +834,17 @@ class FitDetector:
                 for lv in range(L)]
 
 
+def _fisher_inverse(F) -> np.ndarray:
+    """The pseudo-inverse of Fisher information matrices ``F`` (..., m, m) in their diagonal's units (each row
+    and column scaled to a unit diagonal, so that coordinates in metres and in strength weigh alike; a zero
+    diagonal stays unscaled), the contact fit's covariance (:meth:`FitDetector._stderr`,
+    :func:`position_covariance`)."""
+    d = np.diagonal(F, axis1=-2, axis2=-1)
+    scale = np.sqrt(np.where(d > 0, d, 1.0))
+    outer = scale[..., :, None] * scale[..., None, :]
+    return np.linalg.pinv(F / outer, rcond=1e-12, hermitian=True) / outer
+
+
 def position_covariance(F) -> np.ndarray:
     """Each contact's position covariance (..., n, 2, 2) from the Fisher information ``F`` (..., 3n, 3n) of n
     contacts in the fit's order (x_1..x_n, y_1..y_n, strength_1..strength_n): the x, y blocks of ``F^-1``
@@ -844,9 +853,7 @@ def position_covariance(F) -> np.ndarray:
     F = np.asarray(F, float)
     n = F.shape[-1] // 3
     d = np.diagonal(F, axis1=-2, axis2=-1)
-    scale = np.sqrt(np.where(d > 0, d, 1.0))
-    outer = scale[..., :, None] * scale[..., None, :]
-    cov = np.linalg.pinv(F / outer, rcond=1e-12, hermitian=True) / outer
+    cov = _fisher_inverse(F)
     i = np.arange(n)
     out = np.stack([np.stack([cov[..., i, i], cov[..., i, n + i]], -1),
                     np.stack([cov[..., n + i, i], cov[..., n + i, n + i]], -1)], -2)

@@ -55,7 +55,7 @@ from .maps import Grid
 from .reconstruct import RESPONSES, ReconstructOptions, Reconstructor, build_reconstructor
 
 __all__ = ["RELIABLE_MARGIN", "SensitivityOptions", "SensitivityResult", "fit_sensitivity", "fit_sensitivity_of",
-           "match_probability", "sensitivity", "sensitivity_of"]
+           "major_sd", "match_probability", "sensitivity", "sensitivity_of"]
 
 #: strength / min_strength above which the simulated six-contact study at mu_s + mu_a = 4 /m found 96-97%
 #: of the contacts (``docs/results/sensitivity_vs_recall.json``); ``min_strength`` itself is a 50% point
@@ -287,6 +287,15 @@ def sensitivity_of(reconstructor: Reconstructor, options: SensitivityOptions = S
     )
 
 
+def major_sd(cov) -> np.ndarray:
+    """The larger standard deviation of position covariances ``cov`` (..., 2, 2) [m^2] (the error ellipse's
+    long axis); inf where an entry is not finite (a position the data do not see)."""
+    c = np.asarray(cov, float)
+    finite = np.all(np.isfinite(c), axis=(-2, -1))
+    ev = np.linalg.eigvalsh(np.where(finite[..., None, None], c, np.eye(2)))[..., 1]
+    return np.where(finite, np.sqrt(np.maximum(ev, 0.0)), np.inf)
+
+
 def match_probability(cov, radius_m: float, *, nodes: int = 512) -> np.ndarray:
     """The probability that a position error ``e ~ N(0, cov)`` lies within ``radius_m`` of the truth: the share
     of fits an evaluation matches to their contact (``match_radius_m``) when the fit reaches its bound
@@ -377,8 +386,7 @@ def _fit_map(grid: Grid, cells: np.ndarray, gdiag: np.ndarray, scene: Scene, opt
     sd = share = None
     if position_cov is not None:
         cov = np.asarray(position_cov, float)
-        finite = np.all(np.isfinite(cov), axis=(1, 2))
-        major = np.where(finite, np.sqrt(np.linalg.eigvalsh(np.where(finite[:, None, None], cov, np.eye(2)))[:, 1]), np.inf)
+        major = major_sd(cov)
         sd, share = np.full(grid.ny * grid.nx, np.inf), np.zeros(grid.ny * grid.nx)
         sd[cells], share[cells] = major, match_probability(cov, options.match_radius_m)
         sd = np.where(sensed, sd.reshape(grid.ny, grid.nx), np.inf)
