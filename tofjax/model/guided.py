@@ -61,11 +61,36 @@ __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inwa
 #: The distributed terms (volume, multiple scattering) use ``elevations // DIST_DIVISOR`` nodes:
 #: they are smooth in time already, and their cost grows with the node count.
 DIST_DIVISOR = 8
-#: Near field of the distributed terms: ``1/r`` becomes ``1/sqrt(r^2 + r0^2)`` with ``r0`` this share of
-#: the thickness (within about a thickness of the aperture the slab's images no longer add up to
-#: ``1/r``). 0.3 is fitted to the Monte Carlo on optoskin (relative L2 0.110 at 0.3, 0.127 at 0.2,
-#: 0.140 at 0.6: experiments/study_mc_guided.py).
+#: Near field of the distributed terms without :data:`NEAR_FIELD_APERTURE`: ``1/r`` becomes ``1/sqrt(r^2 + r0^2)``
+#: with ``r0`` this share of the thickness. 0.3 was fitted to the Monte Carlo on optoskin (relative L2 0.110 at 0.3,
+#: 0.127 at 0.2, 0.140 at 0.6: experiments/study_mc_guided.py). With the aperture's near field it only shapes the
+#: far field's ``1/r`` of the rays that have ended (far from the sensor, where it is ``1/r`` to 1e-4).
 NEAR_FIELD_PER_THICKNESS = 0.3
+#: The distributed terms' near field from the aperture's geometry (:func:`_near_field_table`) instead of
+#: :data:`NEAR_FIELD_PER_THICKNESS`. A zone is a condition on the angle of arrival (as in the Monte Carlo's
+#: next-event estimation), and light from a point at range ``r`` reaches the aperture (``a`` wide along the edge)
+#: over arrival angles ``a cos(psi) / r`` wide: near the sensor a point's light spreads over the neighbouring zones,
+#: and at the fan's two ends out of it. In the Monte Carlo the two outer zones of each sensor see 0.60-0.82 of the
+#: middle zone's light in the first 4 bins after the emission, where the thickness-based near field saw every zone
+#: alike. Every ray's share of every zone, integrated from the sensor out, is tabulated when the model is built
+#: (closed form) and differenced over each time node; far from the sensor it is the ray's own zone's
+#: ``a cos(psi) / r``, as before. No free parameter (the aperture is ``ModelOptions.aperture_m``, the Monte Carlo's
+#: ``MCOptions.aperture_m``), and the forward time is unchanged.
+NEAR_FIELD_APERTURE = True
+#: The far edge's first return spread over the zones by the same arrival angles (:func:`_edge_mixing`): a wall point
+#: at ``L`` reaches the aperture over ``ray +- (a/2) cos(psi) / L``, so a ray within that of a zone's limit gives
+#: part of its return to the neighbouring zone (or, at the fan's two ends, to none): 2-5% of the rays next to a
+#: limit at 10-30 cm. Each zone takes its own rays and the ``EDGE_APERTURE_RAYS`` nearest of each neighbour (a
+#: ray further in spills nothing wherever ``L > 2.8 cm``, at 8 rays per zone on a 29 degree fan).
+EDGE_APERTURE = True
+EDGE_APERTURE_RAYS = 2
+#: The aperture's near-field table (:func:`_near_field_table`): ranges from NF_R_MIN to NF_R_MAX (m), NF_POINTS
+#: points uniform in log r. Below NF_R_MIN every ray's arrival angles cover the whole fan (its light is linear in r);
+#: beyond NF_R_MAX the table's last value holds (the spill is then below 1e-6 of the far field's).
+NF_R_MIN, NF_R_MAX, NF_POINTS = 1e-5, 4.0, 512
+#: Each ray stands for an interval of angles (``dphi``): the aperture's spread is averaged over this many angles
+#: across it (a ray at the interval's centre alone would spill nothing until the spread reaches the zone's limit).
+NF_SUBRAYS = 16
 #: Add the second-order touch term (:func:`_touch_diffuse`: far-edge light frustrated at the contacts).
 #: Off: against the Monte Carlo it moves the touch scene's error only from 0.140 to 0.138 and costs
 #: 2.4x the default optics on the touch scene instead of 1.5x (docs/tradeoff.md).
@@ -198,10 +223,15 @@ class GuidedGeometry(eqx.Module):
     ray_seg: jax.Array = None  # (S, Z, A) the segment each ray's far wall point lies in
     seg_xy: jax.Array = None  # (M, 2) segment centres
     seg_tan: jax.Array = None  # (M, 2) unit vectors along each segment
+    nf_w: jax.Array = None  # (S, Z) the aperture's near field (:func:`_near_field_table`): the far field's 1/r weight
+    nf_psi: jax.Array = None  # (S, Z, N) its integral from 0 less the far field's, on a grid uniform in log r
+    nf_phi0: jax.Array = None  # (S, Z) its integral from 0 to the grid's first range
+    edge_src: jax.Array = None  # (Z, E) the rays (flat over Z x A) each zone takes the far edge's return from
+    edge_mix: jax.Array = None  # (S, Z, E) the share of each of those rays' return that falls in the zone
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
-                   skin, dtype) -> "GuidedGeometry":
+                   skin, dtype, ray_length=None) -> "GuidedGeometry":
         if getattr(scene, "waveguide", None) is None:
             from ..config import ConfigError
 
@@ -218,6 +248,16 @@ class GuidedGeometry(eqx.Module):
         cos_wall = np.where(tx <= ty, np.abs(c), np.abs(s))
         wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
         width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
+        rel = ang[0] - math.radians(scene.sensors[0].direction_deg)  # (Z, A): the same for every sensor
+        if ray_length is None:
+            from .geometry import boundary_distance
+
+            ray_length = boundary_distance(scene.waveguide.size_m, xy, ang)
+        normal_angle = np.arctan2(normals[:, 1], normals[:, 0])[:, None, None]
+        psi = np.mod(ang - normal_angle + math.pi, 2.0 * math.pi) - math.pi  # (S, Z, A) from the edge's normal
+        nf = _near_field_table(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), psi,
+                               width / A / (math.radians(scene.sensor.fov_deg) * float(scene.waveguide.thickness_m)),
+                               float(aperture_m))
         x, w = np.polynomial.legendre.leggauss(int(elevations))
         x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
         xd, wd = np.polynomial.legendre.leggauss(max(1, int(elevations) // DIST_DIVISOR))
@@ -238,6 +278,9 @@ class GuidedGeometry(eqx.Module):
             skin=skin,
             perimeter_m=float(2.0 * (lx + ly)),
             forward_m=mean_forward_distance(lx, ly),
+            **{k: jnp.asarray(v, dtype) for k, v in nf.items()},
+            **_edge_mixing(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), cos_sensor, float(aperture_m),
+                           np.asarray(ray_length, float), dtype),
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
                for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                                           float(scene.waveguide.thickness_m)).items()},
@@ -459,7 +502,13 @@ def _edge(ctx, gg, el, frus):
         amp = amp_ret = ret * P1
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
-    t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
+    t = jnp.broadcast_to(t, amp.shape)
+    if EDGE_APERTURE and gg.edge_src is not None:
+        # each zone's rays and its neighbours' nearest, at the share of their return inside the zone
+        J = amp.shape[-1]
+        amp = amp.reshape(S, -1, J)[:, gg.edge_src] * gg.edge_mix[..., None]  # (S, Z, E, J)
+        t = t.reshape(S, -1, J)[:, gg.edge_src]
+    t = t.reshape(S, Z, -1)
     amp = amp.reshape(S, Z, -1)
     if EDGE_SECOND:  # one deposit for both bounces
         t2, a2 = _edge_second(ctx, gg, el, amp_ret, frus)
@@ -902,9 +951,108 @@ def _touch_free(ctx, gg, el):
     return p.gain[:, None, None] * deposit(t, amp.reshape(S, Z, -1), nodes)
 
 
+def _subrays(rel, zone_lo, zone_hi):
+    """Angles (Z, A, NF_SUBRAYS) evenly across each ray's interval of ``rel`` (Z, A) within its zone."""
+    A = rel.shape[1]
+    dphi = (np.asarray(zone_hi) - np.asarray(zone_lo))[:, None, None] / A
+    return rel[..., None] + dphi * ((np.arange(NF_SUBRAYS) + 0.5) / NF_SUBRAYS - 0.5)
+
+
+def _near_field_table(rel, zone_lo, zone_hi, psi, w_ray, aperture_m: float) -> dict:
+    """The distributed terms' near field from the aperture (:data:`NEAR_FIELD_APERTURE`), NumPy, at build time.
+
+    A zone is a condition on the angle of arrival. Light from a point at range ``r`` on a ray reaches the aperture
+    (``a`` wide along the edge) over the arrival angles of the lines from the aperture's points to it: exactly,
+    from ``atan2(r sin(psi) -+ a/2, r cos(psi))`` (``psi`` the ray's angle from the edge's normal), about
+    ``ray +- (a/2) cos(psi) / r`` once ``r >> a``. Near the sensor a ray's light therefore spreads over the
+    neighbouring zones and, at the fan's two ends, out of it. ``f_sz(r)``: every ray's share of those angles in zone
+    ``z`` of sensor ``s`` over ``a``, weighted by the rays' ``w_ray`` (Z,) and averaged across each ray's interval of
+    angles (:data:`NF_SUBRAYS`); far from the sensor it is ``W_sz / r``, ``W_sz`` the zone's own rays' ``w cos(psi)``.
+    Its integral from 0, ``Phi_sz(r)``, is tabulated as ``Psi = Phi - W log r`` (which levels off) on
+    :data:`NF_POINTS` ranges uniform in log r (trapezoids in log r, exact for ``1/r``), with ``Phi`` at the first
+    (where ``f`` is constant: every ray's angles cover the fan). ``rel`` (Z, A): the rays' angles from the sensor's
+    axis; ``psi`` (S, Z, A)."""
+    lnr = np.linspace(math.log(NF_R_MIN), math.log(NF_R_MAX), NF_POINTS)
+    r = np.exp(lnr)
+    off = _subrays(rel, zone_lo, zone_hi) - rel[..., None]  # (Z, A, U): across each ray's interval
+    b = 0.5 * aperture_m
+    lo_k, hi_k = np.asarray(zone_lo, float), np.asarray(zone_hi, float)
+    psi = np.asarray(psi, float)
+    f = np.zeros((psi.shape[0], len(lo_k), NF_POINTS))
+    for u in range(off.shape[-1]):
+        ps = (psi + off[None, ..., u])[..., None]  # (S, Z, A, 1)
+        x, y = r * np.sin(ps), r * np.cos(ps)
+        d1, d2 = np.arctan2(x - b, y) - ps, np.arctan2(x + b, y) - ps  # (S, Z, A, N)
+        ra = (rel + off[..., u])[None, :, :, None]
+        lo_a, hi_a = ra + np.minimum(d1, d2), ra + np.maximum(d1, d2)
+        for k in range(len(lo_k)):
+            ov = np.clip(np.minimum(hi_k[k], hi_a) - np.maximum(lo_k[k], lo_a), 0.0, None)  # (S, Z, A, N)
+            f[:, k] += np.einsum("szan,z->sn", ov, np.asarray(w_ray, float)) / (aperture_m * off.shape[-1])
+    fr = f * r  # the integrand in log r
+    phi = f[..., :1] * r[0] + np.concatenate(
+        [np.zeros_like(fr[..., :1]), np.cumsum(0.5 * (fr[..., 1:] + fr[..., :-1]) * np.diff(lnr), -1)], -1)
+    w = np.einsum("sza,z->sz", np.clip(np.cos(psi), 0.0, None), np.asarray(w_ray, float))
+    return {"nf_w": w, "nf_psi": phi - w[..., None] * lnr, "nf_phi0": phi[..., 0]}
+
+
+def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_length, dtype) -> dict:
+    """Which rays' far-edge returns each zone sees, and how much of each (:data:`EDGE_APERTURE`), NumPy at build
+    time: a wall point at ``L`` on a ray reaches the aperture over arrival angles ``ray +- b cos(psi) / L``
+    (``b`` half the aperture); the share of that interval inside a zone is the share of the return it sees. Zone
+    ``k`` takes its own rays and the :data:`EDGE_APERTURE_RAYS` nearest of each neighbour (a missing neighbour at the
+    fan's ends: weight 0). Returns ``edge_src`` (Z, E) flat ray indices and ``edge_mix`` (S, Z, E)."""
+    S, Z, A = np.shape(cos_sensor)
+    nb = min(int(EDGE_APERTURE_RAYS), A)
+    src, valid = [], []
+    for k in range(Z):
+        own = [k * A + a for a in range(A)]
+        left = [(k - 1) * A + a for a in range(A - nb, A)] if k > 0 else [0] * nb
+        right = [(k + 1) * A + a for a in range(nb)] if k < Z - 1 else [0] * nb
+        src.append(left + own + right)
+        valid.append([k > 0] * nb + [True] * A + [k < Z - 1] * nb)
+    src = np.array(src, np.int32)  # (Z, E)
+    valid = np.array(valid, bool)
+    half = 0.5 * aperture_m * np.asarray(cos_sensor, float) / np.maximum(np.asarray(ray_length, float), 1e-9)  # (S, Z, A)
+    half = np.maximum(half.reshape(S, Z * A)[:, src], 1e-15)[..., None]  # (S, Z, E, 1)
+    ray = _subrays(rel, zone_lo, zone_hi).reshape(Z * A, -1)[src][None]  # (1, Z, E, U)
+    lo, hi = np.asarray(zone_lo)[None, :, None, None], np.asarray(zone_hi)[None, :, None, None]
+    inside = np.mean(np.clip(np.minimum(hi, ray + half) - np.maximum(lo, ray - half), 0.0, None) / (2.0 * half), -1)
+    return {"edge_src": jnp.asarray(src), "edge_mix": jnp.asarray(np.where(valid[None], inside, 0.0), dtype)}
+
+
+def _near_field(gg: "GuidedGeometry", r_lo, r_hi):
+    """Each zone's light from the ranges ``r_lo..r_hi`` (J, K) under the aperture's near field (S, Z, J, K):
+    :func:`_near_field_table` looked up (linear in log r) and differenced."""
+    n = gg.nf_psi.shape[-1]
+    ln0 = math.log(NF_R_MIN)
+    step = (math.log(NF_R_MAX) - ln0) / (n - 1)
+
+    def psi(rr):
+        u = jnp.clip((jnp.log(jnp.maximum(rr, NF_R_MIN)) - ln0) / step, 0.0, n - 1.0)
+        i = jnp.minimum(jnp.floor(u).astype(jnp.int32), n - 2)
+        f = (u - i)[None, None]
+        return gg.nf_psi[..., i] * (1.0 - f) + gg.nf_psi[..., i + 1] * f
+
+    w = gg.nf_w[..., None, None]
+    phi0 = gg.nf_phi0[..., None, None]
+    lo_in, hi_in = r_lo >= NF_R_MIN, r_hi >= NF_R_MIN
+    psi_lo, psi_hi = psi(r_lo), psi(r_hi)
+    ln_lo = jnp.log(jnp.maximum(r_lo, NF_R_MIN))
+    ln_hi = jnp.log(jnp.maximum(r_hi, NF_R_MIN))
+    # Phi(r) - Phi(NF_R_MIN), inside the grid and below it (linear)
+    below = lambda rr: phi0 * (rr / NF_R_MIN - 1.0)  # noqa: E731
+    both = w * jnp.log(jnp.maximum(r_hi, NF_R_MIN) / jnp.maximum(r_lo, NF_R_MIN)) + psi_hi - psi_lo
+    ln0_ = jnp.asarray(ln0, r_lo.dtype)
+    psi0 = gg.nf_psi[..., :1, None]
+    up_hi = w * (ln_hi - ln0_) + psi_hi - psi0
+    up_lo = w * (ln_lo - ln0_) + psi_lo - psi0
+    return jnp.where(lo_in & hi_in, both, jnp.where(hi_in, up_hi, below(r_hi)) - jnp.where(lo_in, up_lo, below(r_lo)))
+
+
 def _distributed(ctx, gg, el, frus, names):
     """Volume backscatter and multiple scattering along each ray: density per metre of outbound range,
-    ``1/r`` (asinh over each node, exact), per return elevation, until the ray's far edge."""
+    ``1/r`` (asinh over each node, exact), per return elevation, until the ray's far edge. With
+    :data:`NEAR_FIELD_APERTURE` the near field is the aperture's (:func:`_aperture_overlap`)."""
     p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
     S, Z, A = geom.ray_length.shape
     J = el.c.shape[0]
@@ -924,7 +1072,7 @@ def _distributed(ctx, gg, el, frus, names):
         build = -jnp.expm1(-2.0 * p.mu_s_per_m * rp)
         att = jnp.exp(-p.mu_a_per_m * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
         dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
-    dens = dens * fall * el.dmu[:, None]  # (J, K)
+    dens = dens * el.dmu[:, None]  # (J, K)
     # coverage: each ray's weight (its angle and the aperture's projection) until its far edge
     wray = gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m)  # (S, Z, A)
     end_t = p.emission_time_s + geom.ray_length[:, :, None, :] * s_j[None, None, :, None]  # (S, Z, J, A)
@@ -932,8 +1080,15 @@ def _distributed(ctx, gg, el, frus, names):
     ended = _weighted_step(end_t.reshape(S, Z * J, A), wrep.reshape(S, Z * J, A), nodes).reshape(S, Z, J, -1)
     start = jnp.reshape(p.emission_time_s, (1, 1, 1))
     emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
-    total = jnp.sum(wray, axis=-1)[:, :, None, None]
-    coverage = jnp.maximum(emitted * total - ended, 0.0)  # (S, Z, J, K)
+    if NEAR_FIELD_APERTURE and gg.nf_psi is not None:
+        # every ray's light in every zone over each node (the aperture's near field, from the emission on: the
+        # node that straddles it takes the ranges after it); the rays that have ended are taken off with the far
+        # field's 1/r (a ray ends at a wall, far from the sensor)
+        near = _near_field(gg, jnp.maximum(r - 0.5 * dr, 0.0), jnp.maximum(r + 0.5 * dr, 0.0))  # (S, Z, J, K)
+        geo = jnp.maximum(near - ended * fall, 0.0)
+    else:
+        total = jnp.sum(wray, axis=-1)[:, :, None, None]
+        geo = jnp.maximum(emitted * total - ended, 0.0) * fall  # (S, Z, J, K)
     if frus is not None:
         # beyond a skin contact, the zone loses what its rays lose out and back (the far edge's
         # factors, averaged over the zone's rays, per return elevation), from its distance on
@@ -941,13 +1096,13 @@ def _distributed(ctx, gg, el, frus, names):
         loss = 1.0 - jnp.mean((1.0 - P_out)[..., None] * (1.0 - P_ret), axis=2)  # (S, Z, N, J)
         dist = ctx.contacts.distance  # (S, N)
         step = jax.nn.sigmoid((rp[None, :, :, None] - dist[:, None, None, :]) / p.touch_radius_m)  # (S, J, K, N)
-        coverage = coverage * jnp.prod(1.0 - jnp.moveaxis(loss, 2, 3)[:, :, :, None, :] * step[:, None], axis=-1)
+        geo = geo * jnp.prod(1.0 - jnp.moveaxis(loss, 2, 3)[:, :, :, None, :] * step[:, None], axis=-1)
     elif ctx.contacts is not None and ctx.shadowing:
         from .components import shadow
 
         rr = jnp.broadcast_to(rp.reshape(-1), (S, Z, rp.size))
-        coverage = coverage * shadow(rr, ctx.contacts, p).reshape(S, Z, J, -1)
-    mass = jnp.einsum("szjk,jk->szk", coverage, dens)
+        geo = geo * shadow(rr, ctx.contacts, p).reshape(S, Z, J, -1)
+    mass = jnp.einsum("szjk,jk->szk", geo, dens)
     return p.gain[:, None, None] * smooth_like_deposit(mass)
 
 

@@ -1,0 +1,185 @@
+"""The guided optics' near field from the aperture's geometry against the Monte Carlo (issue 14).
+
+A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
+aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
+sensor the arrival angles of one point spread over ``a cos(psi) / r``: its light is shared among neighbouring zones,
+and at the fan's two ends some falls outside it. ``tofjax.model.guided.NEAR_FIELD_APERTURE`` (the default) models
+that from the geometry (``EDGE_APERTURE`` does the same for the far edge's first return); without it the guided
+model's near field is ``1/sqrt(r^2 + r0^2)`` with ``r0 = 0.3`` thickness, fitted to the Monte Carlo once and the same
+in every zone. This study holds both against the Monte Carlo baseline of ``experiments/eval_mc_data.py`` (its 64
+cached runs of 25,000 packets per sensor):
+
+1. **The light itself** at the scene's optics, transported light only (the analytic light-entry peak and ambient,
+   which the Monte Carlo capture adds, taken off): per sensor the outer zones' light in the first four bins after the
+   emission over the middle zone's; relative L2 (one scale per sensor, as ``tofjax bench tradeoff``) over the whole
+   histogram and over the near window (the emission's bin to six after); the forward time with and without, timed
+   alternately in one process (medians).
+2. **The 64x calibration** of the same capture (10 frames, seed 0, as ``guided_fidelity_calibration.py``), with the
+   switches off and on, and with the held multiple-scattering coupling at the scene's 0.5, at 0.1 and at 0: reduced
+   chi-square (photon noise; with the Monte Carlo's own variance), the errors of n1 and mu_s + mu_a, the steps, and
+   the excess chi-square by time window. Each calibration runs in a process of its own.
+
+All data **simulated** (tofjax's Monte Carlo). About 5 minutes on the 2-core VM.
+
+    python experiments/near_field_aperture.py --out docs/results/near_field_aperture.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+#: time windows (bins, 100 ps each on OptoSkin) of the excess chi-square, as guided_fidelity_calibration.py
+WINDOWS = {"before_light_entry": (0, 13), "light_entry": (13, 20), "volume": (20, 46), "far_edge": (46, 62),
+           "after": (62, None)}
+VARIANTS = {"thickness_near_field": False, "aperture_near_field": True}
+COUPLINGS = (0.5, 0.1, 0.0)
+
+
+def _switch(guided, on: bool) -> None:
+    guided.NEAR_FIELD_APERTURE = on
+    guided.EDGE_APERTURE = on
+
+
+def light_comparison(repeats: int) -> dict:
+    """Part 1: the transported light at the scene's optics, the Monte Carlo against the guided model with and
+    without the aperture's near field."""
+    import jax
+
+    import tofjax.model.guided as guided
+    from tofjax.mc.bench import profiled_relative_l2
+    from tofjax.model import ModelOptions, Params, build_model
+
+    sys.path.insert(0, str(HERE))
+    import eval_mc_data as ev
+
+    scene, expected, _ = ev.calibration_baseline(exposure=1.0)
+    p = Params.from_scene(scene)
+    extras = np.asarray(build_model(scene, ModelOptions(optics="guided"), ("crosstalk", "ambient"))(p))
+    mc = expected - extras
+    comps = tuple(c for c in scene.components() if c not in ("crosstalk", "ambient", "interface"))
+    t0 = int(scene.sensor.emission_time // scene.sensor.bin_width_s)
+    near = slice(t0, t0 + 4)
+    window = slice(t0, t0 + 7)
+
+    def outer_over_middle(y):
+        n = y[..., near].sum(-1)
+        mid = n.shape[1] // 2
+        return np.stack([n[:, 0] / n[:, mid], n[:, -1] / n[:, mid]], -1)  # (S, 2)
+
+    out = {"components": list(comps), "emission_bin": t0, "near_bins": [t0, t0 + 4], "near_window_bins": [t0, t0 + 7],
+           "monte_carlo": {"outer_over_middle_first_4_bins": outer_over_middle(mc).round(4).tolist()}}
+    fns = {}
+    for name, on in VARIANTS.items():
+        _switch(guided, on)
+        f = jax.jit(build_model(scene, ModelOptions(optics="guided"), comps).__call__)
+        y = np.asarray(f(p))
+        fns[name] = f
+        oom = outer_over_middle(y)
+        out[name] = {
+            "outer_over_middle_first_4_bins": oom.round(4).tolist(),
+            "outer_over_middle_error_vs_mc_rms": float(np.sqrt(np.mean((oom - outer_over_middle(mc)) ** 2))),
+            "relative_l2": profiled_relative_l2(mc, y)[0],
+            "relative_l2_near_window": profiled_relative_l2(mc[..., window], y[..., window])[0],
+            "light_first_4_bins_mc_over_model": float(mc[..., near].sum() / y[..., near].sum()),
+        }
+    _switch(guided, True)
+    # forward time (traced programs keyed by the switches: each variant's program was compiled above)
+    times = {k: [] for k in fns}
+    for f in fns.values():
+        jax.block_until_ready(f(p))
+    for _ in range(repeats):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f(p))
+            times[k].append(time.perf_counter() - t)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    out["forward_s"] = med
+    out["forward_ratio_aperture_over_thickness"] = med["aperture_near_field"] / med["thickness_near_field"]
+    return out
+
+
+def calibrate_one(aperture: bool, coupling: float) -> dict:
+    """Part 2, in this process: the eval's 64x calibration with the switches ``aperture`` and the held coupling."""
+    import dataclasses
+
+    import tofjax.model.guided as guided
+
+    sys.path.insert(0, str(HERE))
+    import eval_mc_data as ev
+
+    _switch(guided, aperture)
+    scene, expected, mc_var = ev.calibration_baseline()  # its runs cached by eval_mc_data.py
+    cap = ev._capture(scene, expected, 10, 0, "simulated (monte_carlo)")
+    fit_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, multiple_scattering=coupling))
+    fig, res = ev.calibrate_capture(fit_scene, cap, mc_var, "guided")
+    out = {k: fig[k] for k in ("result", "converged", "reduced_chi2_photon_noise", "reduced_chi2_with_mc_variance",
+                               "n1_rel_error", "mu_t_rel_error", "steps")}
+    p = res.params
+    out |= {"mu_s_per_m": float(p.mu_s_per_m), "mu_a_per_m": float(p.mu_a_per_m), "seconds": fig["seconds"]}
+    r2 = np.asarray(res.residuals) ** 2
+    out["excess_chi2_by_window"] = {k: float(r2[..., a:b].sum() - r2[..., a:b].size) for k, (a, b) in WINDOWS.items()}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--repeats", type=int, default=100, help="forward calls per variant for the time ratio")
+    ap.add_argument("--no-calibration", action="store_true", help="part 1 only")
+    ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--calibrate-one", metavar="APERTURE:COUPLING", help=argparse.SUPPRESS)  # JSON to stdout
+    a = ap.parse_args(argv)
+    import tofjax
+    from tofjax.outputs import OutputError, atomic_write_text, check_output
+
+    if a.repeats < 1:
+        ap.exit(2, "error: --repeats must be >= 1\n")
+    tofjax.enable_x64()
+    if a.calibrate_one:
+        tofjax.use_fast_cpu_compiler()
+        on, _, c = a.calibrate_one.partition(":")
+        print(json.dumps(calibrate_one(on == "1", float(c))))
+        return 0
+    try:
+        path = check_output(Path(a.out), overwrite=a.overwrite)
+    except OutputError as e:
+        ap.exit(2, f"error: {e}\n")
+    sys.path.insert(0, str(HERE))
+    import eval_mc_data as ev
+
+    t0 = time.perf_counter()
+    result = ev.study_header("the guided optics' near field from the aperture against the Monte Carlo baseline",
+                             "simulated (tofjax.mc Monte Carlo runs, as experiments/eval_mc_data.py)")
+    result["light_at_the_scene_optics"] = light = light_comparison(a.repeats)
+    for k in VARIANTS:
+        print(f"{k}: relative L2 {light[k]['relative_l2']:.4f}, near window {light[k]['relative_l2_near_window']:.4f}, "
+              f"outer/middle error vs MC (rms) {light[k]['outer_over_middle_error_vs_mc_rms']:.3f}", flush=True)
+    print(f"forward time, aperture over thickness: {light['forward_ratio_aperture_over_thickness']:.3f}", flush=True)
+    if not a.no_calibration:
+        cal = result["calibration_64x_monte_carlo"] = {}
+        for name, on in VARIANTS.items():
+            for c in COUPLINGS:
+                key = f"{name}_multiple_scattering_{c:g}"
+                cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one",
+                                                                f"{int(on)}:{c}"])
+                print(f"{key}: {r['result']}, chi2 {r['reduced_chi2_photon_noise']:.3f} "
+                      f"({r['reduced_chi2_with_mc_variance']:.3f} with the MC's variance), n1 {r['n1_rel_error']:+.5f}, "
+                      f"mu_t {r['mu_t_rel_error']:+.3f}, {r['steps']} steps", flush=True)
+    result["seconds"] = time.perf_counter() - t0
+    result["load_average_end"] = list(os.getloadavg())
+    atomic_write_text(path, json.dumps(result, indent=1) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
