@@ -14,14 +14,15 @@ cached runs of 25,000 packets per sensor):
    emission over the middle zone's; relative L2 (one scale per sensor, as ``tofjax bench tradeoff``) over the whole
    histogram and over the near window (the emission's bin to six after); the forward time with and without, timed
    alternately in one process (medians).
-2. **The 64x calibration** of the same capture (10 frames, seed 0, as ``guided_fidelity_calibration.py``), with the
+2. **The calibration** of the same capture at each of ``--exposures`` (64x by default; 10 frames, seed 0, as
+   ``guided_fidelity_calibration.py``), with the
    switches off and on, and with the held multiple-scattering coupling at the scene's 0.5, at 0.1 and at 0: reduced
    chi-square (photon noise; with the Monte Carlo's own variance), the errors of n1 and mu_s + mu_a, the steps, and
    the excess chi-square by time window. Each calibration runs in a process of its own.
 
-All data **simulated** (tofjax's Monte Carlo). About 5 minutes on the 2-core VM.
+All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
-    python experiments/near_field_aperture.py --out docs/results/near_field_aperture.json
+    python experiments/near_field_aperture.py --exposures 16,64 --out docs/results/near_field_aperture.json
 """
 
 from __future__ import annotations
@@ -107,8 +108,9 @@ def light_comparison(repeats: int) -> dict:
     return out
 
 
-def calibrate_one(aperture: bool, coupling: float) -> dict:
-    """Part 2, in this process: the eval's 64x calibration with the switches ``aperture`` and the held coupling."""
+def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0) -> dict:
+    """Part 2, in this process: the eval's calibration at ``exposure`` with the switches ``aperture`` and the held
+    coupling."""
     import dataclasses
 
     import tofjax.model.guided as guided
@@ -117,7 +119,7 @@ def calibrate_one(aperture: bool, coupling: float) -> dict:
     import eval_mc_data as ev
 
     _switch(guided, aperture)
-    scene, expected, mc_var = ev.calibration_baseline()  # its runs cached by eval_mc_data.py
+    scene, expected, mc_var = ev.calibration_baseline(exposure)  # its runs cached by eval_mc_data.py
     cap = ev._capture(scene, expected, 10, 0, "simulated (monte_carlo)")
     fit_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, multiple_scattering=coupling))
     fig, res = ev.calibrate_capture(fit_scene, cap, mc_var, "guided")
@@ -135,8 +137,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="JSON file to write")
     ap.add_argument("--repeats", type=int, default=100, help="forward calls per variant for the time ratio")
     ap.add_argument("--no-calibration", action="store_true", help="part 1 only")
+    ap.add_argument("--exposures", default="64", help="exposures of the calibrations, comma-separated (default: 64)")
     ap.add_argument("--overwrite", action="store_true")
-    ap.add_argument("--calibrate-one", metavar="APERTURE:COUPLING", help=argparse.SUPPRESS)  # JSON to stdout
+    ap.add_argument("--calibrate-one", metavar="APERTURE:COUPLING:EXPOSURE", help=argparse.SUPPRESS)  # JSON out
     a = ap.parse_args(argv)
     import tofjax
     from tofjax.outputs import OutputError, atomic_write_text, check_output
@@ -146,12 +149,15 @@ def main(argv=None) -> int:
     tofjax.enable_x64()
     if a.calibrate_one:
         tofjax.use_fast_cpu_compiler()
-        on, _, c = a.calibrate_one.partition(":")
-        print(json.dumps(calibrate_one(on == "1", float(c))))
+        on, c, e = a.calibrate_one.split(":")
+        print(json.dumps(calibrate_one(on == "1", float(c), float(e))))
         return 0
     try:
         path = check_output(Path(a.out), overwrite=a.overwrite)
-    except OutputError as e:
+        exposures = [float(x) for x in a.exposures.split(",")]
+        if not all(x > 0 for x in exposures):
+            raise ValueError("--exposures: every exposure must be > 0")
+    except (OutputError, ValueError) as e:
         ap.exit(2, f"error: {e}\n")
     sys.path.insert(0, str(HERE))
     import eval_mc_data as ev
@@ -165,15 +171,16 @@ def main(argv=None) -> int:
               f"outer/middle error vs MC (rms) {light[k]['outer_over_middle_error_vs_mc_rms']:.3f}", flush=True)
     print(f"forward time, aperture over thickness: {light['forward_ratio_aperture_over_thickness']:.3f}", flush=True)
     if not a.no_calibration:
-        cal = result["calibration_64x_monte_carlo"] = {}
-        for name, on in VARIANTS.items():
-            for c in COUPLINGS:
-                key = f"{name}_multiple_scattering_{c:g}"
-                cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one",
-                                                                f"{int(on)}:{c}"])
-                print(f"{key}: {r['result']}, chi2 {r['reduced_chi2_photon_noise']:.3f} "
-                      f"({r['reduced_chi2_with_mc_variance']:.3f} with the MC's variance), n1 {r['n1_rel_error']:+.5f}, "
-                      f"mu_t {r['mu_t_rel_error']:+.3f}, {r['steps']} steps", flush=True)
+        for x in exposures:
+            cal = result[f"calibration_{x:g}x_monte_carlo"] = {}
+            for name, on in VARIANTS.items():
+                for c in COUPLINGS:
+                    key = f"{name}_multiple_scattering_{c:g}"
+                    cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one",
+                                                                    f"{int(on)}:{c}:{x}"])
+                    print(f"{x:g}x {key}: {r['result']}, chi2 {r['reduced_chi2_photon_noise']:.3f} "
+                          f"({r['reduced_chi2_with_mc_variance']:.3f} with the MC's variance), n1 "
+                          f"{r['n1_rel_error']:+.5f}, mu_t {r['mu_t_rel_error']:+.3f}, {r['steps']} steps", flush=True)
     result["seconds"] = time.perf_counter() - t0
     result["load_average_end"] = list(os.getloadavg())
     atomic_write_text(path, json.dumps(result, indent=1) + "\n")

@@ -70,12 +70,13 @@ NEAR_FIELD_PER_THICKNESS = 0.3
 #: :data:`NEAR_FIELD_PER_THICKNESS`. A zone is a condition on the angle of arrival (as in the Monte Carlo's
 #: next-event estimation), and light from a point at range ``r`` reaches the aperture (``a`` wide along the edge)
 #: over arrival angles ``a cos(psi) / r`` wide: near the sensor a point's light spreads over the neighbouring zones,
-#: and at the fan's two ends out of it. In the Monte Carlo the two outer zones of each sensor see 0.60-0.82 of the
+#: and at the fan's two ends out of it. In the Monte Carlo the two outer zones of each sensor see 0.60-0.96 of the
 #: middle zone's light in the first 4 bins after the emission, where the thickness-based near field saw every zone
-#: alike. Every ray's share of every zone, integrated from the sensor out, is tabulated when the model is built
-#: (closed form) and differenced over each time node; far from the sensor it is the ray's own zone's
-#: ``a cos(psi) / r``, as before. No free parameter (the aperture is ``ModelOptions.aperture_m``, the Monte Carlo's
-#: ``MCOptions.aperture_m``), and the forward time is unchanged.
+#: alike (0.64-1.31, the rays' projection on the edge alone; with the aperture's 0.59-0.98). Every ray's share of
+#: every zone, integrated from the sensor out with the exact arrival angles, is tabulated when the model is built and
+#: differenced over each time node; far from the sensor it is the ray's own zone's ``a cos(psi) / r``, as before.
+#: No free parameter (the aperture is ``ModelOptions.aperture_m``, as the Monte Carlo's ``MCOptions.aperture_m``).
+#: It costs 1.08-1.20x of the guided model's forward time (docs/tradeoff.md, "The near field from the aperture").
 NEAR_FIELD_APERTURE = True
 #: The far edge's first return spread over the zones by the same arrival angles (:func:`_edge_mixing`): a wall point
 #: at ``L`` reaches the aperture over ``ray +- (a/2) cos(psi) / L``, so a ray within that of a zone's limit gives
@@ -224,10 +225,9 @@ class GuidedGeometry(eqx.Module):
     seg_xy: jax.Array = None  # (M, 2) segment centres
     seg_tan: jax.Array = None  # (M, 2) unit vectors along each segment
     nf_w: jax.Array = None  # (S, Z) the aperture's near field (:func:`_near_field_table`): the far field's 1/r weight
-    nf_psi: jax.Array = None  # (S, Z, N) its integral from 0 less the far field's, on a grid uniform in log r
+    nf_tab: jax.Array = None  # (N - 1, S, Z, 2) its integral from 0 less the far field's (value, slope per interval)
     nf_phi0: jax.Array = None  # (S, Z) its integral from 0 to the grid's first range
-    edge_src: jax.Array = None  # (Z, E) the rays (flat over Z x A) each zone takes the far edge's return from
-    edge_mix: jax.Array = None  # (S, Z, E) the share of each of those rays' return that falls in the zone
+    edge_mix: jax.Array = None  # (S, Z, A, Z * A) the far edge's first returns shared among the zones (_edge_mixing)
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
@@ -255,8 +255,9 @@ class GuidedGeometry(eqx.Module):
             ray_length = boundary_distance(scene.waveguide.size_m, xy, ang)
         normal_angle = np.arctan2(normals[:, 1], normals[:, 0])[:, None, None]
         psi = np.mod(ang - normal_angle + math.pi, 2.0 * math.pi) - math.pi  # (S, Z, A) from the edge's normal
-        nf = _near_field_table(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), psi,
-                               width / A / (math.radians(scene.sensor.fov_deg) * float(scene.waveguide.thickness_m)),
+        w_ray = (width / A / (math.radians(scene.sensor.fov_deg) * float(scene.waveguide.thickness_m)))[None, :, None]
+        w_ray = np.where(np.asarray(ray_length) > 0, w_ray, 0.0)  # (S, Z, A): a ray out of the guide carries none
+        nf = _near_field_table(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), psi, w_ray,
                                float(aperture_m))
         x, w = np.polynomial.legendre.leggauss(int(elevations))
         x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
@@ -502,13 +503,10 @@ def _edge(ctx, gg, el, frus):
         amp = amp_ret = ret * P1
     t = p.emission_time_s + L * (1.0 / el.c_out + 1.0 / el.c) / nodes.c1
     S, Z = amp.shape[:2]
-    t = jnp.broadcast_to(t, amp.shape)
-    if EDGE_APERTURE and gg.edge_src is not None:
-        # each zone's rays and its neighbours' nearest, at the share of their return inside the zone
-        J = amp.shape[-1]
-        amp = amp.reshape(S, -1, J)[:, gg.edge_src] * gg.edge_mix[..., None]  # (S, Z, E, J)
-        t = t.reshape(S, -1, J)[:, gg.edge_src]
-    t = t.reshape(S, Z, -1)
+    if EDGE_APERTURE and gg.edge_mix is not None:
+        # each zone's rays take the share of their return inside the zone, its edge rays the neighbours' spill too
+        amp = jnp.einsum("szap,spj->szaj", gg.edge_mix, amp.reshape(S, -1, amp.shape[-1]))
+    t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
     amp = amp.reshape(S, Z, -1)
     if EDGE_SECOND:  # one deposit for both bounces
         t2, a2 = _edge_second(ctx, gg, el, amp_ret, frus)
@@ -966,8 +964,9 @@ def _near_field_table(rel, zone_lo, zone_hi, psi, w_ray, aperture_m: float) -> d
     from ``atan2(r sin(psi) -+ a/2, r cos(psi))`` (``psi`` the ray's angle from the edge's normal), about
     ``ray +- (a/2) cos(psi) / r`` once ``r >> a``. Near the sensor a ray's light therefore spreads over the
     neighbouring zones and, at the fan's two ends, out of it. ``f_sz(r)``: every ray's share of those angles in zone
-    ``z`` of sensor ``s`` over ``a``, weighted by the rays' ``w_ray`` (Z,) and averaged across each ray's interval of
-    angles (:data:`NF_SUBRAYS`); far from the sensor it is ``W_sz / r``, ``W_sz`` the zone's own rays' ``w cos(psi)``.
+    ``z`` of sensor ``s`` over ``a``, weighted by the rays' ``w_ray`` ((S, Z, A) or (Z,)) and averaged across each
+    ray's interval of angles (:data:`NF_SUBRAYS`); far from the sensor it is ``W_sz / r``, ``W_sz`` the zone's own
+    rays' ``w cos(psi)``.
     Its integral from 0, ``Phi_sz(r)``, is tabulated as ``Psi = Phi - W log r`` (which levels off) on
     :data:`NF_POINTS` ranges uniform in log r (trapezoids in log r, exact for ``1/r``), with ``Phi`` at the first
     (where ``f`` is constant: every ray's angles cover the fan). ``rel`` (Z, A): the rays' angles from the sensor's
@@ -978,6 +977,8 @@ def _near_field_table(rel, zone_lo, zone_hi, psi, w_ray, aperture_m: float) -> d
     b = 0.5 * aperture_m
     lo_k, hi_k = np.asarray(zone_lo, float), np.asarray(zone_hi, float)
     psi = np.asarray(psi, float)
+    w_ray = np.asarray(w_ray, float)
+    w_ray = np.broadcast_to(w_ray[None, :, None] if w_ray.ndim == 1 else w_ray, psi.shape)
     f = np.zeros((psi.shape[0], len(lo_k), NF_POINTS))
     for u in range(off.shape[-1]):
         ps = (psi + off[None, ..., u])[..., None]  # (S, Z, A, 1)
@@ -987,72 +988,65 @@ def _near_field_table(rel, zone_lo, zone_hi, psi, w_ray, aperture_m: float) -> d
         lo_a, hi_a = ra + np.minimum(d1, d2), ra + np.maximum(d1, d2)
         for k in range(len(lo_k)):
             ov = np.clip(np.minimum(hi_k[k], hi_a) - np.maximum(lo_k[k], lo_a), 0.0, None)  # (S, Z, A, N)
-            f[:, k] += np.einsum("szan,z->sn", ov, np.asarray(w_ray, float)) / (aperture_m * off.shape[-1])
+            f[:, k] += np.einsum("szan,sza->sn", ov, w_ray) / (aperture_m * off.shape[-1])
     fr = f * r  # the integrand in log r
     phi = f[..., :1] * r[0] + np.concatenate(
         [np.zeros_like(fr[..., :1]), np.cumsum(0.5 * (fr[..., 1:] + fr[..., :-1]) * np.diff(lnr), -1)], -1)
-    w = np.einsum("sza,z->sz", np.clip(np.cos(psi), 0.0, None), np.asarray(w_ray, float))
-    return {"nf_w": w, "nf_psi": phi - w[..., None] * lnr, "nf_phi0": phi[..., 0]}
+    w = np.einsum("sza,sza->sz", np.clip(np.cos(psi), 0.0, None), w_ray)
+    tab = np.moveaxis(phi - w[..., None] * lnr, -1, 0)  # (N, S, Z)
+    return {"nf_w": w, "nf_tab": np.stack([tab[:-1], np.diff(tab, axis=0)], -1), "nf_phi0": phi[..., 0]}
 
 
 def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_length, dtype) -> dict:
-    """Which rays' far-edge returns each zone sees, and how much of each (:data:`EDGE_APERTURE`), NumPy at build
-    time: a wall point at ``L`` on a ray reaches the aperture over arrival angles ``ray +- b cos(psi) / L``
-    (``b`` half the aperture); the share of that interval inside a zone is the share of the return it sees. Zone
-    ``k`` takes its own rays and the :data:`EDGE_APERTURE_RAYS` nearest of each neighbour (a missing neighbour at the
-    fan's ends: weight 0). Returns ``edge_src`` (Z, E) flat ray indices and ``edge_mix`` (S, Z, E)."""
+    """How the far edge's first returns are shared among the zones (:data:`EDGE_APERTURE`), NumPy at build time:
+    a wall point at ``L`` on a ray reaches the aperture over arrival angles ``ray +- b cos(psi) / L`` (``b`` half the
+    aperture); the share of that interval (averaged across the ray's interval of angles) inside a zone is the share
+    of the return the zone sees. Zone ``k`` takes its own rays and the :data:`EDGE_APERTURE_RAYS` nearest of each
+    neighbour, a neighbour's at the time of zone ``k``'s own ray next to them (adjacent rays' walls lie within
+    ``L dphi tan(psi_wall)`` of each other: a few picoseconds). Returns ``edge_mix`` (S, Z, A, Z * A): zone ``k``'s
+    ray ``a`` takes ``edge_mix[s, k, a] @ returns[s].reshape(Z * A)``."""
     S, Z, A = np.shape(cos_sensor)
     nb = min(int(EDGE_APERTURE_RAYS), A)
-    src, valid = [], []
-    for k in range(Z):
-        own = [k * A + a for a in range(A)]
-        left = [(k - 1) * A + a for a in range(A - nb, A)] if k > 0 else [0] * nb
-        right = [(k + 1) * A + a for a in range(nb)] if k < Z - 1 else [0] * nb
-        src.append(left + own + right)
-        valid.append([k > 0] * nb + [True] * A + [k < Z - 1] * nb)
-    src = np.array(src, np.int32)  # (Z, E)
-    valid = np.array(valid, bool)
     half = 0.5 * aperture_m * np.asarray(cos_sensor, float) / np.maximum(np.asarray(ray_length, float), 1e-9)  # (S, Z, A)
-    half = np.maximum(half.reshape(S, Z * A)[:, src], 1e-15)[..., None]  # (S, Z, E, 1)
-    ray = _subrays(rel, zone_lo, zone_hi).reshape(Z * A, -1)[src][None]  # (1, Z, E, U)
-    lo, hi = np.asarray(zone_lo)[None, :, None, None], np.asarray(zone_hi)[None, :, None, None]
-    inside = np.mean(np.clip(np.minimum(hi, ray + half) - np.maximum(lo, ray - half), 0.0, None) / (2.0 * half), -1)
-    return {"edge_src": jnp.asarray(src), "edge_mix": jnp.asarray(np.where(valid[None], inside, 0.0), dtype)}
+    half = np.maximum(half, 1e-15)[..., None]
+    sub = _subrays(rel, zone_lo, zone_hi)[None]  # (1, Z, A, U)
+    mix = np.zeros((S, Z, A, Z * A))
+    for k in range(Z):
+        lo, hi = zone_lo[k], zone_hi[k]
+        share = np.mean(np.clip(np.minimum(hi, sub + half) - np.maximum(lo, sub - half), 0.0, None) / (2.0 * half), -1)
+        for a in range(A):  # the own rays
+            mix[:, k, a, k * A + a] = share[:, k, a]
+        for j in range(nb):  # the neighbours' nearest rays, at the own edge rays' times
+            if k > 0:
+                mix[:, k, 0, (k - 1) * A + A - 1 - j] = share[:, k - 1, A - 1 - j]
+            if k < Z - 1:
+                mix[:, k, A - 1, (k + 1) * A + j] = share[:, k + 1, j]
+    return {"edge_mix": jnp.asarray(mix, dtype)}
 
 
-def _near_field(gg: "GuidedGeometry", r_lo, r_hi):
-    """Each zone's light from the ranges ``r_lo..r_hi`` (J, K) under the aperture's near field (S, Z, J, K):
-    :func:`_near_field_table` looked up (linear in log r) and differenced."""
-    n = gg.nf_psi.shape[-1]
+def _near_field(gg: "GuidedGeometry", r_edges):
+    """Each zone's light from the ranges between consecutive ``r_edges`` (J, K + 1), ``>= 0``, under the aperture's
+    near field (S, Z, J, K): :func:`_near_field_table`'s integral looked up (linear in log r) at the edges and
+    differenced (each edge once). The table is laid out by range (``nf_tab``: value and slope per interval), so the
+    lookup is one gather of rows."""
+    n = gg.nf_tab.shape[0] + 1
     ln0 = math.log(NF_R_MIN)
     step = (math.log(NF_R_MAX) - ln0) / (n - 1)
-
-    def psi(rr):
-        u = jnp.clip((jnp.log(jnp.maximum(rr, NF_R_MIN)) - ln0) / step, 0.0, n - 1.0)
-        i = jnp.minimum(jnp.floor(u).astype(jnp.int32), n - 2)
-        f = (u - i)[None, None]
-        return gg.nf_psi[..., i] * (1.0 - f) + gg.nf_psi[..., i + 1] * f
-
-    w = gg.nf_w[..., None, None]
-    phi0 = gg.nf_phi0[..., None, None]
-    lo_in, hi_in = r_lo >= NF_R_MIN, r_hi >= NF_R_MIN
-    psi_lo, psi_hi = psi(r_lo), psi(r_hi)
-    ln_lo = jnp.log(jnp.maximum(r_lo, NF_R_MIN))
-    ln_hi = jnp.log(jnp.maximum(r_hi, NF_R_MIN))
-    # Phi(r) - Phi(NF_R_MIN), inside the grid and below it (linear)
-    below = lambda rr: phi0 * (rr / NF_R_MIN - 1.0)  # noqa: E731
-    both = w * jnp.log(jnp.maximum(r_hi, NF_R_MIN) / jnp.maximum(r_lo, NF_R_MIN)) + psi_hi - psi_lo
-    ln0_ = jnp.asarray(ln0, r_lo.dtype)
-    psi0 = gg.nf_psi[..., :1, None]
-    up_hi = w * (ln_hi - ln0_) + psi_hi - psi0
-    up_lo = w * (ln_lo - ln0_) + psi_lo - psi0
-    return jnp.where(lo_in & hi_in, both, jnp.where(hi_in, up_hi, below(r_hi)) - jnp.where(lo_in, up_lo, below(r_lo)))
+    ln = jnp.log(jnp.maximum(r_edges, NF_R_MIN))
+    u = jnp.clip((ln - ln0) / step, 0.0, n - 1.0)
+    i = jnp.minimum(jnp.floor(u).astype(jnp.int32), n - 2)
+    f = (u - i)[..., None, None]
+    rows = gg.nf_tab[i.reshape(-1)].reshape(*i.shape, *gg.nf_tab.shape[1:])  # (J, K + 1, S, Z, 2)
+    phi = gg.nf_w * ln[..., None, None] + rows[..., 0] + f * rows[..., 1]  # Phi(r) from the sensor out
+    # below the grid's first range every ray's angles cover the fan: Phi is linear in r there
+    phi = jnp.where((r_edges >= NF_R_MIN)[..., None, None], phi, gg.nf_phi0 * (r_edges / NF_R_MIN)[..., None, None])
+    return jnp.moveaxis(phi[:, 1:] - phi[:, :-1], (0, 1), (2, 3))
 
 
 def _distributed(ctx, gg, el, frus, names):
     """Volume backscatter and multiple scattering along each ray: density per metre of outbound range,
     ``1/r`` (asinh over each node, exact), per return elevation, until the ray's far edge. With
-    :data:`NEAR_FIELD_APERTURE` the near field is the aperture's (:func:`_aperture_overlap`)."""
+    :data:`NEAR_FIELD_APERTURE` the near field is the aperture's (:func:`_near_field`)."""
     p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
     S, Z, A = geom.ray_length.shape
     J = el.c.shape[0]
@@ -1073,18 +1067,20 @@ def _distributed(ctx, gg, el, frus, names):
         att = jnp.exp(-p.mu_a_per_m * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
         dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
     dens = dens * el.dmu[:, None]  # (J, K)
-    # coverage: each ray's weight (its angle and the aperture's projection) until its far edge
-    wray = gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m)  # (S, Z, A)
+    # coverage: each ray's weight (its angle and the aperture's projection) until its far edge (a ray that leaves
+    # the guide at once, from a sensor at a corner, carries none)
+    wray = jnp.where(geom.ray_length > 0, gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m), 0.0)
     end_t = p.emission_time_s + geom.ray_length[:, :, None, :] * s_j[None, None, :, None]  # (S, Z, J, A)
     wrep = jnp.broadcast_to(wray[:, :, None, :], end_t.shape)
     ended = _weighted_step(end_t.reshape(S, Z * J, A), wrep.reshape(S, Z * J, A), nodes).reshape(S, Z, J, -1)
     start = jnp.reshape(p.emission_time_s, (1, 1, 1))
     emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
-    if NEAR_FIELD_APERTURE and gg.nf_psi is not None:
+    if NEAR_FIELD_APERTURE and gg.nf_tab is not None:
         # every ray's light in every zone over each node (the aperture's near field, from the emission on: the
         # node that straddles it takes the ranges after it); the rays that have ended are taken off with the far
         # field's 1/r (a ray ends at a wall, far from the sensor)
-        near = _near_field(gg, jnp.maximum(r - 0.5 * dr, 0.0), jnp.maximum(r + 0.5 * dr, 0.0))  # (S, Z, J, K)
+        edges = jnp.maximum(jnp.concatenate([r - 0.5 * dr, r[:, -1:] + 0.5 * dr], axis=-1), 0.0)  # (J, K + 1)
+        near = _near_field(gg, edges)  # (S, Z, J, K)
         geo = jnp.maximum(near - ended * fall, 0.0)
     else:
         total = jnp.sum(wray, axis=-1)[:, :, None, None]
