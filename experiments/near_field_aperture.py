@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import sys
@@ -148,15 +149,20 @@ def main(argv=None) -> int:
         ap.exit(2, "error: --repeats must be >= 1\n")
     tofjax.enable_x64()
     if a.calibrate_one:
+        try:
+            on, c, e = a.calibrate_one.split(":")
+            if on not in ("0", "1") or not (0.0 <= float(c) < math.inf and 0.0 < float(e) < math.inf):
+                raise ValueError
+        except ValueError:
+            ap.exit(2, f"error: --calibrate-one: expected 0|1:COUPLING:EXPOSURE, got {a.calibrate_one!r}\n")
         tofjax.use_fast_cpu_compiler()
-        on, c, e = a.calibrate_one.split(":")
         print(json.dumps(calibrate_one(on == "1", float(c), float(e))))
         return 0
     try:
-        path = check_output(Path(a.out), overwrite=a.overwrite)
         exposures = [float(x) for x in a.exposures.split(",")]
-        if not all(x > 0 for x in exposures):
-            raise ValueError("--exposures: every exposure must be > 0")
+        if not all(0.0 < x < math.inf for x in exposures):
+            raise ValueError(f"--exposures: every exposure must be a finite number > 0, got {a.exposures!r}")
+        path = check_output(Path(a.out), overwrite=a.overwrite)
     except (OutputError, ValueError) as e:
         ap.exit(2, f"error: {e}\n")
     sys.path.insert(0, str(HERE))
