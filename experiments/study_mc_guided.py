@@ -4,7 +4,8 @@ Three checks behind the figures in docs/tradeoff.md ("Guided optics"), all simul
 
 1. the Monte Carlo's next-event elevation quadrature (``nee_points`` 6 against 24) on the clear
    optoskin slab (far edge only), against the guided model;
-2. the guided optics' near field (``NEAR_FIELD_PER_THICKNESS``) on the optoskin baseline;
+2. the guided optics' near field on the optoskin baseline: the thickness-based one at several
+   ``NEAR_FIELD_PER_THICKNESS`` (``NEAR_FIELD_APERTURE`` off) and the aperture's (on, the default);
 3. contacts: touch scene minus baseline per sensor (counts added and removed), Monte Carlo and
    guided model with the skin model.
 
@@ -231,14 +232,18 @@ def run(photons: int, seed: int = 0) -> dict:
     # 2. the near field, against a 24-node reference of the baseline
     comps = ("volume", "multiple_scattering", "end")
     ref_base = run_mc(base, MCOptions(photons=photons, seed=seed, nee_points=24)).counts
-    keep = guided.NEAR_FIELD_PER_THICKNESS
+    keep = guided.NEAR_FIELD_PER_THICKNESS, guided.NEAR_FIELD_APERTURE
     out["near_field_per_thickness"] = {}
     try:
+        # the thickness-based near field (the aperture's off: with it on, r0 only shapes the ended rays' far field)
+        guided.NEAR_FIELD_APERTURE = False
         for f in (0.1, 0.2, 0.3, 0.45, 0.6):
             guided.NEAR_FIELD_PER_THICKNESS = f
             out["near_field_per_thickness"][str(f)] = profiled_relative_l2(ref_base, analytic(base, comps))[0]
+        guided.NEAR_FIELD_APERTURE = True
+        out["near_field_aperture"] = profiled_relative_l2(ref_base, analytic(base, comps))[0]
     finally:
-        guided.NEAR_FIELD_PER_THICKNESS = keep
+        guided.NEAR_FIELD_PER_THICKNESS, guided.NEAR_FIELD_APERTURE = keep
     # 3. contacts: with minus without, per sensor
     skin = SkinContact()
     ref_touch = run_mc(touch, MCOptions(photons=photons, seed=seed, nee_points=24, contact=skin)).counts
