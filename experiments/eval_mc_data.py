@@ -59,6 +59,7 @@ import hashlib
 import json
 import os
 import platform
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -153,6 +154,23 @@ def write_study(out: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {path}")
+
+
+def alternating_medians(fns: dict, repeats: int, *args) -> dict:
+    """Median seconds of each compiled function of ``fns`` called on ``args``, after one warm call each, timed in
+    alternating order ``repeats`` times (the studies' side-by-side forward times: a shared machine's load moves them
+    alike)."""
+    import jax
+
+    times = {k: [] for k in fns}
+    for f in fns.values():
+        jax.block_until_ready(f(*args))
+    for _ in range(repeats):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times[k].append(time.perf_counter() - t)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def run_in_own_process(script: str, args: list[str]) -> dict:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -44,15 +43,10 @@ def forward_ratio(scene, elevations: int, angles: int, repeats: int) -> dict:
     p = Params.from_scene(scene)
     models = {key: jax.jit(build_model(scene, ModelOptions(optics="guided", elevations=e, angles_per_zone=a)).__call__)
               for key, (e, a) in (("this", (elevations, angles)), ("default", (8, 8)))}
-    times = {k: [] for k in models}
-    for f in models.values():
-        jax.block_until_ready(f(p))
-    for _ in range(repeats):
-        for k, f in models.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f(p))
-            times[k].append(time.perf_counter() - t)
-    med = {k: statistics.median(v) for k, v in times.items()}
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import eval_mc_data as ev
+
+    med = ev.alternating_medians(models, repeats, p)
     return {"forward_s": med["this"], "forward_s_at_8_8": med["default"], "forward_ratio_to_8_8": med["this"] / med["default"]}
 
 

@@ -31,7 +31,6 @@ import argparse
 import json
 import math
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -95,15 +94,7 @@ def light_comparison(repeats: int) -> dict:
         }
     _switch(guided, True)
     # forward time (traced programs keyed by the switches: each variant's program was compiled above)
-    times = {k: [] for k in fns}
-    for f in fns.values():
-        jax.block_until_ready(f(p))
-    for _ in range(repeats):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f(p))
-            times[k].append(time.perf_counter() - t)
-    med = {k: statistics.median(v) for k, v in times.items()}
+    med = ev.alternating_medians(fns, repeats, p)
     out["forward_s"] = med
     out["forward_ratio_aperture_over_thickness"] = med["aperture_near_field"] / med["thickness_near_field"]
     return out
