@@ -912,8 +912,7 @@ def test_aperture_near_field_in_the_model(monkeypatch):
     4 bins after the emission is lower in each sensor's two outer zones, against its middle one, than with the
     thickness-based near field (which sees every zone alike but for the rays' projection on the edge; the Monte
     Carlo against both: experiments/near_field_aperture.py); later light (16-32 cm) is the same within 2% (the end
-    zones lose what spills over the fan's ends); no NaN, and finite
-    gradients in n1 and the emission time."""
+    zones lose what spills over the fan's ends); no NaN, and finite gradients in n1 and the emission time."""
     import tofjax.model.guided as guided
     from tofjax.scene import load_scene
 
