@@ -948,7 +948,7 @@ def test_far_edge_aperture_mixing(monkeypatch):
     rel = edges[:, :1] + (edges[:, 1:] - edges[:, :1]) * ((np.arange(A) + 0.5) / A)[None, :]
     cos_sensor = np.ones((1, Z, A))
     L = np.full((1, Z, A), 0.03)
-    mix = np.asarray(guided._edge_mixing(rel, edges[:, 0], edges[:, 1], cos_sensor, a, L, np.float64)["edge_mix"])[0]
+    mix = guided._edge_mixing(rel, edges[:, 0], edges[:, 1], cos_sensor, a, L)[0]
     total = mix.sum(axis=(0, 1))  # per source ray, over every zone and slot
     np.testing.assert_allclose(total[A:(Z - 1) * A], 1.0, atol=1e-12)
     assert total[0] < 1.0 and total[-1] < 1.0 and total[A // 2] == pytest.approx(1.0)

@@ -231,7 +231,7 @@ class GuidedGeometry(eqx.Module):
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
-                   skin, dtype, ray_length=None) -> "GuidedGeometry":
+                   skin, dtype) -> "GuidedGeometry":
         if getattr(scene, "waveguide", None) is None:
             from ..config import ConfigError
 
@@ -249,14 +249,11 @@ class GuidedGeometry(eqx.Module):
         wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
         width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
         rel = ang[0] - math.radians(scene.sensors[0].direction_deg)  # (Z, A): the same for every sensor
-        if ray_length is None:
-            from .geometry import boundary_distance
-
-            ray_length = boundary_distance(scene.waveguide.size_m, xy, ang)
+        ray_length = np.clip(np.minimum(tx, ty), 0.0, None)  # (S, Z, A): 0 for a ray that leaves the guide at once
         normal_angle = np.arctan2(normals[:, 1], normals[:, 0])[:, None, None]
         psi = np.mod(ang - normal_angle + math.pi, 2.0 * math.pi) - math.pi  # (S, Z, A) from the edge's normal
         w_ray = (width / A / (math.radians(scene.sensor.fov_deg) * float(scene.waveguide.thickness_m)))[None, :, None]
-        w_ray = np.where(np.asarray(ray_length) > 0, w_ray, 0.0)  # (S, Z, A): a ray out of the guide carries none
+        w_ray = np.where(ray_length > 0, w_ray, 0.0)  # (S, Z, A): a ray out of the guide carries none
         nf = _near_field_table(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), psi, w_ray,
                                float(aperture_m))
         x, w = np.polynomial.legendre.leggauss(int(elevations))
@@ -280,8 +277,8 @@ class GuidedGeometry(eqx.Module):
             perimeter_m=float(2.0 * (lx + ly)),
             forward_m=mean_forward_distance(lx, ly),
             **{k: jnp.asarray(v, dtype) for k, v in nf.items()},
-            **_edge_mixing(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), cos_sensor, float(aperture_m),
-                           np.asarray(ray_length, float), dtype),
+            edge_mix=jnp.asarray(_edge_mixing(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), cos_sensor,
+                                              float(aperture_m), ray_length), dtype),
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
                for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                                           float(scene.waveguide.thickness_m)).items()},
@@ -997,14 +994,14 @@ def _near_field_table(rel, zone_lo, zone_hi, psi, w_ray, aperture_m: float) -> d
     return {"nf_w": w, "nf_tab": np.stack([tab[:-1], np.diff(tab, axis=0)], -1), "nf_phi0": phi[..., 0]}
 
 
-def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_length, dtype) -> dict:
+def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_length) -> np.ndarray:
     """How the far edge's first returns are shared among the zones (:data:`EDGE_APERTURE`), NumPy at build time:
     a wall point at ``L`` on a ray reaches the aperture over arrival angles ``ray +- b cos(psi) / L`` (``b`` half the
     aperture); the share of that interval (averaged across the ray's interval of angles) inside a zone is the share
     of the return the zone sees. Zone ``k`` takes its own rays and the :data:`EDGE_APERTURE_RAYS` nearest of each
     neighbour, a neighbour's at the time of zone ``k``'s own ray next to them (adjacent rays' walls lie within
-    ``L dphi tan(psi_wall)`` of each other: a few picoseconds). Returns ``edge_mix`` (S, Z, A, Z * A): zone ``k``'s
-    ray ``a`` takes ``edge_mix[s, k, a] @ returns[s].reshape(Z * A)``."""
+    ``L dphi tan(psi_wall)`` of each other: a few picoseconds). Returns the mix (S, Z, A, Z * A): zone ``k``'s
+    ray ``a`` takes ``mix[s, k, a] @ returns[s].reshape(Z * A)``."""
     S, Z, A = np.shape(cos_sensor)
     nb = min(int(EDGE_APERTURE_RAYS), A)
     half = 0.5 * aperture_m * np.asarray(cos_sensor, float) / np.maximum(np.asarray(ray_length, float), 1e-9)  # (S, Z, A)
@@ -1021,7 +1018,7 @@ def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_lengt
                 mix[:, k, 0, (k - 1) * A + A - 1 - j] = share[:, k - 1, A - 1 - j]
             if k < Z - 1:
                 mix[:, k, A - 1, (k + 1) * A + j] = share[:, k + 1, j]
-    return {"edge_mix": jnp.asarray(mix, dtype)}
+    return mix
 
 
 def _near_field(gg: "GuidedGeometry", r_edges):
@@ -1073,8 +1070,6 @@ def _distributed(ctx, gg, el, frus, names):
     end_t = p.emission_time_s + geom.ray_length[:, :, None, :] * s_j[None, None, :, None]  # (S, Z, J, A)
     wrep = jnp.broadcast_to(wray[:, :, None, :], end_t.shape)
     ended = _weighted_step(end_t.reshape(S, Z * J, A), wrep.reshape(S, Z * J, A), nodes).reshape(S, Z, J, -1)
-    start = jnp.reshape(p.emission_time_s, (1, 1, 1))
-    emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
     if NEAR_FIELD_APERTURE and gg.nf_tab is not None:
         # every ray's light in every zone over each node (the aperture's near field, from the emission on: the
         # node that straddles it takes the ranges after it); the rays that have ended are taken off with the far
@@ -1083,6 +1078,8 @@ def _distributed(ctx, gg, el, frus, names):
         near = _near_field(gg, edges)  # (S, Z, J, K)
         geo = jnp.maximum(near - ended * fall, 0.0)
     else:
+        start = jnp.reshape(p.emission_time_s, (1, 1, 1))
+        emitted = _weighted_step(start, jnp.ones((1, 1, 1), nodes.t.dtype), nodes)[0, 0]  # (K,)
         total = jnp.sum(wray, axis=-1)[:, :, None, None]
         geo = jnp.maximum(emitted * total - ended, 0.0) * fall  # (S, Z, J, K)
     if frus is not None:
