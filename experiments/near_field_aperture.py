@@ -1,4 +1,5 @@
-"""The guided optics' near field from the aperture's geometry against the Monte Carlo (issue 14).
+"""Switches of the guided optics against the Monte Carlo (issue 14): the near field from the aperture's geometry
+(default), or the light exchanged around the lit walls (``--study edge_scatter``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -20,9 +21,15 @@ cached runs of 25,000 packets per sensor):
    chi-square (photon noise; with the Monte Carlo's own variance), the errors of n1 and mu_s + mu_a, the steps, and
    the excess chi-square by time window. Each calibration runs in a process of its own.
 
+``--study edge_scatter`` compares ``tofjax.model.guided.EDGE_SCATTER`` off and on the same way instead: the light
+the walls and the volume exchange around each zone's lit wall (the beam's light scattered on to the lit walls, and
+the lit walls' light scattered back by the volume), which the reverberant field's even spread of the scattered light
+left out. The relative L2 of part 1 is also given per time window (:data:`WINDOWS`).
+
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
     python experiments/near_field_aperture.py --exposures 16,64 --out docs/results/near_field_aperture.json
+    python experiments/near_field_aperture.py --study edge_scatter --exposures 16,64 --out docs/results/edge_scatter.json
 """
 
 from __future__ import annotations
@@ -41,18 +48,29 @@ HERE = Path(__file__).resolve().parent
 #: time windows (bins, 100 ps each on OptoSkin) of the excess chi-square, as guided_fidelity_calibration.py
 WINDOWS = {"before_light_entry": (0, 13), "light_entry": (13, 20), "volume": (20, 46), "far_edge": (46, 62),
            "after": (62, None)}
-VARIANTS = {"thickness_near_field": False, "aperture_near_field": True}
 COUPLINGS = (0.5, 0.1, 0.0)
+#: the studies this script runs (``--study``): the guided model's switches each turns on together, its two variants
+#: (off, on) and the ratio's name in the JSON
+STUDIES = {
+    "aperture": {"switches": ("NEAR_FIELD_APERTURE", "EDGE_APERTURE"), "ratio": "forward_ratio_aperture_over_thickness",
+                 "variants": {"thickness_near_field": False, "aperture_near_field": True},
+                 "title": "the guided optics' near field from the aperture against the Monte Carlo baseline"},
+    "edge_scatter": {"switches": ("EDGE_SCATTER",), "ratio": "forward_ratio_with_over_without",
+                     "variants": {"without_edge_scatter": False, "with_edge_scatter": True},
+                     "title": "the light the walls and the volume exchange around a zone's lit wall (guided "
+                              "EDGE_SCATTER) against the Monte Carlo baseline"},
+}
 
 
-def _switch(guided, on: bool) -> None:
-    guided.NEAR_FIELD_APERTURE = on
-    guided.EDGE_APERTURE = on
+def _switch(guided, on: bool, study: str = "aperture") -> None:
+    for name in STUDIES[study]["switches"]:
+        setattr(guided, name, on)
 
 
-def light_comparison(repeats: int) -> dict:
-    """Part 1: the transported light at the scene's optics, the Monte Carlo against the guided model with and
-    without the aperture's near field."""
+def light_comparison(repeats: int, study: str = "aperture") -> dict:
+    """Part 1: the transported light at the scene's optics, the Monte Carlo against the guided model with the
+    ``study``'s switches off and on (relative L2 over the whole histogram, the near window and each of
+    :data:`WINDOWS`)."""
     import jax
 
     import tofjax.model.guided as guided
@@ -79,8 +97,9 @@ def light_comparison(repeats: int) -> dict:
     out = {"components": list(comps), "emission_bin": t0, "near_bins": [t0, t0 + 4], "near_window_bins": [t0, t0 + 7],
            "monte_carlo": {"outer_over_middle_first_4_bins": outer_over_middle(mc).round(4).tolist()}}
     fns = {}
-    for name, on in VARIANTS.items():
-        _switch(guided, on)
+    variants = STUDIES[study]["variants"]
+    for name, on in variants.items():
+        _switch(guided, on, study)
         f = jax.jit(build_model(scene, ModelOptions(optics="guided"), comps).__call__)
         y = np.asarray(f(p))
         fns[name] = f
@@ -91,18 +110,20 @@ def light_comparison(repeats: int) -> dict:
             "relative_l2": profiled_relative_l2(mc, y)[0],
             "relative_l2_near_window": profiled_relative_l2(mc[..., window], y[..., window])[0],
             "light_first_4_bins_mc_over_model": float(mc[..., near].sum() / y[..., near].sum()),
+            "relative_l2_by_window": {k: profiled_relative_l2(mc[..., a:b], y[..., a:b])[0] for k, (a, b) in WINDOWS.items()},
         }
-    _switch(guided, True)
+    _switch(guided, True, study)
     # forward time (traced programs keyed by the switches: each variant's program was compiled above)
     med = ev.alternating_medians(fns, repeats, p)
     out["forward_s"] = med
-    out["forward_ratio_aperture_over_thickness"] = med["aperture_near_field"] / med["thickness_near_field"]
+    off, on = variants
+    out[STUDIES[study]["ratio"]] = med[on] / med[off]
     return out
 
 
-def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0) -> dict:
-    """Part 2, in this process: the eval's calibration at ``exposure`` with the switches ``aperture`` and the held
-    coupling."""
+def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0, study: str = "aperture") -> dict:
+    """Part 2, in this process: the eval's calibration at ``exposure`` with the ``study``'s switches ``aperture`` (on
+    or off) and the held coupling."""
     import dataclasses
 
     import tofjax.model.guided as guided
@@ -110,7 +131,7 @@ def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0) -> di
     sys.path.insert(0, str(HERE))
     import eval_mc_data as ev
 
-    _switch(guided, aperture)
+    _switch(guided, aperture, study)
     scene, expected, mc_var = ev.calibration_baseline(exposure)  # its runs cached by eval_mc_data.py
     cap = ev._capture(scene, expected, 10, 0, "simulated (monte_carlo)")
     fit_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, multiple_scattering=coupling))
@@ -131,6 +152,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-calibration", action="store_true", help="part 1 only")
     ap.add_argument("--exposures", default="64", help="exposures of the calibrations, comma-separated (default: 64)")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--study", choices=sorted(STUDIES), default="aperture",
+                    help="which switches to compare (default: aperture, NEAR_FIELD_APERTURE and EDGE_APERTURE)")
     ap.add_argument("--calibrate-one", metavar="APERTURE:COUPLING:EXPOSURE", help=argparse.SUPPRESS)  # JSON out
     a = ap.parse_args(argv)
     import tofjax
@@ -147,7 +170,7 @@ def main(argv=None) -> int:
         except ValueError:
             ap.exit(2, f"error: --calibrate-one: expected 0|1:COUPLING:EXPOSURE, got {a.calibrate_one!r}\n")
         tofjax.use_fast_cpu_compiler()
-        print(json.dumps(calibrate_one(on == "1", float(c), float(e))))
+        print(json.dumps(calibrate_one(on == "1", float(c), float(e), a.study)))
         return 0
     try:
         exposures = [float(x) for x in a.exposures.split(",")]
@@ -160,21 +183,23 @@ def main(argv=None) -> int:
     import eval_mc_data as ev
 
     t0 = time.perf_counter()
-    result = ev.study_header("the guided optics' near field from the aperture against the Monte Carlo baseline",
-                             "simulated (tofjax.mc Monte Carlo runs, as experiments/eval_mc_data.py)")
-    result["light_at_the_scene_optics"] = light = light_comparison(a.repeats)
-    for k in VARIANTS:
+    study = STUDIES[a.study]
+    result = ev.study_header(study["title"], "simulated (tofjax.mc Monte Carlo runs, as experiments/eval_mc_data.py)")
+    result["study"] = {"name": a.study, "switches": list(study["switches"])}
+    result["light_at_the_scene_optics"] = light = light_comparison(a.repeats, a.study)
+    for k in study["variants"]:
         print(f"{k}: relative L2 {light[k]['relative_l2']:.4f}, near window {light[k]['relative_l2_near_window']:.4f}, "
+              f"far edge {light[k]['relative_l2_by_window']['far_edge']:.4f}, "
               f"outer/middle error vs MC (rms) {light[k]['outer_over_middle_error_vs_mc_rms']:.3f}", flush=True)
-    print(f"forward time, aperture over thickness: {light['forward_ratio_aperture_over_thickness']:.3f}", flush=True)
+    print(f"forward time, on over off: {light[study['ratio']]:.3f}", flush=True)
     if not a.no_calibration:
         for x in exposures:
             cal = result[f"calibration_{x:g}x_monte_carlo"] = {}
-            for name, on in VARIANTS.items():
+            for name, on in study["variants"].items():
                 for c in COUPLINGS:
                     key = f"{name}_multiple_scattering_{c:g}"
-                    cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--calibrate-one",
-                                                                    f"{int(on)}:{c}:{x}"])
+                    cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--study", a.study,
+                                                                    "--calibrate-one", f"{int(on)}:{c}:{x}"])
                     print(f"{x:g}x {key}: {r['result']}, chi2 {r['reduced_chi2_photon_noise']:.3f} "
                           f"({r['reduced_chi2_with_mc_variance']:.3f} with the MC's variance), n1 "
                           f"{r['n1_rel_error']:+.5f}, mu_t {r['mu_t_rel_error']:+.3f}, {r['steps']} steps", flush=True)

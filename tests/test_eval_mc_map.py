@@ -259,8 +259,9 @@ def test_refused_fit_n1_fast(tmp_path):
 
 
 def test_near_field_aperture_fast(tmp_path):
-    """experiments/near_field_aperture.py: a bad ``--exposures`` or ``--repeats``, a bad ``--calibrate-one`` and an
-    existing ``--out`` without ``--overwrite`` are usage errors (2) before anything runs or is written. (Both parts
+    """experiments/near_field_aperture.py: a bad ``--exposures``, ``--repeats`` or ``--study``, a bad
+    ``--calibrate-one`` and an existing ``--out`` without ``--overwrite`` are usage errors (2) before anything runs or
+    is written. (Both parts
     need the eval's 64 cached Monte Carlo runs: the study itself is not run here; the near field's physics is
     tests/test_guided.py's.)"""
     import pytest
@@ -269,7 +270,7 @@ def test_near_field_aperture_fast(tmp_path):
     out = tmp_path / "x.json"
     cases = [["--exposures", bad] for bad in ("0", "16,-1", "a", "inf", "")]
     cases += [["--repeats", "0"], ["--calibrate-one", "2:0.5:64"], ["--calibrate-one", "1:0.5"],
-              ["--calibrate-one", "1:x:64"]]
+              ["--calibrate-one", "1:x:64"], ["--study", "nope"], ["--study", "edge_scatter", "--exposures", "0"]]
     for args in cases:
         with pytest.raises(SystemExit) as e:
             nfa.main(["--out", str(out), *args])

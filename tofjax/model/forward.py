@@ -384,7 +384,8 @@ def build_model(
         from .guided import GuidedGeometry
 
         guided = GuidedGeometry.from_scene(scene, ang, edges[:, 0], edges[:, 1], options.elevations, options.aperture_m,
-                                           options.skin, dtype)
+                                           options.skin, dtype,
+                                           node_width_s=scene.sensor.bin_width_s / options.quadrature)
     edge_cos = C.edge_incidence_cos(scene.waveguide.size_m, xy[:, None, None, :], ang)
     return ForwardModel(
         geometry=geometry,

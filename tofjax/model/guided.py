@@ -176,6 +176,23 @@ CONTACT_SHADOW = True
 CONTACT_LINES = 5
 
 
+#: Add the light the walls and the volume exchange around each zone's lit wall (:func:`_edge_scatter`): the beam's light
+#: scattered on its way out on to the lit walls (returned like the beam's own light there), and the lit walls'
+#: diffuse light scattered back to the sensor by the volume in front of them (which reaches a zone before its own
+#: first return where a neighbour's wall is nearer). Each is a kernel of path differences from the zone's first
+#: return, tabulated from the geometry (:func:`_scatter_tables`: ``SCATTER_BINS`` bins ``SCATTER_BIN_M`` wide from
+#: ``SCATTER_MIN_M``, ``SCATTER_SOURCES`` points along each ray, ``SCATTER_ELEMENTS`` elements per ray's footprint);
+#: the reverberant field's even share of the beam's scattered light (:func:`_reverb`) keeps the rest of it.
+EDGE_SCATTER = True
+SCATTER_BINS = 72
+SCATTER_BIN_M = 0.01
+SCATTER_MIN_M = -0.2
+SCATTER_SOURCES = 32
+SCATTER_ELEMENTS = 2
+#: The largest n1 the kernels' time window is sized for (light beyond it is cut).
+SCATTER_MAX_N1 = 2.5
+
+
 #: The names of the switches above, in order (every upper-case bool, int or float of this module): tracing reads
 #: them, so :func:`tofjax.model.forward._trace_switches` keys every compiled program by their values.
 SWITCH_NAMES = tuple(k for k, v in globals().items() if k.isupper() and isinstance(v, (bool, int, float)))
@@ -228,10 +245,17 @@ class GuidedGeometry(eqx.Module):
     nf_tab: jax.Array = None  # (N - 1, S, Z, 2) its integral from 0 less the far field's (value, slope per interval)
     nf_phi0: jax.Array = None  # (S, Z) its integral from 0 to the grid's first range
     edge_mix: jax.Array = None  # (S, Z, A, Z * A) the far edge's first returns shared among the zones (_edge_mixing)
+    sc_w: jax.Array = None  # (S, Z, 2, SCATTER_BINS) :func:`_edge_scatter`'s kernels (:func:`_scatter_tables`): weights
+    sc_a: jax.Array = None  # their bins' mean lengths: the beam's leg less the direct one's
+    sc_b: jax.Array = None  # the diffuse leg
+    sc_c: jax.Array = None  # the view's leg less the direct return's
+    sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
+    sc_nodes: int = eqx.field(static=True, default=0)  # and in all
 
     @classmethod
     def from_scene(cls, scene: Scene, ray_angle: np.ndarray, zone_lo, zone_hi, elevations: int, aperture_m: float,
-                   skin, dtype) -> "GuidedGeometry":
+                   skin, dtype, node_width_s: float | None = None) -> "GuidedGeometry":
+        """``node_width_s``: the model's time step (sizes :func:`_edge_scatter`'s kernels; default: a tenth of a bin)."""
         if getattr(scene, "waveguide", None) is None:
             from ..config import ConfigError
 
@@ -260,6 +284,16 @@ class GuidedGeometry(eqx.Module):
         x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
         xd, wd = np.polynomial.legendre.leggauss(max(1, int(elevations) // DIST_DIVISOR))
         xd, wd = 0.5 * (xd + 1.0), 0.5 * wd
+        scatter = {}
+        if EDGE_SCATTER:
+            wg = scene.waveguide
+            tab = _scatter_tables_cached(lx, ly, float(wg.thickness_m), xy[:, 0, 0, :], ang, ray_length, cos_wall,
+                                         cos_sensor, width / A, math.radians(scene.sensor.fov_deg), float(wg.n1))
+            h = float(node_width_s) if node_width_s else 0.1 * float(scene.sensor.bin_width_s)
+            per_m = SCATTER_MAX_N1 / (299_792_458.0 * h)  # time nodes per metre of path at the slowest light
+            off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
+            scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()}
+            scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
         return cls(
             cos_sensor=jnp.asarray(cos_sensor, dtype),
             cos_wall=jnp.asarray(cos_wall, dtype),
@@ -282,6 +316,7 @@ class GuidedGeometry(eqx.Module):
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
                for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                                           float(scene.waveguide.thickness_m)).items()},
+            **scatter,
         )
 
 
@@ -505,13 +540,52 @@ def _edge(ctx, gg, el, frus):
         amp = jnp.einsum("szap,spj->szaj", gg.edge_mix, amp.reshape(S, -1, amp.shape[-1]))
     t = jnp.broadcast_to(t, amp.shape).reshape(S, Z, -1)
     amp = amp.reshape(S, Z, -1)
-    if EDGE_SECOND:  # one deposit for both bounces
+    scatter = EDGE_SCATTER and gg.sc_w is not None  # the first return alone carries the scattered light's kernels
+    K = nodes.t.shape[0]
+    if scatter:  # the first return past the window dropped (not on to the second's grid), which starts 2 nodes later
+        t = jnp.where(t < (K + 1) * nodes.h, t, 4.0 * K * nodes.h)
+    if EDGE_SECOND:  # one deposit for both bounces (with the kernels: the second on a grid of its own after the first's)
         t2, a2 = _edge_second(ctx, gg, el, amp_ret, frus)
-        t, amp = jnp.concatenate([t, t2], -1), jnp.concatenate([amp, a2], -1)
-    out = deposit(t, amp, nodes)
+        t, amp = jnp.concatenate([t, t2 + (K + 2) * nodes.h if scatter else t2], -1), jnp.concatenate([amp, a2], -1)
+    if scatter:
+        both = deposit(t, amp, nodes._replace(t=jnp.zeros((2 * K + 2,), nodes.t.dtype)))
+        first = both[..., :K]
+        out = first + both[..., K + 2:] + _edge_scatter(ctx, gg, el, first)
+    else:
+        out = deposit(t, amp, nodes)
     if EDGE_REVERB:
         out = out + _reverb(ctx, gg, el, ret, frus)
     return p.gain[:, None, None] * out
+
+
+def _edge_scatter(ctx, gg, el, first):
+    """The light the walls and the volume exchange around each zone's lit wall (before the gain; :data:`EDGE_SCATTER`):
+    the zone's first return ``first`` (S, Z, K) convolved with its two kernels of :func:`_scatter_tables`. The beam's
+    scattered light on the walls: ``mu_s cg / c_out`` per unit of the tables' weight (the guided share of isotropic
+    scattering, per metre of in-plane range); the walls' light scattered back: ``mu_s G / cbar^2`` (the guided share
+    of a Lambertian wall, the volume view's ``1 / cbar`` and its elevations' ``1 / cbar`` against the first return's).
+    Each bin's delay and attenuation are its mean lengths' at the fitted optics: the beam's leg at ``1 / c_out``, the
+    diffuse leg at the band's mean ``1 / cos`` losing ``mu_a + mu_s (1 - cg)`` (scattering inside the band only
+    redirects it), the view's leg at the band's mean ``1 / cos``. Contacts act through ``first`` alone."""
+    p, nodes = ctx.params, ctx.nodes
+    cg, _, c_out = launch_band(p.n1, gg.fov)
+    g_iso = jnp.arcsin(cg) / cg
+    G, g_wall = _wall_band(el)
+    cbar = _mean_cos(el)
+    mu_t = p.mu_s_per_m + p.mu_a_per_m
+    mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
+    leg = jnp.stack([g_iso, g_wall])[:, None]  # (2, 1): the diffuse leg's 1 / cos per term
+    path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, 2, NK)
+    att = jnp.exp(-mu_t * (gg.sc_a / c_out + g_iso * gg.sc_c) - mu_eff * leg * gg.sc_b)
+    pref = jnp.stack([p.mu_s_per_m * cg / c_out, p.mu_s_per_m * G / cbar**2])[:, None]
+    S, Z, K = first.shape
+    amp = (pref * gg.sc_w * att).reshape(S, Z, -1)
+    n_k = gg.sc_nodes
+    grid = Nodes(t=jnp.zeros((n_k,), first.dtype), h=nodes.h, r=None, dr=None, c1=nodes.c1)
+    kern = deposit((path / nodes.c1).reshape(S, Z, -1) + (gg.sc_off + 0.5) * nodes.h, amp, grid)  # (S, Z, n_k)
+    n = 1 << (K + n_k - 1).bit_length()  # zero-padded (no wrap), a power of two
+    y = jnp.fft.irfft(jnp.fft.rfft(first, n) * jnp.fft.rfft(kern, n), n)
+    return y[..., gg.sc_off:gg.sc_off + K]
 
 
 def _edge_second(ctx, gg, el, amp1, frus):
@@ -597,10 +671,15 @@ def _geometric_tail(ar, ai, br, bi):
     modulus the share a bounce keeps, capped at 0.99), so the fifth on sum to ``b / (1 - rho)``: two matrix-vector
     products per frequency instead of summing the orders (against 512 orders summed one by one in a clear 10 cm
     square the field is within 0.1% / 0.4% / 0.9% / 3.8% for walls of reflectance 0.3 / 0.6 / 0.9 / 1)."""
-    den = jnp.sum(ar**2 + ai**2, axis=-1, keepdims=True)
+    # rho is unchanged when a and b are scaled alike: scaled to a's largest part first, so that neither <a, a> nor its
+    # derivatives under- or overflow for a field of any size (float32 models included)
+    scale = jax.lax.stop_gradient(jnp.max(jnp.maximum(jnp.abs(ar), jnp.abs(ai)), axis=-1, keepdims=True))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    ur, ui, vr, vi = ar / scale, ai / scale, br / scale, bi / scale
+    den = jnp.sum(ur**2 + ui**2, axis=-1, keepdims=True)
     safe = jnp.where(den > 0, den, 1.0)
-    rr = jnp.where(den > 0, jnp.sum(ar * br + ai * bi, axis=-1, keepdims=True) / safe, 0.0)
-    ri = jnp.where(den > 0, jnp.sum(ar * bi - ai * br, axis=-1, keepdims=True) / safe, 0.0)
+    rr = jnp.where(den > 0, jnp.sum(ur * vr + ui * vi, axis=-1, keepdims=True) / safe, 0.0)
+    ri = jnp.where(den > 0, jnp.sum(ur * vi - ui * vr, axis=-1, keepdims=True) / safe, 0.0)
     m2 = rr**2 + ri**2
     cap = jnp.where(m2 > 0.99**2, 0.99 * jax.lax.rsqrt(jnp.maximum(m2, 0.99**2)), 1.0)
     qr, qi = 1.0 - rr * cap, -ri * cap  # 1 - rho, |.| >= 0.01
@@ -643,7 +722,9 @@ def _reverb(ctx, gg, el, ret, frus):
     field counts the irradiance of the third bounce on: ``(I - T)^-1 T^2 H1`` with ``T = R F``, per frequency
     (each leg's delay spread on the grid like a deposit, :func:`_shifts`): the third, fourth and fifth bounces
     explicitly, the later ones as a geometric train (:func:`_geometric_tail`). The beam's light scattered on its way
-    out (share ``cg`` of it into the guided band, isotropic) lights the walls evenly when the beam reaches its wall.
+    out (share ``cg`` of it into the guided band, isotropic) lights the walls evenly when the beam reaches its wall:
+    as the third bounce's irradiance, or, with :data:`EDGE_SCATTER` (whose kernels see its first wall hit where the
+    zones see the walls), as the second's, so that the field counts it from its second wall hit on.
     Each ray's wall segment (``L dphi / cos_wall`` of its segment's irradiance per metre) reflects it like its first
     bounce: ``ret`` (S, Z, A, J), the first bounce's counts per unit power on the wall, at its elevations' mean
     delay; the volume in front of the walls scatters the field back too (:func:`_reverb_volume`). With
@@ -702,8 +783,11 @@ def _reverb(ctx, gg, el, ret, frus):
     Tr, Ti = RF * jnp.moveaxis(dr, -1, 0).swapaxes(1, 2), RF * jnp.moveaxis(di, -1, 0).swapaxes(1, 2)  # (F, l, k)
     mv = "flk,fsk->fsl"
     h2r, h2i = _cmv(Tr, Ti, h1r, h1i, mv)
-    xr, xi = _cmv(Tr, Ti, h2r, h2i, mv)
-    xr, xi = xr + jnp.moveaxis(hsr, -1, 0), xi + jnp.moveaxis(hsi, -1, 0)  # the third bounce's irradiance
+    if EDGE_SCATTER and gg.sc_w is not None:  # the scattered light's first wall hit is _edge_scatter's: here its second on
+        xr, xi = _cmv(Tr, Ti, h2r + jnp.moveaxis(hsr, -1, 0), h2i + jnp.moveaxis(hsi, -1, 0), mv)
+    else:
+        xr, xi = _cmv(Tr, Ti, h2r, h2i, mv)
+        xr, xi = xr + jnp.moveaxis(hsr, -1, 0), xi + jnp.moveaxis(hsi, -1, 0)  # the third bounce's irradiance
     # the fourth and fifth bounces
     ar, ai = _cmv(Tr, Ti, xr, xi, mv)
     br, bi = _cmv(Tr, Ti, ar, ai, mv)
@@ -1019,6 +1103,117 @@ def _edge_mixing(rel, zone_lo, zone_hi, cos_sensor, aperture_m: float, ray_lengt
             if k < Z - 1:
                 mix[:, k, A - 1, (k + 1) * A + j] = share[:, k + 1, j]
     return mix
+
+
+def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall, cos_sensor, dphi, fov: float,
+                    n1: float) -> dict:
+    """Static geometry of :func:`_edge_scatter` (NumPy): per sensor, zone and term (0: the beam's light scattered on
+    to the lit walls; 1: the lit walls' light scattered back by the volume) a kernel on :data:`SCATTER_BINS` bins of
+    path difference from the zone's first return (``SCATTER_BIN_M`` wide from ``SCATTER_MIN_M``), each bin's weight
+    (pure geometry, relative to the zone's first return) and its mean lengths: ``A`` (the beam's leg less the direct
+    one's), ``B`` (the diffuse leg from the scattering point to the wall, or from the wall to the scattering point) and
+    ``C`` (the view's leg less the direct return's). The bins are laid out with the in-plane speeds at ``n1`` (the
+    scene's); the model takes each bin's delay and attenuation from its mean lengths at the fitted ``n1``.
+
+    Term 0: the beam (share ``dphi / fov`` per ray) at ``SCATTER_SOURCES`` points along each ray; a wall element
+    ``l`` at distance ``rho`` takes ``l cos / (2 pi rho)`` of a point's in-plane isotropic light; the zone's rays'
+    elements (``SCATTER_ELEMENTS`` per ray's footprint) return it as the beam's own light there. Relative to the
+    zone's beam power on its walls. Term 1: each ray's footprint elements re-emit their beam power (Lambertian in the
+    plane, ``cos / 2`` per radian: fluence ``cos / (2 rho)``, ``1 / pi`` of it the wall-irradiance equivalent of
+    :func:`_reverb_volume`) and the volume at ``SCATTER_SOURCES`` ranges along each of the zone's rays scatters it
+    back (``dphi cos_s dr / (4 h)`` per unit irradiance per metre); relative to the zone's first return per unit
+    reflectance (``sum dphi / fov cos_wall cos_s / (pi h L)``)."""
+    S, Z, A = ang.shape
+    cg = math.sqrt(max(1.0 - 1.0 / n1**2, 1e-12))
+    launch = min(math.sin(0.5 * fov) / n1, cg)
+    c_out = math.sqrt(1.0 - launch**2 / 3.0)
+    g_iso = math.asin(cg) / cg  # mean 1 / cos, uniform in mu over the guided band
+    g_wall = cg / (0.5 * (math.asin(cg) + cg * math.sqrt(1.0 - cg * cg)))  # a Lambertian wall's flux-weighted 1 / cos
+    NK, NS, NE = int(SCATTER_BINS), int(SCATTER_SOURCES), int(SCATTER_ELEMENTS)
+    out = {k: np.zeros((S, Z, 2, NK)) for k in ("w", "a", "b", "c")}
+    zone_power = np.asarray(dphi, float) * A / fov  # (Z,) the beam's share on each zone's walls
+    for s in range(S):
+        s0 = np.asarray(xy[s], float)
+        a_s, L_s = np.asarray(ang[s], float), np.asarray(L[s], float)  # (Z, A)
+        # footprint elements of every ray: positions, lengths, inward normals, distances
+        off = ((np.arange(NE) + 0.5) / NE - 0.5)[None, None, :] * np.asarray(dphi, float)[:, None, None]
+        th = a_s[..., None] + off  # (Z, A, NE)
+        c, sn = np.cos(th), np.sin(th)
+        tx, ty = _to_walls(lx, ly, s0[0], s0[1], c, sn)
+        t = np.clip(np.minimum(tx, ty), 0.0, None)
+        cw = np.where(tx <= ty, np.abs(c), np.abs(sn))
+        nrm = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(sn))], -1)
+        W = s0 + t[..., None] * np.stack([c, sn], -1)  # (Z, A, NE, 2)
+        ell = t * (np.asarray(dphi, float)[:, None, None] / NE) / np.maximum(cw, 0.05)
+        live = np.broadcast_to(L_s[..., None] > 0, t.shape)
+        # points along every ray (midpoints)
+        u = (np.arange(NS) + 0.5) / NS
+        x = L_s[..., None] * u  # (Z, A, NS)
+        P = s0 + x[..., None] * np.stack([np.cos(a_s), np.sin(a_s)], -1)[..., None, :]  # (Z, A, NS, 2)
+        dx = np.broadcast_to((L_s / NS)[..., None], x.shape)
+        zone_e = np.broadcast_to(np.arange(Z)[:, None, None], t.shape).ravel()
+        zone_p = np.broadcast_to(np.arange(Z)[:, None, None], x.shape).ravel()
+        # term 0: beam point (sources: every ray) -> element (targets: every ray), binned by the element's zone
+        Wf, Pf, nf = W.reshape(-1, 2), P.reshape(-1, 2), nrm.reshape(-1, 2)
+        ex, ey = Wf[None, :, 0] - Pf[:, None, 0], Wf[None, :, 1] - Pf[:, None, 1]  # (points, elements)
+        rho = np.sqrt(ex * ex + ey * ey + thickness**2)
+        cos_in = np.clip(-(ex * nf[None, :, 0] + ey * nf[None, :, 1]) / rho, 0.0, 1.0)
+        beam = (np.asarray(dphi, float)[:, None, None] / fov * dx).ravel()  # the beam's share per point times dx
+        w0 = beam[:, None] * ell.ravel()[None] * cos_in / (2.0 * np.pi * rho) * live.ravel()[None]
+        A0 = x.ravel()[:, None] - t.ravel()[None]
+        B0 = np.broadcast_to(rho, w0.shape)
+        _bin_into(out, s, 0, zone_e[None].repeat(w0.shape[0], 0), A0 / c_out + g_iso * B0, w0, A0, B0, 0.0 * B0,
+                  zone_power[zone_e][None])
+        # term 1: element (sources: every ray) -> volume point on a zone's ray (targets), binned by the point's zone
+        rho = rho.T  # (elements, points): from each element to each point
+        cos_b = np.clip(-(ex.T * nf[:, None, 0] + ey.T * nf[:, None, 1]) / rho, 0.0, 1.0)
+        src = (np.asarray(dphi, float)[:, None, None] / fov / NE * live).ravel()  # beam share per element
+        view = (np.asarray(dphi, float)[:, None, None] * np.asarray(cos_sensor[s], float)[..., None] * dx
+                / (4.0 * thickness)).ravel()
+        w1 = src[:, None] * cos_b / (2.0 * np.pi * rho) * view[None]
+        Lp = np.broadcast_to(L_s[..., None], x.shape).ravel()  # the target ray's wall distance
+        A1 = np.broadcast_to(L_s[..., None], t.shape).ravel()[:, None] - Lp[None]
+        C1 = (x.ravel() - Lp)[None]
+        direct = np.zeros(Z)
+        np.add.at(direct, np.repeat(np.arange(Z), A), (np.asarray(dphi, float)[:, None] / fov * np.asarray(cos_wall[s], float)
+                                                       * np.asarray(cos_sensor[s], float) / (np.pi * thickness * np.maximum(L_s, 1e-9))
+                                                       * (L_s > 0)).ravel())
+        _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
+                  np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
+    return out
+
+
+
+#: :func:`_scatter_tables` of the last few geometries (a model is often built many times for one scene).
+_SCATTER_CACHE: dict = {}
+
+
+def _scatter_tables_cached(lx, ly, thickness, xy, ang, L, cos_wall, cos_sensor, dphi, fov, n1) -> dict:
+    """:func:`_scatter_tables`, remembered by its inputs and the module's ``SCATTER_*`` settings (copies out)."""
+    arrays = [np.ascontiguousarray(a, float) for a in (xy, ang, L, cos_wall, cos_sensor, dphi)]
+    key = (float(lx), float(ly), float(thickness), float(fov), float(n1), SCATTER_BINS, SCATTER_BIN_M, SCATTER_MIN_M,
+           SCATTER_SOURCES, SCATTER_ELEMENTS) + tuple((a.shape, a.tobytes()) for a in arrays)
+    if key not in _SCATTER_CACHE:
+        if len(_SCATTER_CACHE) >= 16:
+            _SCATTER_CACHE.pop(next(iter(_SCATTER_CACHE)))
+        _SCATTER_CACHE[key] = _scatter_tables(float(lx), float(ly), float(thickness), *arrays[:5], arrays[5], float(fov),
+                                              float(n1))
+    return {k: v.copy() for k, v in _SCATTER_CACHE[key].items()}
+
+def _bin_into(out, s, term, zone, delta, w, A, B, C, norm):
+    """Add weights ``w`` at path differences ``delta`` into ``out``'s bins of sensor ``s`` and ``term`` (per zone),
+    normalised by ``norm``; the bins' mean lengths ``A``, ``B``, ``C`` weighted by ``w``."""
+    NK = out["w"].shape[-1]
+    k = np.floor((delta - SCATTER_MIN_M) / SCATTER_BIN_M).astype(np.int64)
+    w = np.where((k >= 0) & (k < NK), w / np.maximum(norm, 1e-300), 0.0)
+    k = np.clip(k, 0, NK - 1)
+    Z = out["w"].shape[1]
+    flat = (np.asarray(zone) * NK + k).ravel()
+    sw = np.bincount(flat, weights=w.ravel(), minlength=Z * NK).reshape(Z, NK)
+    out["w"][s, :, term] += sw
+    for key, v in (("a", A), ("b", B), ("c", C)):
+        m = np.bincount(flat, weights=(w * v).ravel(), minlength=Z * NK).reshape(Z, NK)
+        out[key][s, :, term] += np.where(sw > 0, m / np.where(sw > 0, sw, 1.0), 0.0)
 
 
 def _near_field(gg: "GuidedGeometry", r_edges):

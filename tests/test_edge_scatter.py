@@ -1,0 +1,92 @@
+"""The light the walls and the volume exchange around a zone's lit wall (guided.EDGE_SCATTER, issue 14).
+
+Small scenes and few compiles. The evidence that the term is the Monte Carlo's is the study
+(experiments/edge_scatter.py, docs/results/edge_scatter.json); here its properties.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tofjax.model.guided as guided
+from tofjax.model import ModelOptions, Params, build_model
+from tofjax.scene import scene_from_dict
+
+BIN = 5e-11
+T_E = 5e-10
+GUIDED = ModelOptions(optics="guided")
+
+
+def _scene(size=(0.2, 0.2), position=(0.0, 0.1), direction=0.0, mu_s=2.0, zones=3, fov=30.0):
+    return scene_from_dict({
+        "waveguide": {"size_m": list(size), "thickness_m": 0.004, "n1": 1.4, "mu_s_per_m": mu_s, "mu_a_per_m": 0.1},
+        "sensor": {"bin_width_s": BIN, "n_bins": 128, "zones": zones, "fov_deg": fov, "emission_time_s": T_E},
+        "sensors": [{"position_m": list(position), "direction_deg": direction}],
+    })
+
+
+def _term(monkeypatch, sc, **replace):
+    """The far edge's light with the kernels minus without (the reverberant field and the second bounce off, so the
+    difference is the kernels' alone), and the first return alone; (S, Z, B) each."""
+    monkeypatch.setattr(guided, "EDGE_REVERB", False)
+    monkeypatch.setattr(guided, "EDGE_SECOND", False)
+    p = Params.from_scene(sc)
+    if replace:
+        p = p.replace(**{k: jnp.asarray(v, p.n1.dtype) for k, v in replace.items()})
+    out = {}
+    for on in (True, False):
+        monkeypatch.setattr(guided, "EDGE_SCATTER", on)
+        out[on] = np.asarray(build_model(sc, GUIDED, ("end",))(p))
+    monkeypatch.setattr(guided, "EDGE_SCATTER", True)
+    return out[True] - out[False], out[False]
+
+
+def test_edge_scatter_needs_scattering_and_grows_with_it(monkeypatch):
+    """Both kernels are light scattered by the volume: none in a clear guide (to rounding), proportional to mu_s
+    while it is small, never negative, finite with finite gradients, the gradient in mu_s as central differences."""
+    sc = _scene()
+    none, first = _term(monkeypatch, sc, mu_s_per_m=0.0)
+    assert np.abs(none).max() <= 1e-12 * first.max() and first.sum() > 0
+    small, _ = _term(monkeypatch, sc, mu_s_per_m=0.05)
+    double, _ = _term(monkeypatch, sc, mu_s_per_m=0.1)
+    assert small.min() >= -1e-9 * small.max() and small.sum() > 1e-4 * first.sum()
+    assert double.sum() / small.sum() == pytest.approx(2.0, rel=0.02)
+    # the whole guided model (reverberant field included) with the kernels: gradients finite, mu_s's as differences
+    model = build_model(sc, GUIDED)
+    p = Params.from_scene(sc)
+    f = jax.jit(lambda q: jnp.sum(model(q) ** 0.5))
+    g = jax.jit(jax.grad(lambda q: jnp.sum(model(q) ** 0.5)))(p)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(g))
+    h, v = 1e-4, float(p.mu_s_per_m)
+    fd = (f(p.replace(mu_s_per_m=jnp.asarray(v + h))) - f(p.replace(mu_s_per_m=jnp.asarray(v - h)))) / (2 * h)
+    assert float(g.mu_s_per_m) == pytest.approx(float(fd), rel=1e-5)
+
+
+def test_edge_scatter_kernels_converge(monkeypatch):
+    """The kernels' tables (bins of path difference, points along the rays, elements per footprint) are converged: a
+    quarter of the bin width with four times the bins, and twice the points and elements, move the term by under 2%
+    (relative L2), in a guide whose zones see two walls."""
+    sc = _scene(position=(0.0, 0.03), direction=35.0)
+    base, _ = _term(monkeypatch, sc)
+    monkeypatch.setattr(guided, "SCATTER_BIN_M", guided.SCATTER_BIN_M / 4)
+    monkeypatch.setattr(guided, "SCATTER_BINS", guided.SCATTER_BINS * 4)
+    monkeypatch.setattr(guided, "SCATTER_SOURCES", guided.SCATTER_SOURCES * 2)
+    monkeypatch.setattr(guided, "SCATTER_ELEMENTS", guided.SCATTER_ELEMENTS * 2)
+    fine, _ = _term(monkeypatch, sc)
+    assert np.linalg.norm(fine - base) < 0.02 * np.linalg.norm(fine)
+
+
+def test_walls_light_reaches_an_oblique_zone_before_its_own_first_return(monkeypatch):
+    """The geometry the kernels carry: a zone that sees its wall obliquely, next to zones whose wall is nearer, gets
+    the volume's back-scatter of their lit walls before its own first return begins; a sensor facing a wall square on
+    gets nothing before its first return (scattered paths are longer than the direct one)."""
+
+    def onset(y, frac=0.02):
+        return int(np.argmax(y > frac * y.max()))
+
+    sq, first_sq = _term(monkeypatch, _scene(size=(0.2, 0.1), position=(0.0, 0.05), fov=6.0, zones=1))
+    assert onset(sq[0, 0]) >= onset(first_sq[0, 0]) - 1
+    ob, first_ob = _term(monkeypatch, _scene(position=(0.0, 0.02), direction=40.0, zones=4, fov=40.0))
+    early = [onset(first_ob[0, z]) - onset(ob[0, z]) for z in range(4)]
+    assert max(early) >= 3, early  # bins of 50 ps: the neighbours' walls are centimetres nearer
