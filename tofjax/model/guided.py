@@ -109,8 +109,10 @@ SECOND_ORDER_RECIPROCAL = False
 EDGE_SECOND = True
 EDGE_SECOND_STRIDE = 8
 #: The second bounce's return leg spread in time as the first bounce's: its return elevations cut into this many
-#: groups of neighbours, each at its own amplitude-weighted delay (0: all at the band's mean ``1 / cos``).
-EDGE_SECOND_SPREAD = 3
+#: groups of neighbours, each at its own amplitude-weighted delay (0: all at the band's mean ``1 / cos``). 5 (3 before
+#: the nineteenth session): the 64x calibration of the Monte Carlo baseline's reduced chi-square 3.95 -> 3.48 with
+#: :data:`EDGE_SCATTER` (7 groups: 3.41), 16x 1.72 -> 1.61 (experiments/near_field_aperture.py --study edge_scatter).
+EDGE_SECOND_SPREAD = 5
 #: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
 #: its first leg and its return (a contact in a corner sits on the legs across it). Off: against the
 #: Monte Carlo it brings one contact's signal 2 cm from a corner closer (relative L2 0.235 -> 0.188,
