@@ -66,6 +66,23 @@ def test_point_event_binned_like_the_exact_pulse(q, tol):
         assert np.abs(counts - exact).max() < tol
 
 
+
+def test_deposit_drops_what_falls_before_the_first_node():
+    """An event within half a node of time 0 puts its first spline weight before the first node: that share is dropped,
+    as the share past the last node is, never wrapped on to the last node (JAX reads a negative index from the end)."""
+    from tofjax.model.components import Nodes, deposit
+
+    h, K = 1e-11, 16
+    t = (jnp.arange(K) + 0.5) * h
+    nodes = Nodes(t=t, h=jnp.asarray(h), r=t, dr=jnp.asarray(h), c1=jnp.asarray(1.0))
+    m = np.asarray(deposit(jnp.full((1, 1, 1), 0.2 * h), jnp.ones((1, 1, 1)), nodes))[0, 0]
+    # u = -0.3: weights 0.32 (node -1, dropped), 0.66 (node 0), 0.02 (node 1)
+    np.testing.assert_allclose(m[:2], [0.66, 0.02], rtol=1e-12)
+    assert m[2:].sum() == 0.0
+    late = np.asarray(deposit(jnp.full((1, 1, 1), (K - 0.2) * h), jnp.ones((1, 1, 1)), nodes))[0, 0]
+    np.testing.assert_allclose(late[-2:], [0.02, 0.66], rtol=1e-12)
+    assert late[:-2].sum() == 0.0
+
 @given(
     sigma=st.floats(5e-12, 500e-12),
     ratio=st.floats(0.05, 20.0),

@@ -392,7 +392,9 @@ def deposit(times, masses, nodes: Nodes):
     z_idx = jnp.broadcast_to(jnp.arange(Z)[None, :, None], (S, Z, E))
     out = jnp.zeros((S, Z, K), masses.dtype)
     for offset, w in ((-1, 0.5 * (0.5 - d) ** 2), (0, 0.75 - d**2), (1, 0.5 * (0.5 + d) ** 2)):
-        out = out.at[s_idx, z_idx, i + offset].add(masses * w, mode="drop")
+        k = i + offset
+        # below the first node: dropped (a negative index would wrap on to the last node)
+        out = out.at[s_idx, z_idx, jnp.where(k >= 0, k, K)].add(masses * w, mode="drop")
     return out
 
 

@@ -1185,7 +1185,6 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     return out
 
 
-
 #: :func:`_scatter_tables` of the last few geometries (a model is often built many times for one scene).
 _SCATTER_CACHE: dict = {}
 
@@ -1198,9 +1197,9 @@ def _scatter_tables_cached(lx, ly, thickness, xy, ang, L, cos_wall, cos_sensor, 
     if key not in _SCATTER_CACHE:
         if len(_SCATTER_CACHE) >= 16:
             _SCATTER_CACHE.pop(next(iter(_SCATTER_CACHE)))
-        _SCATTER_CACHE[key] = _scatter_tables(float(lx), float(ly), float(thickness), *arrays[:5], arrays[5], float(fov),
-                                              float(n1))
+        _SCATTER_CACHE[key] = _scatter_tables(float(lx), float(ly), float(thickness), *arrays, float(fov), float(n1))
     return {k: v.copy() for k, v in _SCATTER_CACHE[key].items()}
+
 
 def _bin_into(out, s, term, zone, delta, w, A, B, C, norm):
     """Add weights ``w`` at path differences ``delta`` into ``out``'s bins of sensor ``s`` and ``term`` (per zone),
