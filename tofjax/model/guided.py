@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..scene import Scene
-from .components import Nodes, deposit, smooth_like_deposit
+from .components import SPEED_OF_LIGHT_M_PER_S, Nodes, deposit, smooth_like_deposit
 
 __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inward_normals", "launch_band"]
 
@@ -274,8 +274,7 @@ class GuidedGeometry(eqx.Module):
         # which wall each ray ends on: the nearer of the x and y walls along it
         xy = np.array([sp.position_m for sp in scene.sensors], float)[:, None, None, :]
         tx, ty = _to_walls(lx, ly, xy[..., 0], xy[..., 1], c, s)
-        cos_wall = np.where(tx <= ty, np.abs(c), np.abs(s))
-        wall_normal = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(s))], -1)
+        cos_wall, wall_normal = _wall_hit(tx, ty, c, s)
         width = np.asarray(zone_hi, float) - np.asarray(zone_lo, float)
         rel = ang[0] - math.radians(scene.sensors[0].direction_deg)  # (Z, A): the same for every sensor
         ray_length = np.clip(np.minimum(tx, ty), 0.0, None)  # (S, Z, A): 0 for a ray that leaves the guide at once
@@ -295,7 +294,7 @@ class GuidedGeometry(eqx.Module):
             tab = _scatter_tables_cached(lx, ly, float(wg.thickness_m), xy[:, 0, 0, :], ang, ray_length, cos_wall,
                                          cos_sensor, width / A, math.radians(scene.sensor.fov_deg), float(wg.n1))
             h = float(node_width_s) if node_width_s else 0.1 * float(scene.sensor.bin_width_s)
-            per_m = SCATTER_MAX_N1 / (299_792_458.0 * h)  # time nodes per metre of path at the slowest light
+            per_m = SCATTER_MAX_N1 / (SPEED_OF_LIGHT_M_PER_S * h)  # time nodes per metre of path at the slowest light
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
             scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
@@ -367,6 +366,14 @@ def _to_walls(lx: float, ly: float, x, y, c, s):
     return tx, ty
 
 
+
+def _wall_hit(tx, ty, c, s):
+    """Where rays along ``(c, s)`` meet the walls, from :func:`_to_walls`' distances ``tx``, ``ty``: the cosine of
+    their incidence on the wall they hit and its inward normal (..., 2); NumPy, broadcast."""
+    x_wall = tx <= ty
+    normal = np.stack([np.where(x_wall, -np.sign(c), 0.0), np.where(x_wall, 0.0, -np.sign(s))], -1)
+    return np.where(x_wall, np.abs(c), np.abs(s)), normal
+
 def inward_normals(scene: Scene) -> np.ndarray:
     """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis
     (the Monte Carlo launches from the same normals)."""
@@ -401,6 +408,13 @@ def launch_band(n1, fov_rad: float):
     launch = xp.minimum(math.sin(0.5 * fov_rad) / n1, cg)
     return cg, launch, xp.sqrt(1.0 - launch**2 / 3.0)
 
+
+
+def _band_inv_cos(cg):
+    """The mean ``1 / cos`` of light spread uniformly in ``mu`` over the guided band ``|mu| < cg`` (isotropically
+    scattered light that stays guided): ``asin(cg) / cg``; NumPy or JAX, as ``cg``."""
+    xp = jnp if isinstance(cg, jax.Array) else np
+    return xp.arcsin(cg) / cg
 
 def _elevations(gg: GuidedGeometry, n1, distributed: bool = False) -> _Elev:
     cg, launch, c_out = launch_band(jnp.asarray(n1), gg.fov)
@@ -573,8 +587,8 @@ def _edge_scatter(ctx, gg, el, first):
     diffuse leg at the band's mean ``1 / cos`` losing ``mu_a + mu_s (1 - cg)`` (scattering inside the band only
     redirects it), the view's leg at the band's mean ``1 / cos``. Contacts act through ``first`` alone."""
     p, nodes = ctx.params, ctx.nodes
-    cg, _, c_out = launch_band(p.n1, gg.fov)
-    g_iso = jnp.arcsin(cg) / cg
+    cg, c_out = launch_band(p.n1, gg.fov)[0], el.c_out
+    g_iso = _band_inv_cos(cg)
     G, g_wall = _wall_band(el)
     cbar = _mean_cos(el)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
@@ -1129,10 +1143,8 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     back (``dphi cos_s dr / (4 h)`` per unit irradiance per metre); relative to the zone's first return per unit
     reflectance (``sum dphi / fov cos_wall cos_s / (pi h L)``)."""
     S, Z, A = ang.shape
-    cg = math.sqrt(max(1.0 - 1.0 / n1**2, 1e-12))
-    launch = min(math.sin(0.5 * fov) / n1, cg)
-    c_out = math.sqrt(1.0 - launch**2 / 3.0)
-    g_iso = math.asin(cg) / cg  # mean 1 / cos, uniform in mu over the guided band
+    cg, _, c_out = (float(v) for v in launch_band(float(n1), fov))
+    g_iso = float(_band_inv_cos(cg))
     g_wall = cg / (0.5 * (math.asin(cg) + cg * math.sqrt(1.0 - cg * cg)))  # a Lambertian wall's flux-weighted 1 / cos
     NK, NS, NE = int(SCATTER_BINS), int(SCATTER_SOURCES), int(SCATTER_ELEMENTS)
     out = {k: np.zeros((S, Z, 2, NK)) for k in ("w", "a", "b", "c")}
@@ -1146,8 +1158,7 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         c, sn = np.cos(th), np.sin(th)
         tx, ty = _to_walls(lx, ly, s0[0], s0[1], c, sn)
         t = np.clip(np.minimum(tx, ty), 0.0, None)
-        cw = np.where(tx <= ty, np.abs(c), np.abs(sn))
-        nrm = np.stack([np.where(tx <= ty, -np.sign(c), 0.0), np.where(tx <= ty, 0.0, -np.sign(sn))], -1)
+        cw, nrm = _wall_hit(tx, ty, c, sn)
         W = s0 + t[..., None] * np.stack([c, sn], -1)  # (Z, A, NE, 2)
         ell = t * (np.asarray(dphi, float)[:, None, None] / NE) / np.maximum(cw, 0.05)
         live = np.broadcast_to(L_s[..., None] > 0, t.shape)
@@ -1167,7 +1178,7 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         w0 = beam[:, None] * ell.ravel()[None] * cos_in / (2.0 * np.pi * rho) * live.ravel()[None]
         A0 = x.ravel()[:, None] - t.ravel()[None]
         B0 = np.broadcast_to(rho, w0.shape)
-        _bin_into(out, s, 0, zone_e[None].repeat(w0.shape[0], 0), A0 / c_out + g_iso * B0, w0, A0, B0, 0.0 * B0,
+        _bin_into(out, s, 0, np.broadcast_to(zone_e[None], w0.shape), A0 / c_out + g_iso * B0, w0, A0, B0, 0.0 * B0,
                   zone_power[zone_e][None])
         # term 1: element (sources: every ray) -> volume point on a zone's ray (targets), binned by the point's zone
         rho = rho.T  # (elements, points): from each element to each point
@@ -1179,10 +1190,8 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         Lp = np.broadcast_to(L_s[..., None], x.shape).ravel()  # the target ray's wall distance
         A1 = np.broadcast_to(L_s[..., None], t.shape).ravel()[:, None] - Lp[None]
         C1 = (x.ravel() - Lp)[None]
-        direct = np.zeros(Z)
-        np.add.at(direct, np.repeat(np.arange(Z), A), (np.asarray(dphi, float)[:, None] / fov * np.asarray(cos_wall[s], float)
-                                                       * np.asarray(cos_sensor[s], float) / (np.pi * thickness * np.maximum(L_s, 1e-9))
-                                                       * (L_s > 0)).ravel())
+        direct = np.sum(np.asarray(dphi, float)[:, None] / fov * np.asarray(cos_wall[s], float) * np.asarray(cos_sensor[s], float)
+                        / (np.pi * thickness * np.maximum(L_s, 1e-9)) * (L_s > 0), axis=1)  # (Z,)
         _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
                   np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
     return out
