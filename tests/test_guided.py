@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tofjax.config import ConfigError
-from tofjax.mc.bench import BenchOptions, profiled_relative_l2
+from tofjax.mc.bench import DEFAULT_FRONTIER, BenchOptions, GuidedFidelity, profiled_relative_l2
 from tofjax.model import SPEED_OF_LIGHT_M_PER_S, ModelOptions, Params, build_model
 from tofjax.model.contact import SkinContact
 from tofjax.model.guided import hg_backward_fraction
@@ -158,6 +158,24 @@ def test_options_refused_in_one_line():
             BenchOptions(**kw)
 
 
+def test_bench_frontier_fidelities():
+    """The bench's cheaper guided fidelities: parsed, validated, turned into the model's options."""
+    f = GuidedFidelity.parse(" 4:2:1:float32 ")
+    assert (f.elevations, f.angles_per_zone, f.quadrature, f.dtype, f.label) == (4, 2, 1, "float32", "4:2:1:float32")
+    mo = f.model_options()
+    assert (mo.optics, mo.elevations, mo.angles_per_zone, mo.quadrature, mo.dtype) == ("guided", 4, 2, 1, "float32")
+    assert BenchOptions().frontier == DEFAULT_FRONTIER and BenchOptions(frontier=()).frontier == ()
+    assert BenchOptions(frontier=["4:4:1:float64"]).frontier == ("4:4:1:float64",)
+    for bad, what in [("4:4:1", "ELEVATIONS:ANGLES"), ("4:x:1:float32", "integers"), ("4:4:1:float16", "dtype"),
+                      ("0:4:1:float32", "elevations"), ("4:4:100:float64", "quadrature")]:
+        with pytest.raises(ConfigError, match=what):
+            GuidedFidelity.parse(bad)
+        with pytest.raises(ConfigError, match=what):
+            BenchOptions(frontier=(bad,))
+    with pytest.raises(ConfigError, match="sequence"):
+        BenchOptions(frontier="4:4:1:float32")
+
+
 def test_helpers():
     assert hg_backward_fraction(0.0) == 0.5
     mu = np.linspace(-1, 0, 200001)
@@ -197,12 +215,17 @@ def test_bench_tradeoff_runs(tmp_path):
     from tofjax.cli import main
 
     out = tmp_path / "b.json"
-    argv = ["bench", "tradeoff", "--photons", "2000", "--repeats", "3", "--nee-points", "6", "--json", str(out)]
+    argv = ["bench", "tradeoff", "--photons", "2000", "--repeats", "3", "--nee-points", "6", "--json", str(out),
+            "--frontier", "2:2:1:float32"]
     assert main(argv) == 0
     r = json.loads(out.read_text())
     for optics in ("default", "guided"):
         assert set(r["analytic_vs_mc_relative_l2"][optics]) == {"baseline", "touch"}
     assert r["forward_cost_ratio"] > 0 and r["data"].startswith("simulated")
+    (row,) = r["frontier"]
+    assert row["fidelity"] == "2:2:1:float32" and set(row["relative_l2"]) == {"baseline", "touch"}
+    assert all(0 < e < 1 for e in row["relative_l2"].values()) and row["cost_ratio"] > 0
+    assert r["frontier_cheapest_meeting_targets"] in (None, "2:2:1:float32")
 
 
 def test_study_mc_guided_refuses_an_existing_output(tmp_path):
@@ -636,11 +659,19 @@ def test_reverberant_field_spreads_as_its_elevations_do(monkeypatch):
 
 def test_a_float32_guided_model_stays_float32():
     """A float32 guided model's histograms stay float32 and finite (the walls' later bounces took their transforms'
-    one-node phase as float64 NumPy constants, which promoted the whole field and the model's output)."""
+    one-node phase as float64 NumPy constants, which promoted the whole field and the model's output), and the
+    whole model agrees with float64 to 1e-5 of its peak (measured 7e-7; `tofjax bench tradeoff`'s frontier offers
+    float32 fidelities on the strength of it)."""
     sc = _square(size=0.3, mu_s=0.6, mu_a=0.14)
     opts = ModelOptions(optics="guided", dtype="float32")
     y = build_model(sc, opts, ("end",))(Params.from_scene(sc, opts.jnp_dtype))
     assert y.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(y)))
+    ys = {}
+    for dt in ("float64", "float32"):
+        o = ModelOptions(optics="guided", dtype=dt, elevations=4, angles_per_zone=2, quadrature=1)
+        ys[dt] = np.asarray(build_model(sc, o, sc.components())(Params.from_scene(sc, o.jnp_dtype)), np.float64)
+    assert np.all(np.isfinite(ys["float32"]))
+    assert np.abs(ys["float32"] - ys["float64"]).max() <= 1e-5 * np.abs(ys["float64"]).max()
 
 
 def test_mean_forward_distance_and_the_fields_volume_lead(monkeypatch):

@@ -599,7 +599,8 @@ def _cases() -> list[Case]:
     # tofjax bench tradeoff (issue 14): every refusal comes before the Monte Carlo runs.
     bench = lambda w, o: ["bench", "tradeoff", "--photons", "10", "--repeats", "1", "--json", f"{o}/b.json"]  # noqa: E731
     for flag, values in {"--photons": ["0", "1", "-5", "1e20", "x"], "--repeats": ["0", "-1"], "--nee-points": ["0", "5000"],
-                         "--elevations": ["0", "nan"], "--g": ["1", "-1", "nan"], "--seed": ["-1"], "--batch": ["0"]}.items():
+                         "--elevations": ["0", "nan"], "--g": ["1", "-1", "nan"], "--seed": ["-1"], "--batch": ["0"],
+                         "--frontier": ["4:4:1", "4:x:1:float32", "4:4:1:float16", "0:4:1:float64"]}.items():
         for v in values:
             cases.append(Case(f"bench_tradeoff/{flag}={v}", lambda w, o, flag=flag, v=v: bench(w, o) + [f"{flag}={v}"]))
     for name, extra in {"touch_scene_without_contacts": ["--touch-scene", "optoskin"],

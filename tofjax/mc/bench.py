@@ -22,6 +22,12 @@ with the guided optics (:mod:`tofjax.model.guided`), and reports
   noisy reference being the model's plus the noise's) and ``extrapolated`` (the L2 against half
   the seeds and against all, extrapolated as ``L2^2 = m^2 + c / photons`` to infinitely many);
   ``analytic_vs_mc_relative_l2`` stays the raw figure;
+* ``frontier``: the guided optics at cheaper fidelities (:class:`GuidedFidelity`: elevations, rays
+  per zone, time nodes per bin, float32 or float64), each with its relative L2 against the same
+  references and its forward cost over the default optics' (at the default fidelity, float64),
+  timed alternately with them; ``frontier_cheapest_meeting_targets`` names the cheapest fidelity
+  within both targets (relative L2 <= 0.15 on both scenes, cost <= 2x), or None. The default
+  fidelity is what calibration runs; the frontier is what a user who needs speed can choose;
 * ``touch_signal``: per sensor, the counts the contacts add and remove (touch scene minus baseline,
   both Monte Carlo runs on the same seeds, so the difference is what the contacts do, not the
   noise of the whole histogram), Monte Carlo against the guided optics.
@@ -44,10 +50,57 @@ import numpy as np
 
 from ..config import ConfigError
 
-__all__ = ["BenchOptions", "profiled_relative_l2", "run_bench_tradeoff", "NOT_TRANSPORTED"]
+__all__ = ["BenchOptions", "GuidedFidelity", "profiled_relative_l2", "run_bench_tradeoff", "NOT_TRANSPORTED",
+           "DEFAULT_FRONTIER"]
 
 #: Terms no photon transport simulates (light entry, ambient) or the Monte Carlo leaves out (roughness).
 NOT_TRANSPORTED = ("crosstalk", "ambient", "interface")
+
+#: The guided fidelities ``tofjax bench tradeoff`` measures beside the default one (``ELEVATIONS:ANGLES:QUADRATURE:DTYPE``).
+DEFAULT_FRONTIER = ("8:8:2:float32", "8:8:1:float64", "4:4:2:float64", "4:4:1:float64", "4:2:1:float64",
+                    "4:2:1:float32", "2:2:1:float32")
+
+
+@dataclass(frozen=True)
+class GuidedFidelity:
+    """One fidelity of the guided optics (:class:`tofjax.model.ModelOptions` fields): ``elevations`` (nodes over the
+    guided band), ``angles_per_zone`` (rays per zone), ``quadrature`` (time nodes per bin) and ``dtype``. Written
+    ``ELEVATIONS:ANGLES:QUADRATURE:DTYPE``, e.g. ``4:4:1:float32`` (:meth:`parse`)."""
+
+    elevations: int = 8
+    angles_per_zone: int = 8
+    quadrature: int = 2
+    dtype: str = "float64"
+
+    def __post_init__(self):
+        for k in ("elevations", "angles_per_zone", "quadrature"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= 64:
+                raise ConfigError(f"{k}: must be an integer in 1..64, got {v!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"dtype: must be float32 or float64, got {self.dtype!r}")
+
+    @classmethod
+    def parse(cls, text: str) -> "GuidedFidelity":
+        """``"E:A:Q:DTYPE"`` (e.g. ``"4:4:1:float32"``); a clear :class:`ConfigError` for anything else."""
+        parts = str(text).strip().split(":")
+        if len(parts) != 4:
+            raise ConfigError(f"fidelity {text!r}: expected ELEVATIONS:ANGLES:QUADRATURE:DTYPE, e.g. 4:4:1:float32")
+        try:
+            e, a, q = (int(x) for x in parts[:3])
+        except ValueError:
+            raise ConfigError(f"fidelity {text!r}: ELEVATIONS, ANGLES and QUADRATURE must be integers") from None
+        return cls(e, a, q, parts[3])
+
+    @property
+    def label(self) -> str:
+        return f"{self.elevations}:{self.angles_per_zone}:{self.quadrature}:{self.dtype}"
+
+    def model_options(self, skin=None):
+        from ..model import ModelOptions
+
+        return ModelOptions(optics="guided", elevations=self.elevations, angles_per_zone=self.angles_per_zone,
+                            quadrature=self.quadrature, dtype=self.dtype, skin=skin)
 
 
 @dataclass(frozen=True)
@@ -66,6 +119,9 @@ class BenchOptions:
       reference's noise).
     - ``repeats``: timed pairs of forward evaluations.
     - ``elevations``: the guided optics' elevation nodes.
+    - ``frontier``: cheaper guided fidelities measured beside the default one (``ELEVATIONS:ANGLES:QUADRATURE:DTYPE``
+      strings, :class:`GuidedFidelity`; empty for none). float32 fidelities need no ``jax_enable_x64``; the default
+      optics they are timed against are float64.
     """
 
     scene: str = "optoskin"
@@ -78,8 +134,13 @@ class BenchOptions:
     repeats: int = 31
     elevations: int = 8
     batch: int = 32_768
+    frontier: tuple[str, ...] = DEFAULT_FRONTIER
 
     def __post_init__(self):
+        if isinstance(self.frontier, str) or not all(isinstance(f, str) for f in self.frontier):
+            raise ConfigError(f"frontier: must be a sequence of ELEVATIONS:ANGLES:QUADRATURE:DTYPE strings, "
+                              f"got {self.frontier!r}")
+        object.__setattr__(self, "frontier", tuple(GuidedFidelity.parse(f).label for f in self.frontier))
         for k, lo in (("photons", 2), ("seeds", 2), ("repeats", 1), ("nee_points", 1), ("elevations", 1), ("batch", 1), ("seed", 0)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -144,9 +205,10 @@ def _machine() -> dict:
             "load_average_1_5_15": [round(x, 2) for x in load]}
 
 
-def _models(scene, opts: BenchOptions, comps):
+def _models(scene, opts: BenchOptions, comps, fidelity: GuidedFidelity | None = None):
     """(default, guided) compiled forward models (:func:`tofjax.mc.prune.evaluate`: one program per
-    model structure, not one per call) and their parameters."""
+    model structure, not one per call) and their parameters; the guided optics at ``fidelity`` (default: the
+    default fidelity with ``opts.elevations``)."""
     import functools
 
     from ..model import ModelOptions, Params, build_model
@@ -156,7 +218,9 @@ def _models(scene, opts: BenchOptions, comps):
 
     out = []
     d_opts = ModelOptions()
-    g_opts = ModelOptions(optics="guided", elevations=opts.elevations, skin=SkinContact() if scene.touches else None)
+    fidelity = fidelity or GuidedFidelity(elevations=opts.elevations, angles_per_zone=d_opts.angles_per_zone,
+                                          quadrature=d_opts.quadrature, dtype=d_opts.dtype)
+    g_opts = fidelity.model_options(SkinContact() if scene.touches else None)
     wg = dataclasses.replace(scene.waveguide, volume_backscatter_fraction=hg_backward_fraction(opts.g))
     g_scene = scene.replace(waveguide=wg)
     for sc, mo in ((scene, d_opts), (g_scene, g_opts)):
@@ -189,6 +253,8 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
     from ..model.contact import SkinContact
     from ..scene import load_scene
 
+    from tqdm import tqdm
+
     if transport is None:
         from . import transport
     MCOptions, run_mc = transport.MCOptions, transport.run_mc
@@ -211,7 +277,7 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
         "reference": {},
     }
     per_seed = opts.photons // opts.seeds
-    runs_of, guided_of = {}, {}
+    runs_of, guided_of, frontier = {}, {}, {}
     for case, scene in (("baseline", base), ("touch", touch)):
         comps = tuple(c for c in scene.components() if c not in NOT_TRANSPORTED)
         skin = SkinContact() if scene.touches else None
@@ -238,6 +304,17 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
                 guided_of[case] = y
         (fd, pd), (fg, pg) = _models(scene, opts, scene.components())  # the whole model, as calibration runs it
         result["forward_cost"][case] = _pair_timing(fd, pd, fg, pg, opts.repeats)
+        for label in tqdm(opts.frontier, desc=f"frontier ({case})", unit="fidelity", disable=not progress,
+                          leave=False):  # cheaper guided fidelities: their error and cost over the default optics'
+            fid = GuidedFidelity.parse(label)
+            _, (fg, pg) = _models(scene, opts, comps, fid)
+            err = profiled_relative_l2(ref, np.asarray(fg(pg), np.float64))[0]
+            _, (fg, pg) = _models(scene, opts, scene.components(), fid)
+            cost = _pair_timing(fd, pd, fg, pg, opts.repeats)
+            row = frontier.setdefault(label, {"fidelity": label, **dataclasses.asdict(fid), "relative_l2": {},
+                                              "forward_cost": {}})
+            row["relative_l2"][case] = err
+            row["forward_cost"][case] = cost
     # what the contacts do: touch minus baseline (same seeds), transported light
     if base.sensors == touch.sensors:
         d_mc = runs_of["touch"] - runs_of["baseline"]  # (seeds, S, Z, B)
@@ -251,6 +328,14 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
     g = result["analytic_vs_mc_relative_l2"]["guided"]
     result["targets_met"] = {"guided_relative_l2": max(g.values()) <= 0.15,
                              "cost_ratio": result["forward_cost_ratio"] <= 2.0}
+    rows = []
+    for row in frontier.values():
+        row["cost_ratio"] = max(v["ratio_guided_over_default"] for v in row["forward_cost"].values())
+        row["meets_targets"] = bool(max(row["relative_l2"].values()) <= 0.15 and row["cost_ratio"] <= 2.0)
+        rows.append(row)
+    result["frontier"] = rows
+    meeting = [r for r in rows if r["meets_targets"]]
+    result["frontier_cheapest_meeting_targets"] = min(meeting, key=lambda r: r["cost_ratio"])["fidelity"] if meeting else None
     result["wall_s"] = time.perf_counter() - t0
     return result
 
@@ -269,4 +354,10 @@ def summary(result: dict) -> str:
                      f"({v['default_s'] * 1e6:.0f} -> {v['guided_s'] * 1e6:.0f} us)"
                      for k, v in result["forward_cost"].items())
     lines.append(f"forward cost guided / default        {cost}")
+    for r in result.get("frontier", []):
+        l2 = "  ".join(f"{k} {e:.3f}" for k, e in r["relative_l2"].items())
+        c = "  ".join(f"{k} {v['ratio_guided_over_default']:.2f}x" for k, v in r["forward_cost"].items())
+        lines.append(f"guided {r['fidelity']:<16s} relative L2 {l2}   cost {c}{'   meets both' if r['meets_targets'] else ''}")
+    if result.get("frontier"):
+        lines.append(f"cheapest guided fidelity meeting both targets: {result['frontier_cheapest_meeting_targets']}")
     return "\n".join(lines)

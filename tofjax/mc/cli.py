@@ -87,6 +87,14 @@ def _cmd_prune(a) -> int:
     return 0
 
 
+def _frontier(text):
+    from .bench import DEFAULT_FRONTIER
+
+    if text is None:
+        return DEFAULT_FRONTIER
+    return () if text.strip().lower() == "none" else tuple(f for f in text.split(",") if f.strip())
+
+
 def _cmd_bench_tradeoff(a) -> int:
     from ..outputs import atomic_write_text
     from .bench import BenchOptions, run_bench_tradeoff, summary
@@ -94,7 +102,8 @@ def _cmd_bench_tradeoff(a) -> int:
     if a.json is None:
         raise ConfigError("--json: required (the output file)")
     opts = BenchOptions(scene=a.scene, touch_scene=a.touch_scene, photons=a.photons, seed=a.seed, seeds=a.seeds,
-                        g=a.g, nee_points=a.nee_points, repeats=a.repeats, elevations=a.elevations, batch=a.batch)
+                        g=a.g, nee_points=a.nee_points, repeats=a.repeats, elevations=a.elevations, batch=a.batch,
+                        frontier=_frontier(a.frontier))
     result = run_bench_tradeoff(opts, progress=True)
     atomic_write_text(a.json, json.dumps(result, indent=1), overwrite=a.overwrite)
     print(summary(result))
@@ -145,4 +154,6 @@ def register(sub) -> None:
     t.add_argument("--elevations", type=int, default=8, help="guided optics' elevation nodes (default 8)")
     t.add_argument("--repeats", type=int, default=31, help="timed pairs of forward evaluations (default 31)")
     t.add_argument("--batch", type=int, default=32_768, help="Monte Carlo packets followed at once (memory)")
+    t.add_argument("--frontier", help="cheaper guided fidelities to measure too, comma-separated "
+                   "ELEVATIONS:ANGLES:QUADRATURE:DTYPE (e.g. 4:4:1:float32), or 'none' (default: a built-in set)")
     t.set_defaults(func=_cmd_bench_tradeoff)
