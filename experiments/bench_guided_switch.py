@@ -3,7 +3,8 @@
 ``tofjax bench tradeoff`` compares the guided optics with the default optics, each in a process of its own run; its
 ratio moves by several percent from run to run on a shared VM. Here the guided model (skin contacts, every component
 of the scene, ``ModelOptions(optics="guided", elevations=8)``, float64) is compiled once per variant of a
-module-level switch of :mod:`tofjax.model.guided` (each variant its own program: the switches key it) and the
+module-level switch of :mod:`tofjax.model.guided` (each variant built with its switch set, for the switches that act
+when the model is built, and compiled as its own program: the switches key it) and the
 variants are timed in alternating order, ``--repeats`` calls each; medians. Writes JSON.
 
     python experiments/bench_guided_switch.py --switch CONTACT_SHADOW --values true,false \\
@@ -63,20 +64,20 @@ def main(argv=None) -> int:
     except (ValueError, OutputError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    model = build_model(scene, ModelOptions(optics="guided", elevations=8, skin=SkinContact() if scene.touches else None),
-                        scene.components())
+    opts = ModelOptions(optics="guided", elevations=8, skin=SkinContact() if scene.touches else None)
     params = Params.from_scene(scene)
-    f = functools.partial(evaluate, model)
     times = {str(v): [] for v in values}
-    for v in values:  # compile each variant (its own program)
-        setattr(G, a.switch, v)
-        f(params).block_until_ready()
+    fs = {}
     try:
+        for v in values:  # build and compile each variant with its switch set (some switches act at build time:
+            setattr(G, a.switch, v)  # the reverberant field's segments, the tables), each its own program
+            fs[str(v)] = functools.partial(evaluate, build_model(scene, opts, scene.components()))
+            fs[str(v)](params).block_until_ready()
         for i in range(a.repeats):
             for v in (values if i % 2 == 0 else values[::-1]):
                 setattr(G, a.switch, v)
                 t = time.perf_counter()
-                f(params).block_until_ready()
+                fs[str(v)](params).block_until_ready()
                 times[str(v)].append(time.perf_counter() - t)
     finally:
         setattr(G, a.switch, like)
