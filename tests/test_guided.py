@@ -862,6 +862,32 @@ def test_every_guided_switch_keys_the_compiled_program(monkeypatch):
         monkeypatch.setattr(guided, name, value)
 
 
+def test_reverberant_field_exchange_conserves_light():
+    """The field's segment-to-segment exchange (Hottel's crossed strings, guided.REVERB_STRINGS): every segment's
+    emission lands on the others in full (a closed convex outline; the centres' point formula gave 1.01-1.05),
+    reciprocity ``len_k F_kl = len_l F_lk``, nothing along one wall, and the closed form of two segments meeting at a
+    corner; a wall point next to a corner belongs to a segment of its own wall."""
+    import tofjax.model.guided as guided
+
+    lx, ly = 0.3, 0.2
+    d = guided._wall_segments(lx, ly, np.array([0.005, lx]), np.array([0.0, 0.01]), 0.005)
+    F, ln = d["seg_view"], d["seg_len"]
+    m = guided.REVERB_SEGMENTS_PER_WALL
+    assert np.allclose(F.sum(1), 1.0, atol=1e-12) and np.all(F >= 0)
+    assert np.allclose(ln[:, None] * F, (ln[:, None] * F).T, atol=1e-15)
+    assert np.all(F[:m, :m] == 0)  # one wall
+    a, b = lx / m, ly / m  # the bottom wall's last segment and the right wall's first meet at (lx, 0)
+    assert F[m - 1, m] == pytest.approx((a + b - np.hypot(a, b)) / (2 * a), rel=1e-12)
+    assert d["ray_seg"][0] == 0 and d["ray_seg"][1] == m  # (5 mm, 0): bottom wall; (lx, 1 cm): right wall
+    monkey = guided.REVERB_STRINGS
+    try:
+        guided.REVERB_STRINGS = False
+        old = guided._wall_segments(lx, ly, np.array([0.005]), np.array([0.0]), 0.005)["seg_view"]
+    finally:
+        guided.REVERB_STRINGS = monkey
+    assert old.sum(1).max() > 1.01  # the point formula sent out more light than a wall reflects
+
+
 def test_reverberant_field_period(monkeypatch):
     """guided.REVERB_PADDING: the field's periodic grid is 1.5 windows long. Against an 8-window period (no light
     wraps) the field is the same to 1e-3 at grey walls and within 3% at R = 0.9 (measured 7e-5 / 1.7% on OptoSkin's

@@ -140,6 +140,9 @@ EDGE_REVERB = True
 #: fifth bounce are summed:
 #: 0, a geometric train (:func:`_geometric_tail`); N, N more orders one by one (a reference for the tests).
 REVERB_SEGMENTS_PER_WALL = 4
+#: The field's exchange between two segments by Hottel's crossed strings (exact for straight segments of the
+#: guide's convex outline, finite where two meet at a corner) instead of the centres' ``cos_k cos_l len_l / (2 r)``.
+REVERB_STRINGS = True
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
 #: The radiosity's period over the histogram's window: the field is solved on a periodic grid this many windows
@@ -242,7 +245,7 @@ class GuidedGeometry(eqx.Module):
     forward_m: float = eqx.field(static=True, default=0.0)  # mean distance to a wall, random point and direction
     seg_len: jax.Array = None  # (M,) wall segments of the reverberant field (:func:`_reverb`): their lengths
     seg_r: jax.Array = None  # (M, M) centre-to-centre distances (the thickness added in quadrature)
-    seg_cc: jax.Array = None  # (M, M) cos at the source times cos at the receiver (0 on one wall)
+    seg_view: jax.Array = None  # (M, M) share of segment k's in-plane diffuse emission that segment l receives
     ray_seg: jax.Array = None  # (S, Z, A) the segment each ray's far wall point lies in
     seg_xy: jax.Array = None  # (M, 2) segment centres
     seg_tan: jax.Array = None  # (M, 2) unit vectors along each segment
@@ -326,8 +329,9 @@ class GuidedGeometry(eqx.Module):
 
 def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
     """The guide's four walls cut into ``REVERB_SEGMENTS_PER_WALL`` segments each (counter-clockwise from the
-    origin): lengths, the centre-to-centre distances and cosine products of every pair, and the segment each ray's
-    wall point ``(wx, wy)`` lies in (the nearest centre)."""
+    origin): lengths, the centre-to-centre distances, the share of each one's diffuse in-plane emission each other
+    receives (:data:`REVERB_STRINGS`), and the segment each ray's wall point ``(wx, wy)`` lies in (on its own wall:
+    the nearest centre could be a neighbouring wall's near a corner)."""
     m = int(REVERB_SEGMENTS_PER_WALL)
     u = (np.arange(m) + 0.5) / m
     walls = [  # (centres, inward normal, length)
@@ -340,9 +344,20 @@ def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
     r = np.sqrt(np.sum(d**2, -1) + thickness**2)
     cc = np.clip(np.sum(d * normals[:, None], -1) / r, 0, 1) * np.clip(-np.sum(d * normals[None], -1) / r, 0, 1)
     pts = np.stack([np.asarray(wx, float), np.asarray(wy, float)], -1)
-    near = np.argmin(np.sum((pts[..., None, :] - centres) ** 2, -1), axis=-1)
     tangents = np.stack([normals[:, 1], -normals[:, 0]], -1)
-    return {"seg_len": lengths, "seg_r": r, "seg_cc": cc, "ray_seg": near.astype(np.int32), "seg_xy": centres,
+    rel = pts[..., None, :] - centres  # (..., M, 2): the segment holding each point (0 there; the nearest outside)
+    near = np.argmin(np.maximum(np.abs(np.sum(rel * tangents, -1)) - 0.5 * lengths, 0.0)
+                     + np.abs(np.sum(rel * normals, -1)), axis=-1)
+    if REVERB_STRINGS:  # Hottel's crossed strings: the exact in-plane exchange of two straight segments of a convex outline
+        a1, a2 = centres - 0.5 * lengths[:, None] * tangents, centres + 0.5 * lengths[:, None] * tangents
+        dist = lambda a, b: np.sqrt(np.sum((a[:, None, :] - b[None, :, :]) ** 2, -1))  # noqa: E731  (k, l)
+        crossed = dist(a1, a1) + dist(a2, a2)  # (k, l): segment k's ends to segment l's (both counter-clockwise)
+        uncrossed = dist(a2, a1) + dist(a1, a2)
+        view = np.maximum(crossed - uncrossed, 0.0) / (2.0 * lengths[:, None])
+        view = np.where(normals @ normals.T > 0.5, 0.0, view)  # one wall: nothing (not rounding's 1e-16)
+    else:
+        view = cc * lengths[None, :] / (2.0 * r)
+    return {"seg_len": lengths, "seg_r": r, "seg_view": view, "ray_seg": near.astype(np.int32), "seg_xy": centres,
             "seg_tan": tangents}
 
 
@@ -641,7 +656,8 @@ def _edge_second(ctx, gg, el, amp1, frus):
     G, inv_c = _wall_band(el)  # guided share of a Lambertian wall's emission, its mean 1 / cos
     seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1)  # (S, Z, A) receiving segment length
     P1 = jnp.maximum(beam, 1e-300)
-    ratio = (p.end_reflectance * G * 0.5 * Ps[:, None, None, :] * cos_i * cos_j * (seg / P1)[..., None] / r
+    view = 0.5 * cos_i * cos_j * seg[..., None] / r  # (S, Z, A, I) the share a receiving segment gets of a source
+    ratio = (p.end_reflectance * G * Ps[:, None, None, :] * view / P1[..., None]
              * jnp.exp(-mu_t * r * inv_c))  # (S, Z, A, I)
     if frus is not None and EDGE_SECOND_SHADOW:
         ratio = ratio * _leg_transmission(ctx, gg, el, Ws, d)
@@ -791,7 +807,7 @@ def _reverb(ctx, gg, el, ret, frus):
     h1i = jnp.einsum("szaf,sza,szam->fsm", pi_, Pw, onehot)
     # transfer per frequency
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
-    F = G * gg.seg_cc * gg.seg_len[None, :] / (2.0 * gg.seg_r) * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
+    F = G * gg.seg_view * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
     dr, di = _shifts(gg.seg_r * inv_c / (nodes.c1 * nodes.h), n)  # (k, l, F)
     if REVERB_SPREAD:  # each leg's delay spread over the band's elevations
         b = _blur(_wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2, n)
