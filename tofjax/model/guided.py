@@ -129,8 +129,9 @@ EDGE_SECOND_SHADOW = False
 #: bench's baseline / touch scene (1.3x without it; 3.5-3.8x with the term's first form, which summed 64 orders by
 #: doubling and took each delay's phases by complex exponentials; `tofjax bench tradeoff`, docs/tradeoff.md).
 EDGE_REVERB = True
-#: The radiosity's wall segments per wall (4: the same figures as 8 and 16 within 0.002 relative L2, at a quarter
-#: of the cost of 8), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
+#: The radiosity's wall segments per wall (4: the same light as 8 and 16 within 0.002 relative L2 at the scene's
+#: optics, where 8 and 16 cost 1.28x and 2.47x the guided model's time; :data:`REVERB_STRINGS` for what finer
+#: segments do to a 64x fit), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
 #: field is smooth in time: on OptoSkin's baseline the model at 64 and 128 nodes agrees within 5e-4 of its peak, the
 #: field itself within 0.099 / 0.029 relative L2 of its 256-node form with :data:`REVERB_SPREAD`, 0.225 / 0.090 without,
 #: its light within 0.02% and its mean delay within 0.006 bins at 64 nodes (both converge at second order since the
@@ -140,11 +141,15 @@ EDGE_REVERB = True
 #: fifth bounce are summed:
 #: 0, a geometric train (:func:`_geometric_tail`); N, N more orders one by one (a reference for the tests).
 REVERB_SEGMENTS_PER_WALL = 4
-#: The field's exchange between two segments by Hottel's crossed strings (exact for straight segments of the
-#: guide's convex outline, finite where two meet at a corner) instead of the centres' ``cos_k cos_l len_l / (2 r)``.
-REVERB_STRINGS = True
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
+#: The field's exchange between two segments by Hottel's crossed strings (exact for straight segments of the guide's
+#: convex outline, finite where two meet at a corner) instead of the centres' ``cos_k cos_l len_l / (2 r)``, which
+#: sent out 1-5% more light than a segment reflects. The 64x calibration of the Monte Carlo baseline's reduced
+#: chi-square 3.48 -> 3.30, 16x 1.61 -> 1.56, at no cost per call (experiments/near_field_aperture.py --study
+#: reverb_strings). With it, 5 / 6 / 8 segments per wall give 3.20 / 3.11 / 3.07 at 1.10 / 1.07 / 1.28x the guided
+#: model's time (docs/tradeoff.md "The field's exchange between wall segments by crossed strings").
+REVERB_STRINGS = True
 #: The radiosity's period over the histogram's window: the field is solved on a periodic grid this many windows
 #: long, so light still in the guide a period after it arrived wraps onto the window's start. 1.5 (was 2): on
 #: OptoSkin's baseline the field moves from its 8-window form by 7e-5 relative L2 at the fitted end reflectance 0.5
