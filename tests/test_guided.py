@@ -879,12 +879,12 @@ def test_reverberant_field_exchange_conserves_light():
     a, b = lx / m, ly / m  # the bottom wall's last segment and the right wall's first meet at (lx, 0)
     assert F[m - 1, m] == pytest.approx((a + b - np.hypot(a, b)) / (2 * a), rel=1e-12)
     assert d["ray_seg"][0] == 0 and d["ray_seg"][1] == m  # (5 mm, 0): bottom wall; (lx, 1 cm): right wall
-    monkey = guided.REVERB_STRINGS
+    saved = guided.REVERB_STRINGS
     try:
         guided.REVERB_STRINGS = False
         old = guided._wall_segments(lx, ly, np.array([0.005]), np.array([0.0]), 0.005)["seg_view"]
     finally:
-        guided.REVERB_STRINGS = monkey
+        guided.REVERB_STRINGS = saved
     assert old.sum(1).max() > 1.01  # the point formula sent out more light than a wall reflects
 
 
