@@ -1,5 +1,6 @@
 """Switches of the guided optics against the Monte Carlo (issue 14): the near field from the aperture's geometry
-(default), or the light exchanged around the lit walls (``--study edge_scatter``).
+(default), the light exchanged around the lit walls (``--study edge_scatter``), or the reverberant field's exchange
+between wall segments (``--study reverb_strings``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the

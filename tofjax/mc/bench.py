@@ -205,28 +205,38 @@ def _machine() -> dict:
             "load_average_1_5_15": [round(x, 2) for x in load]}
 
 
-def _models(scene, opts: BenchOptions, comps, fidelity: GuidedFidelity | None = None):
-    """(default, guided) compiled forward models (:func:`tofjax.mc.prune.evaluate`: one program per
-    model structure, not one per call) and their parameters; the guided optics at ``fidelity`` (default: the
-    default fidelity with ``opts.elevations``)."""
+def _compiled(scene, mo, comps):
+    """A forward model compiled once per model structure (:func:`tofjax.mc.prune.evaluate`, not once per call) and
+    its parameters."""
     import functools
 
-    from ..model import ModelOptions, Params, build_model
-    from ..model.contact import SkinContact
-    from ..model.guided import hg_backward_fraction
+    from ..model import Params, build_model
     from .prune import evaluate
 
-    out = []
+    return functools.partial(evaluate, build_model(scene, mo, comps)), Params.from_scene(scene, mo.jnp_dtype)
+
+
+def _guided(scene, opts: BenchOptions, comps, fidelity: GuidedFidelity | None = None):
+    """The guided optics (compiled, with parameters) at ``fidelity`` (default: the default fidelity with
+    ``opts.elevations``), with the Monte Carlo's volume backscatter and, on a touch scene, its skin model."""
+    from ..model import ModelOptions
+    from ..model.contact import SkinContact
+    from ..model.guided import hg_backward_fraction
+
     d_opts = ModelOptions()
     fidelity = fidelity or GuidedFidelity(elevations=opts.elevations, angles_per_zone=d_opts.angles_per_zone,
                                           quadrature=d_opts.quadrature, dtype=d_opts.dtype)
-    g_opts = fidelity.model_options(SkinContact() if scene.touches else None)
     wg = dataclasses.replace(scene.waveguide, volume_backscatter_fraction=hg_backward_fraction(opts.g))
-    g_scene = scene.replace(waveguide=wg)
-    for sc, mo in ((scene, d_opts), (g_scene, g_opts)):
-        model = build_model(sc, mo, comps)
-        out.append((functools.partial(evaluate, model), Params.from_scene(sc, mo.jnp_dtype)))
-    return out
+    return _compiled(scene.replace(waveguide=wg), fidelity.model_options(SkinContact() if scene.touches else None),
+                     comps)
+
+
+def _models(scene, opts: BenchOptions, comps):
+    """(default, guided) compiled forward models and their parameters: the default optics at the default fidelity,
+    the guided optics at the bench's (:func:`_guided`)."""
+    from ..model import ModelOptions
+
+    return [_compiled(scene, ModelOptions(), comps), _guided(scene, opts, comps)]
 
 
 def _pair_timing(fa, pa, fb, pb, repeats: int) -> dict:
@@ -307,9 +317,9 @@ def run_bench_tradeoff(opts: BenchOptions = BenchOptions(), *, progress: bool = 
         for label in tqdm(opts.frontier, desc=f"frontier ({case})", unit="fidelity", disable=not progress,
                           leave=False):  # cheaper guided fidelities: their error and cost over the default optics'
             fid = GuidedFidelity.parse(label)
-            _, (fg, pg) = _models(scene, opts, comps, fid)
+            fg, pg = _guided(scene, opts, comps, fid)
             err = profiled_relative_l2(ref, np.asarray(fg(pg), np.float64))[0]
-            _, (fg, pg) = _models(scene, opts, scene.components(), fid)
+            fg, pg = _guided(scene, opts, scene.components(), fid)
             cost = _pair_timing(fd, pd, fg, pg, opts.repeats)
             row = frontier.setdefault(label, {"fidelity": label, **dataclasses.asdict(fid), "relative_l2": {},
                                               "forward_cost": {}})

@@ -347,7 +347,6 @@ def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
     lengths = np.concatenate([np.full(m, w[2] / m) for w in walls])
     d = centres[None, :, :] - centres[:, None, :]  # from k to l
     r = np.sqrt(np.sum(d**2, -1) + thickness**2)
-    cc = np.clip(np.sum(d * normals[:, None], -1) / r, 0, 1) * np.clip(-np.sum(d * normals[None], -1) / r, 0, 1)
     pts = np.stack([np.asarray(wx, float), np.asarray(wy, float)], -1)
     tangents = np.stack([normals[:, 1], -normals[:, 0]], -1)
     rel = pts[..., None, :] - centres  # (..., M, 2): the segment holding each point (0 there; the nearest outside)
@@ -360,7 +359,8 @@ def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
         uncrossed = dist(a2, a1) + dist(a1, a2)
         view = np.maximum(crossed - uncrossed, 0.0) / (2.0 * lengths[:, None])
         view = np.where(normals @ normals.T > 0.5, 0.0, view)  # one wall: nothing (not rounding's 1e-16)
-    else:
+    else:  # from the centres: cos at the source times cos at the receiver (0 on one wall), len_l / (2 r)
+        cc = np.clip(np.sum(d * normals[:, None], -1) / r, 0, 1) * np.clip(-np.sum(d * normals[None], -1) / r, 0, 1)
         view = cc * lengths[None, :] / (2.0 * r)
     return {"seg_len": lengths, "seg_r": r, "seg_view": view, "ray_seg": near.astype(np.int32), "seg_xy": centres,
             "seg_tan": tangents}
@@ -386,13 +386,13 @@ def _to_walls(lx: float, ly: float, x, y, c, s):
     return tx, ty
 
 
-
 def _wall_hit(tx, ty, c, s):
     """Where rays along ``(c, s)`` meet the walls, from :func:`_to_walls`' distances ``tx``, ``ty``: the cosine of
     their incidence on the wall they hit and its inward normal (..., 2); NumPy, broadcast."""
     x_wall = tx <= ty
     normal = np.stack([np.where(x_wall, -np.sign(c), 0.0), np.where(x_wall, 0.0, -np.sign(s))], -1)
     return np.where(x_wall, np.abs(c), np.abs(s)), normal
+
 
 def inward_normals(scene: Scene) -> np.ndarray:
     """Inward unit normal of the edge each sensor sits on (S, 2); at a corner, the one nearer its axis
@@ -429,12 +429,12 @@ def launch_band(n1, fov_rad: float):
     return cg, launch, xp.sqrt(1.0 - launch**2 / 3.0)
 
 
-
 def _band_inv_cos(cg):
     """The mean ``1 / cos`` of light spread uniformly in ``mu`` over the guided band ``|mu| < cg`` (isotropically
     scattered light that stays guided): ``asin(cg) / cg``; NumPy or JAX, as ``cg``."""
     xp = jnp if isinstance(cg, jax.Array) else np
     return xp.arcsin(cg) / cg
+
 
 def _elevations(gg: GuidedGeometry, n1, distributed: bool = False) -> _Elev:
     cg, launch, c_out = launch_band(jnp.asarray(n1), gg.fov)
