@@ -87,11 +87,14 @@ def mc_options(photons: int, seed: int):
     return MCOptions(photons=photons, seed=seed, g=0.0, contact=SkinContact(), nee_points=24, nee_aperture=4)
 
 
-def mc_expected(scene, photons: int, seed: int, progress: bool = False) -> tuple[np.ndarray, dict]:
-    """Expected counts of one frame (Monte Carlo transport + analytic light entry and ambient), cached."""
+def mc_expected(scene, photons: int, seed: int, progress: bool = False, edges: str = "diffuse") -> tuple[np.ndarray, dict]:
+    """Expected counts of one frame (Monte Carlo transport + analytic light entry and ambient), cached; ``edges``:
+    the Monte Carlo's lateral edges (``MCOptions.edges``)."""
     from tofjax.mc.capture import mc_expected_counts
 
     opts = mc_options(photons, seed)
+    if edges != opts.edges:
+        opts = dataclasses.replace(opts, edges=edges)
     key = hashlib.sha256((repr(scene) + repr(opts) + mc_source_hash()).encode()).hexdigest()[:20]
     path = CACHE / f"{key}.npz"
     if path.exists():

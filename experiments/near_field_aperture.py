@@ -1,6 +1,6 @@
 """Switches of the guided optics against the Monte Carlo (issue 14): the near field from the aperture's geometry
-(default), the light exchanged around the lit walls (``--study edge_scatter``), or the reverberant field's exchange
-between wall segments (``--study reverb_strings``).
+(default), the light exchanged around the lit walls (``--study edge_scatter``), the reverberant field's exchange
+between wall segments (``--study reverb_strings``), or multiple scattering's derived coupling (``--study ms_derived``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -32,11 +32,17 @@ exchange between two wall segments from their centres (``cos cos len / (2 r)``, 
 than a wall reflects) or by Hottel's crossed strings (exact for straight segments, each segment's light shared out
 in full).
 
+``--study ms_derived`` compares ``tofjax.model.guided.MS_DERIVED`` off (the coupling held at the scene's 0.5, and
+at 0.1) and on (derived from the geometry: the scene's default is the derived value). Part 1 adds the volume's light
+alone: the Monte Carlo with absorbing edges (32 cached runs) against the model's volume backscatter and multiple
+scattering (:func:`absorbing_edges`).
+
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
     python experiments/near_field_aperture.py --exposures 16,64 --out docs/results/near_field_aperture.json
     python experiments/near_field_aperture.py --study edge_scatter --exposures 16,64 --out docs/results/edge_scatter.json
     python experiments/near_field_aperture.py --study reverb_strings --exposures 16,64 --out docs/results/reverb_strings.json
+    python experiments/near_field_aperture.py --study ms_derived --exposures 16,64 --out docs/results/ms_derived.json
 """
 
 from __future__ import annotations
@@ -70,12 +76,66 @@ STUDIES = {
                        "variants": {"centre_point_exchange": False, "crossed_strings": True},
                        "title": "the reverberant field's exchange between wall segments by Hottel's crossed strings "
                                 "(guided REVERB_STRINGS) against the Monte Carlo baseline"},
+    "ms_derived": {"switches": ("MS_DERIVED",), "ratio": "forward_ratio_with_over_without",
+                   "variants": {"coupling_held": False, "coupling_derived": True},
+                   # held: the scene's 0.5 and the 0.1 earlier studies found better; derived: the scene's default
+                   # (the derived coupling itself)
+                   "couplings": {"coupling_held": (0.5, 0.1), "coupling_derived": (0.5,)},
+                   "absorbing_edges": True,
+                   "title": "multiple scattering's coupling derived from the geometry (guided MS_DERIVED) against "
+                            "the Monte Carlo baseline, with its diffuse edges and with absorbing ones"},
 }
+#: the absorbing-edge comparison's volume window (bins): from just after the light entry to before the far edge
+ABSORB_WINDOW = (16, 46)
 
 
 def _switch(guided, on: bool, study: str = "aperture") -> None:
     for name in STUDIES[study]["switches"]:
         setattr(guided, name, on)
+
+
+def absorbing_edges(study: str, seeds: int = 32, photons: int = 25_000) -> dict:
+    """The volume's light alone: the Monte Carlo baseline with absorbing edges (``seeds`` cached runs) against the
+    guided model's volume backscatter and multiple scattering at the scene's optics, the ``study``'s switches off
+    and on. Per sensor: the Monte Carlo over the model in :data:`ABSORB_WINDOW` (first and last five bins, summed
+    over the zones), its least-squares slope per bin, and the multiple scattering the Monte Carlo asks for over
+    the model's (the volume held; weights 1 / counts)."""
+    import tofjax.model.guided as guided
+    from tofjax.mc.bench import profiled_relative_l2
+    from tofjax.model import ModelOptions, Params, build_model
+
+    sys.path.insert(0, str(HERE))
+    import eval_mc_data as ev
+
+    scene = ev.guided_scene()
+    runs = np.stack([ev.mc_expected(scene, photons, s, edges="absorb")[0] for s in range(seeds)])
+    p = Params.from_scene(scene)
+    mc = runs.mean(0) - np.asarray(build_model(scene, ModelOptions(optics="guided"), ("crosstalk", "ambient"))(p))
+    lo, hi = ABSORB_WINDOW
+    out = {"seeds": seeds, "photons_per_sensor": photons, "window_bins": [lo, hi],
+           "note": "S2's window ends on its near walls' light (absorbed edges still cut its volume short)"}
+    for name, on in STUDIES[study]["variants"].items():
+        _switch(guided, on, study)
+        vol = np.asarray(build_model(scene, ModelOptions(optics="guided"), ("volume",))(p))
+        ms = np.asarray(build_model(scene, ModelOptions(optics="guided"), ("multiple_scattering",))(p))
+        model = vol + ms
+        ratio = mc[..., lo:hi].sum(1) / model[..., lo:hi].sum(1)  # (S, bins)
+        bins = np.arange(lo, hi)
+        k = []
+        for s in range(mc.shape[0]):
+            y, x = (mc[s] - vol[s])[:, lo:hi].ravel(), ms[s][:, lo:hi].ravel()
+            w = 1.0 / np.maximum(mc[s][:, lo:hi].ravel(), 1.0)
+            k.append(float(np.sum(w * x * y) / np.sum(w * x * x)))
+        out[name] = {
+            "mc_over_model_first_5_bins": ratio[:, :5].mean(1).round(4).tolist(),
+            "mc_over_model_last_5_bins": ratio[:, -5:].mean(1).round(4).tolist(),
+            "mc_over_model_slope_per_bin": [float(np.polyfit(bins, r, 1)[0]) for r in ratio],
+            "mc_multiple_scattering_over_model": k,
+            "multiple_scattering_share_last_5_bins": (ms[..., hi - 5:hi].sum((1, 2)) / model[..., hi - 5:hi].sum((1, 2))).round(4).tolist(),
+            "relative_l2_window": profiled_relative_l2(mc[..., lo:hi], model[..., lo:hi])[0],
+        }
+    _switch(guided, True, study)
+    return out
 
 
 def light_comparison(repeats: int, study: str = "aperture") -> dict:
@@ -203,11 +263,17 @@ def main(argv=None) -> int:
               f"far edge {light[k]['relative_l2_by_window']['far_edge']:.4f}, "
               f"outer/middle error vs MC (rms) {light[k]['outer_over_middle_error_vs_mc_rms']:.3f}", flush=True)
     print(f"forward time, on over off: {light[study['ratio']]:.3f}", flush=True)
+    if study.get("absorbing_edges"):
+        result["absorbing_edges"] = ab = absorbing_edges(a.study)
+        for k in study["variants"]:
+            print(f"absorbing edges, {k}: MC over model first / last 5 bins {ab[k]['mc_over_model_first_5_bins']} / "
+                  f"{ab[k]['mc_over_model_last_5_bins']}, the MC's multiple scattering over the model's "
+                  f"{np.round(ab[k]['mc_multiple_scattering_over_model'], 2).tolist()}", flush=True)
     if not a.no_calibration:
         for x in exposures:
             cal = result[f"calibration_{x:g}x_monte_carlo"] = {}
             for name, on in study["variants"].items():
-                for c in COUPLINGS:
+                for c in study.get("couplings", {}).get(name, COUPLINGS):
                     key = f"{name}_multiple_scattering_{c:g}"
                     cal[key] = r = ev.run_in_own_process(__file__, ["--out", os.devnull, "--study", a.study,
                                                                     "--calibrate-one", f"{int(on)}:{c}:{x}"])

@@ -92,7 +92,8 @@ class Waveguide:
     end_reflectance: float = 0.5
     #: Fraction of volume-scattered light that returns inside the sensor's acceptance.
     volume_backscatter_fraction: float = 0.05
-    #: Coupling of multiply-scattered light back to the sensor (dimensionless).
+    #: Coupling of multiply-scattered light back to the sensor (dimensionless). The guided optics derive the
+    #: coupling from the geometry and read this relative to its default (0.5: the derived value; 0: none).
     multiple_scattering: float = 0.5
     #: Fraction of a zone's light removed by a contact covering the whole zone.
     shadow_opacity: float = 0.5

@@ -39,12 +39,17 @@ cut edge, skin) light comes back at every elevation the faces guide, ``|mu| < sq
   parameter: against the Monte Carlo in a clear square guide the light after the first return goes from 41% of
   the Monte Carlo's (relative L2 0.51) to 99.1% (0.097).
 
-Multiple scattering keeps its phenomenological coupling (``multiple_scattering``) with the
-guided falloff and timing. See docs/tradeoff.md for the comparison with the Monte Carlo.
+* **multiple scattering** (``MS_DERIVED``): the phenomenological term's build-up and absorption with the guided
+  falloff and timing, and its coupling derived from the geometry (the light scattered twice, out of the fan and
+  back into a zone's view; :func:`double_scatter_coupling`); the scene's ``multiple_scattering`` scales it
+  relative to its default.
+
+See docs/tradeoff.md for the comparison with the Monte Carlo.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -53,7 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..scene import Scene
+from ..scene import Scene, Waveguide
 from .components import SPEED_OF_LIGHT_M_PER_S, Nodes, deposit, smooth_like_deposit
 
 __all__ = ["GuidedGeometry", "guided_node_masses", "hg_backward_fraction", "inward_normals", "launch_band"]
@@ -204,6 +209,19 @@ SCATTER_SOURCES = 32
 SCATTER_ELEMENTS = 2
 #: The largest n1 the kernels' time window is sized for (light beyond it is cut).
 SCATTER_MAX_N1 = 2.5
+#: Multiple scattering's coupling derived from the geometry (:func:`double_scatter_coupling`): the light scattered
+#: twice, once out of the beam and once back into a zone's view, over what the zone's single backscatter brings,
+#: per unit of ``mu_s`` times the path, is ``arccos(1/n1)`` (the guided share of isotropic scattering, with its
+#: longer path across the slab) times a zone's in-plane view of the beam, about 0.16-0.19 on OptoSkin's zones. The
+#: scene's ``multiple_scattering`` scales it relative to its default (:data:`MS_REFERENCE`: the default is the
+#: derived value, 0 none). Off: the coupling is ``multiple_scattering`` itself (0.5 by default), 2.1-2.7x what the
+#: Monte Carlo with absorbing edges shows (1.06-1.3x the derived one), which a 64x fit of the Monte Carlo baseline
+#: took out by raising mu_s + mu_a 15% (5.6% with it; experiments/near_field_aperture.py --study ms_derived,
+#: docs/tradeoff.md "Multiple scattering's coupling from the geometry").
+MS_DERIVED = True
+#: The scene's default ``multiple_scattering``: with :data:`MS_DERIVED` the guided optics read the scene's value
+#: relative to it (the default means the derived coupling). Read at trace, so it keys the program as the switches do.
+MS_REFERENCE: float = next(f.default for f in dataclasses.fields(Waveguide) if f.name == "multiple_scattering")
 
 
 #: The names of the switches above, in order (every upper-case bool, int or float of this module): tracing reads
@@ -217,6 +235,70 @@ def hg_backward_fraction(g: float) -> float:
     if abs(g) < 1e-9:
         return 0.5
     return (1.0 - g) / (2.0 * g) * ((1.0 + g) / math.sqrt(1.0 + g * g) - 1.0)
+
+
+def _double_scatter_kernel(delta):
+    """``K(delta)``: the in-plane double-scattering integral between two rays ``delta`` apart (radians).
+
+    With the sensor at the origin, a first scattering at range ``x1`` on one ray and a second at ``x2`` on the
+    other, both scattering isotropically in the plane and the light spreading as ``1/rho`` between them, the
+    light that comes back after a total path ``x1 + rho + x2 = 1`` is ``int int dx1 dx2 delta(1 - L) / rho``.
+    Solving ``L = 1`` for ``x2`` (only ``x1 < 1/2`` has a root) and dividing by ``dL/dx2`` leaves
+    ``int_0^(1/2) dx1 / (1 - x1 (1 + cos delta))`` = ``ln(2 / (1 - cos delta)) / (1 + cos delta)``: scale-free
+    (the same at every path), ``ln(2 / |delta|)`` as ``delta -> 0`` (integrable).
+    """
+    c = np.cos(delta)
+    return np.log(2.0 / np.maximum(1.0 - c, 1e-300)) / (1.0 + c)
+
+
+def _double_scatter_interval(a, b, n: int = 8):
+    """``int_a^b K(delta) d delta`` (arrays of bounds): the logarithm ``ln(2 / |delta|)`` exactly, the smooth rest
+    (``K - ln(2 / |delta|)``, 0 at 0) by ``n``-point Gauss-Legendre."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+
+    def F(d):  # an antiderivative of ln(2 / |d|), odd
+        ad = np.abs(d)
+        return np.sign(d) * ad * (math.log(2.0) + 1.0 - np.log(np.where(ad > 0, ad, 1.0)))
+
+    x, w = np.polynomial.legendre.leggauss(n)
+    mid, half = 0.5 * (a + b), 0.5 * (b - a)
+    d = mid[..., None] + half[..., None] * x
+    ad = np.abs(d)
+    rest = np.where(ad > 1e-6, _double_scatter_kernel(d) - np.log(2.0 / np.where(ad > 0, ad, 1.0)), 0.0)
+    return F(b) - F(a) + half * np.sum(w * rest, axis=-1)
+
+
+def double_scatter_coupling(ray_angle, ray_width, live) -> np.ndarray:
+    """Each zone's in-plane double-scattering coupling ``C_2D`` (NumPy, at build; (S, Z)).
+
+    Light scattered twice, first anywhere in the emitted fan and then back into a zone's view, against the zone's
+    single backscatter, is ``mu_s L C`` at total path ``L`` (small ``mu_s L``; :func:`_double_scatter_kernel`):
+    ``C_2D = (1 / 2 pi) int_fan K(phi' - phi) d phi'`` per ray ``phi`` of the zone, the fan's rays weighted as the
+    model emits them (uniform in angle; a ray that leaves the guide at once, ``live`` False, sends nothing), then
+    averaged over the zone's live rays. In the slab the middle leg keeps the guided share of isotropic scattering,
+    ``sin theta_c``, with a fluence ``1 / cos theta`` for its slant path: ``theta_c = arccos(1 / n1)`` in all, which
+    the model applies per call (n1 is fitted). The slant path's later arrival moves ``C`` by 2% (Monte Carlo
+    integration), not modelled. Infinite medium: a ray's wall ends the light it carries elsewhere in the model.
+
+    ``ray_angle`` (S, Z, A) radians, ``ray_width`` (Z,) each ray's angle, ``live`` (S, Z, A) bool.
+    """
+    ang = np.asarray(ray_angle, float)
+    S, Z, A = ang.shape
+    width = np.broadcast_to(np.asarray(ray_width, float)[None, :, None], ang.shape)
+    live = np.asarray(live, bool)
+    out = np.zeros((S, Z))
+    for s in range(S):
+        src, w = ang[s].reshape(-1), width[s].reshape(-1)
+        on = live[s].reshape(-1)
+        tgt = ang[s].reshape(-1)
+        # (targets, sources): the integral of K over each source ray's interval, relative to the target ray
+        lo = (src - 0.5 * w)[None, :] - tgt[:, None]
+        hi = (src + 0.5 * w)[None, :] - tgt[:, None]
+        per_ray = np.sum(np.where(on[None, :], _double_scatter_interval(lo, hi), 0.0), axis=1) / (2.0 * math.pi)
+        per_ray = per_ray.reshape(Z, A)
+        lv = live[s]
+        out[s] = np.where(lv.any(axis=1), np.sum(np.where(lv, per_ray, 0.0), axis=1) / np.maximum(lv.sum(axis=1), 1), 0.0)
+    return out
 
 
 def _fresnel(n_in, n_out, cos_i):
@@ -262,6 +344,7 @@ class GuidedGeometry(eqx.Module):
     sc_a: jax.Array = None  # their bins' mean lengths: the beam's leg less the direct one's
     sc_b: jax.Array = None  # the diffuse leg
     sc_c: jax.Array = None  # the view's leg less the direct return's
+    ms_c2d: jax.Array = None  # (S, Z) multiple scattering's in-plane coupling (:func:`double_scatter_coupling`)
     sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
     sc_nodes: int = eqx.field(static=True, default=0)  # and in all
 
@@ -328,6 +411,7 @@ class GuidedGeometry(eqx.Module):
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
                for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                                           float(scene.waveguide.thickness_m)).items()},
+            ms_c2d=jnp.asarray(double_scatter_coupling(ang, width / A, ray_length > 0), dtype),
             **scatter,
         )
 
@@ -1288,10 +1372,16 @@ def _distributed(ctx, gg, el, frus, names):
     if "volume" in names:
         att = jnp.exp(-mu_t * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
         dens = dens + p.volume_backscatter_fraction / (2.0 * math.pi) * p.mu_s_per_m * att
+    ms = None
     if "multiple_scattering" in names:
         build = -jnp.expm1(-2.0 * p.mu_s_per_m * rp)
         att = jnp.exp(-p.mu_a_per_m * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
-        dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
+        if MS_DERIVED and gg.ms_c2d is not None:
+            # the coupling per zone (S, Z): the zone's in-plane view of the fan times the slab's arccos(1 / n1)
+            ms = (p.multiple_scattering / MS_REFERENCE) * jnp.arccos(1.0 / p.n1) * gg.ms_c2d
+            ms_dens = 1.0 / (4.0 * math.pi) * p.mu_s_per_m * build * att * el.dmu[:, None]  # (J, K)
+        else:
+            dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
     dens = dens * el.dmu[:, None]  # (J, K)
     # coverage: each ray's weight (its angle and the aperture's projection) until its far edge (a ray that leaves
     # the guide at once, from a sensor at a corner, carries none)
@@ -1324,7 +1414,9 @@ def _distributed(ctx, gg, el, frus, names):
 
         rr = jnp.broadcast_to(rp.reshape(-1), (S, Z, rp.size))
         geo = geo * shadow(rr, ctx.contacts, p).reshape(S, Z, J, -1)
-    mass = jnp.einsum("szjk,jk->szk", geo, dens)
+    mass = 0.0 if isinstance(dens, float) else jnp.einsum("szjk,jk->szk", geo, dens)  # a float: no volume term
+    if ms is not None:
+        mass = mass + ms[:, :, None] * jnp.einsum("szjk,jk->szk", geo, ms_dens)
     return p.gain[:, None, None] * smooth_like_deposit(mass)
 
 
