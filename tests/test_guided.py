@@ -1111,3 +1111,20 @@ def test_derived_multiple_scattering_in_the_model(monkeypatch):
     assert np.abs(np.asarray(model(p.replace(multiple_scattering=jnp.asarray(0.0, p.n1.dtype))))).max() == 0.0
     g = jax.grad(lambda n1: model(p.replace(n1=n1)).sum())(p.n1)
     assert np.isfinite(float(g))
+
+
+def test_mc_nee_quadrature_refuses_bad_input(tmp_path, capsys):
+    """experiments/mc_nee_quadrature.py checks its options and its output before any Monte Carlo: a one-line
+    error and exit 2, the existing file kept."""
+    from test_studies import load
+
+    mod = load("mc_nee_quadrature")
+    out = tmp_path / "q.json"
+    out.write_text("keep")
+    for argv in (["--out", str(out)], ["--out", str(tmp_path / "n.json"), "--nodes", "24"],
+                 ["--out", str(tmp_path / "n.json"), "--nodes", "24,0"], ["--out", str(tmp_path / "n.json"), "--seeds", "0"]):
+        with pytest.raises(SystemExit) as e:
+            mod.main(argv)
+        assert e.value.code == 2
+        assert capsys.readouterr().err.startswith("error: ")
+    assert out.read_text() == "keep" and not (tmp_path / "n.json").exists()
