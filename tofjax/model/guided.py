@@ -288,16 +288,13 @@ def double_scatter_coupling(ray_angle, ray_width, live) -> np.ndarray:
     live = np.asarray(live, bool)
     out = np.zeros((S, Z))
     for s in range(S):
-        src, w = ang[s].reshape(-1), width[s].reshape(-1)
-        on = live[s].reshape(-1)
-        tgt = ang[s].reshape(-1)
+        phi, w, on = ang[s].reshape(-1), width[s].reshape(-1), live[s].reshape(-1)
         # (targets, sources): the integral of K over each source ray's interval, relative to the target ray
-        lo = (src - 0.5 * w)[None, :] - tgt[:, None]
-        hi = (src + 0.5 * w)[None, :] - tgt[:, None]
-        per_ray = np.sum(np.where(on[None, :], _double_scatter_interval(lo, hi), 0.0), axis=1) / (2.0 * math.pi)
-        per_ray = per_ray.reshape(Z, A)
-        lv = live[s]
-        out[s] = np.where(lv.any(axis=1), np.sum(np.where(lv, per_ray, 0.0), axis=1) / np.maximum(lv.sum(axis=1), 1), 0.0)
+        lo = (phi - 0.5 * w)[None, :] - phi[:, None]
+        hi = (phi + 0.5 * w)[None, :] - phi[:, None]
+        per_ray = (np.sum(np.where(on[None, :], _double_scatter_interval(lo, hi), 0.0), axis=1) / (2.0 * math.pi)).reshape(Z, A)
+        n_live = live[s].sum(axis=1)
+        out[s] = np.where(n_live > 0, np.sum(np.where(live[s], per_ray, 0.0), axis=1) / np.maximum(n_live, 1), 0.0)
     return out
 
 
