@@ -212,7 +212,7 @@ SCATTER_MAX_N1 = 2.5
 #: Multiple scattering's coupling derived from the geometry (:func:`double_scatter_coupling`): the light scattered
 #: twice, once out of the beam and once back into a zone's view, over what the zone's single backscatter brings,
 #: per unit of ``mu_s`` times the path, is ``arccos(1/n1)`` (the guided share of isotropic scattering, with its
-#: longer path across the slab) times a zone's in-plane view of the beam, about 0.16-0.19 on OptoSkin's zones. The
+#: longer path across the slab) times a zone's in-plane view of the beam, about 0.17-0.19 on OptoSkin's zones. The
 #: scene's ``multiple_scattering`` scales it relative to its default (:data:`MS_REFERENCE`: the default is the
 #: derived value, 0 none). Off: the coupling is ``multiple_scattering`` itself (0.5 by default), 2.1-2.7x what the
 #: Monte Carlo with absorbing edges shows (1.06-1.3x the derived one), which a 64x fit of the Monte Carlo baseline
