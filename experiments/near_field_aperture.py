@@ -213,6 +213,10 @@ def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0, study
     out |= {"mu_s_per_m": float(p.mu_s_per_m), "mu_a_per_m": float(p.mu_a_per_m), "seconds": fig["seconds"]}
     r2 = np.asarray(res.residuals) ** 2
     out["excess_chi2_by_window"] = {k: float(r2[..., a:b].sum() - r2[..., a:b].size) for k, (a, b) in WINDOWS.items()}
+    # the calibration's score test of its held parameters (z against the residuals; scaled by sqrt(chi-square))
+    fixed = (res.discrepancy or {}).get("fixed_parameters") or {}
+    out["held_parameters_score"] = {r["name"]: {k: r.get(k) for k in ("value", "z", "z_scaled", "gauss_newton_value", "contradicted")}
+                                    for r in fixed.get("parameters", []) if r.get("z") is not None}
     return out
 
 
