@@ -116,8 +116,8 @@ def absorbing_edges(study: str, seeds: int = 32, photons: int = 25_000) -> dict:
            "note": "S2's window ends on its near walls' light (absorbed edges still cut its volume short)"}
     for name, on in STUDIES[study]["variants"].items():
         _switch(guided, on, study)
-        vol = np.asarray(build_model(scene, ModelOptions(optics="guided"), ("volume",))(p))
-        ms = np.asarray(build_model(scene, ModelOptions(optics="guided"), ("multiple_scattering",))(p))
+        parts = build_model(scene, ModelOptions(optics="guided"), ("volume", "multiple_scattering")).breakdown(p)
+        vol, ms = (np.asarray(parts[k]) for k in ("volume", "multiple_scattering"))
         model = vol + ms
         ratio = mc[..., lo:hi].sum(1) / model[..., lo:hi].sum(1)  # (S, bins)
         bins = np.arange(lo, hi)

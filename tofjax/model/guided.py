@@ -1365,21 +1365,19 @@ def _distributed(ctx, gg, el, frus, names):
     fall = (jnp.arcsinh((r + 0.5 * dr) / r0) - jnp.arcsinh((r - 0.5 * dr) / r0))  # integral of 1/sqrt(r^2+r0^2)
     rp = jnp.maximum(r, 0.0)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
-    dens = 0.0
+    terms = []  # (weight, density (J, K)) per term
     if "volume" in names:
         att = jnp.exp(-mu_t * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
-        dens = dens + p.volume_backscatter_fraction / (2.0 * math.pi) * p.mu_s_per_m * att
-    ms = None
+        terms.append((1.0, p.volume_backscatter_fraction / (2.0 * math.pi) * p.mu_s_per_m * att * el.dmu[:, None]))
     if "multiple_scattering" in names:
         build = -jnp.expm1(-2.0 * p.mu_s_per_m * rp)
         att = jnp.exp(-p.mu_a_per_m * rp * (1.0 / el.c_out + 1.0 / el.c)[:, None])
         if MS_DERIVED and gg.ms_c2d is not None:
-            # the coupling per zone (S, Z): the zone's in-plane view of the fan times the slab's arccos(1 / n1)
-            ms = (p.multiple_scattering / MS_REFERENCE) * jnp.arccos(1.0 / p.n1) * gg.ms_c2d
-            ms_dens = 1.0 / (4.0 * math.pi) * p.mu_s_per_m * build * att * el.dmu[:, None]  # (J, K)
+            # the coupling per zone: the zone's in-plane view of the fan times the slab's arccos(1 / n1)
+            coupling = ((p.multiple_scattering / MS_REFERENCE) * jnp.arccos(1.0 / p.n1) * gg.ms_c2d)[:, :, None]
         else:
-            dens = dens + p.multiple_scattering / (4.0 * math.pi) * p.mu_s_per_m * build * att
-    dens = dens * el.dmu[:, None]  # (J, K)
+            coupling = p.multiple_scattering
+        terms.append((coupling, 1.0 / (4.0 * math.pi) * p.mu_s_per_m * build * att * el.dmu[:, None]))
     # coverage: each ray's weight (its angle and the aperture's projection) until its far edge (a ray that leaves
     # the guide at once, from a sensor at a corner, carries none)
     wray = jnp.where(geom.ray_length > 0, gg.cos_sensor * gg.dphi[None, :, None] / (gg.fov * gg.thickness_m), 0.0)
@@ -1411,9 +1409,7 @@ def _distributed(ctx, gg, el, frus, names):
 
         rr = jnp.broadcast_to(rp.reshape(-1), (S, Z, rp.size))
         geo = geo * shadow(rr, ctx.contacts, p).reshape(S, Z, J, -1)
-    mass = 0.0 if isinstance(dens, float) else jnp.einsum("szjk,jk->szk", geo, dens)  # a float: no volume term
-    if ms is not None:
-        mass = mass + ms[:, :, None] * jnp.einsum("szjk,jk->szk", geo, ms_dens)
+    mass = sum(w * jnp.einsum("szjk,jk->szk", geo, dens) for w, dens in terms)
     return p.gain[:, None, None] * smooth_like_deposit(mass)
 
 
