@@ -152,10 +152,13 @@ def study_header(study: str, data: str) -> dict:
 
 
 def write_study(out: dict, path: Path) -> None:
-    """Write a study's JSON (headed by :func:`study_header`) with the load average at its end, and say so."""
+    """Write a study's JSON (headed by :func:`study_header`) with the load average at its end, whole or not at all
+    (:func:`tofjax.outputs.atomic_write_text`), and say so."""
+    from tofjax.outputs import atomic_write_text
+
     out["load_average_end"] = list(os.getloadavg())
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1) + "\n")
+    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
     print(f"wrote {path}")
 
 

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -39,7 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     import tofjax
-    from tofjax.outputs import OutputError, atomic_write_text, check_output
+    from tofjax.outputs import OutputError, check_output
 
     try:
         nodes = [int(x) for x in a.nodes.split(",")]
@@ -80,9 +78,7 @@ def main(argv=None) -> int:
                                                           "largest": float(np.abs(rel).max())}
     print(f"largest relative difference per sensor around the far edge: {np.abs(rel).max():.4f}")
     result["seconds"] = time.perf_counter() - t0
-    result["load_average_end"] = list(os.getloadavg())
-    atomic_write_text(path, json.dumps(result, indent=1) + "\n")
-    print(f"wrote {path}")
+    ev.write_study(result, path)
     return 0
 
 

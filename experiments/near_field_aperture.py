@@ -1,6 +1,7 @@
 """Switches of the guided optics against the Monte Carlo (issue 14): the near field from the aperture's geometry
 (default), the light exchanged around the lit walls (``--study edge_scatter``), the reverberant field's exchange
-between wall segments (``--study reverb_strings``), or multiple scattering's derived coupling (``--study ms_derived``).
+between wall segments (``--study reverb_strings``), multiple scattering's derived coupling (``--study ms_derived``),
+or the lit walls' light scattered on to the walls in view (``--study scatter_redirect``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -36,6 +37,10 @@ in full).
 at 0.1) and on (derived from the geometry: the scene's default is the derived value). Part 1 adds the volume's light
 alone: the Monte Carlo with absorbing edges (32 cached runs) against the model's volume backscatter and multiple
 scattering (:func:`absorbing_edges`).
+
+``--study scatter_redirect`` compares ``tofjax.model.guided.SCATTER_REDIRECT`` off (the default) and on: a third
+kernel of :func:`tofjax.model.guided._edge_scatter`, the lit walls' diffuse light scattered once by the volume on to
+the walls in view (two bounces and one scattering), at the scene's held coupling only.
 
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
@@ -84,6 +89,11 @@ STUDIES = {
                    "absorbing_edges": True,
                    "title": "multiple scattering's coupling derived from the geometry (guided MS_DERIVED) against "
                             "the Monte Carlo baseline, with its diffuse edges and with absorbing ones"},
+    "scatter_redirect": {"switches": ("SCATTER_REDIRECT",), "ratio": "forward_ratio_with_over_without",
+                         "variants": {"without_redirect": False, "with_redirect": True},
+                         "couplings": {"without_redirect": (0.5,), "with_redirect": (0.5,)},
+                         "title": "the lit walls' light scattered by the volume on to the walls in view (guided "
+                                  "SCATTER_REDIRECT) against the Monte Carlo baseline"},
 }
 #: the absorbing-edge comparison's volume window (bins): from just after the light entry to before the far edge
 ABSORB_WINDOW = (16, 46)
@@ -232,7 +242,7 @@ def main(argv=None) -> int:
     ap.add_argument("--calibrate-one", metavar="APERTURE:COUPLING:EXPOSURE", help=argparse.SUPPRESS)  # JSON out
     a = ap.parse_args(argv)
     import tofjax
-    from tofjax.outputs import OutputError, atomic_write_text, check_output
+    from tofjax.outputs import OutputError, check_output
 
     if a.repeats < 1:
         ap.exit(2, "error: --repeats must be >= 1\n")
@@ -285,9 +295,7 @@ def main(argv=None) -> int:
                           f"({r['reduced_chi2_with_mc_variance']:.3f} with the MC's variance), n1 "
                           f"{r['n1_rel_error']:+.5f}, mu_t {r['mu_t_rel_error']:+.3f}, {r['steps']} steps", flush=True)
     result["seconds"] = time.perf_counter() - t0
-    result["load_average_end"] = list(os.getloadavg())
-    atomic_write_text(path, json.dumps(result, indent=1) + "\n")
-    print(f"wrote {path}")
+    ev.write_study(result, path)
     return 0
 
 

@@ -209,6 +209,17 @@ SCATTER_SOURCES = 32
 SCATTER_ELEMENTS = 2
 #: The largest n1 the kernels' time window is sized for (light beyond it is cut).
 SCATTER_MAX_N1 = 2.5
+#: A third kernel (:func:`_scatter_tables`' term 2): the lit walls' diffuse light scattered once by the volume on to
+#: the walls in view, which return it as their first bounce (light of two bounces and one scattering, ``R^2 mu_s``:
+#: :func:`_edge_second` sees the second bounce's direct light only, the field's legs move scattered light on to where
+#: they were going, and the field is seen from the third bounce on). The scattering points on a grid of
+#: ``SCATTER_GRID_M`` (1 cm: 3.3% from 5 mm in a 20 cm guide, 2 cm 9%). **Off**: against the Monte Carlo baseline it
+#: takes the 64x chi-square only from 3.268 to 3.241 (16x 1.555 -> 1.549) and moves the fit's mu_s + mu_a error from
+#: +5.6% to +8.2% (+5.4% -> +8.1%): the Monte Carlo's two-bounce scattered light comes sooner than this term brings
+#: it, and is spent by 14 bins after each far edge's peak, where the term still adds (experiments/near_field_aperture.py
+#: --study scatter_redirect, docs/results/scatter_redirect.json; experiments/wall_light_orders.py).
+SCATTER_REDIRECT = False
+SCATTER_GRID_M = 0.01
 #: Multiple scattering's coupling derived from the geometry (:func:`double_scatter_coupling`): the light scattered
 #: twice, once out of the beam and once back into a zone's view, over what the zone's single backscatter brings,
 #: per unit of ``mu_s`` times the path, is ``arccos(1/n1)`` (the guided share of isotropic scattering, with its
@@ -694,10 +705,16 @@ def _edge_scatter(ctx, gg, el, first):
     cbar = _mean_cos(el)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
-    leg = jnp.stack([g_iso, g_wall])[:, None]  # (2, 1): the diffuse leg's 1 / cos per term
-    path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, 2, NK)
-    att = jnp.exp(-mu_t * (gg.sc_a / c_out + g_iso * gg.sc_c) - mu_eff * leg * gg.sc_b)
-    pref = jnp.stack([p.mu_s_per_m * cg / c_out, p.mu_s_per_m * G / cbar**2])[:, None]
+    legs = [g_iso, g_wall]  # per term: the diffuse leg's 1 / cos, what the last leg loses, and the prefactor
+    last = [mu_t, mu_t]
+    pref = [p.mu_s_per_m * cg / c_out, p.mu_s_per_m * G / cbar**2]
+    if gg.sc_w.shape[2] > 2:  # the lit walls' light scattered on to the walls in view (a diffuse last leg)
+        legs.append(g_wall)
+        last.append(mu_eff)
+        pref.append(p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)
+    leg, last, pref = (jnp.stack(v)[:, None] for v in (legs, last, pref))  # (T, 1)
+    path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, T, NK)
+    att = jnp.exp(-mu_t * gg.sc_a / c_out - last * g_iso * gg.sc_c - mu_eff * leg * gg.sc_b)
     S, Z, K = first.shape
     amp = (pref * gg.sc_w * att).reshape(S, Z, -1)
     n_k = gg.sc_nodes
@@ -1249,7 +1266,11 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     g_iso = float(_band_inv_cos(cg))
     g_wall = cg / (0.5 * (math.asin(cg) + cg * math.sqrt(1.0 - cg * cg)))  # a Lambertian wall's flux-weighted 1 / cos
     NK, NS, NE = int(SCATTER_BINS), int(SCATTER_SOURCES), int(SCATTER_ELEMENTS)
-    out = {k: np.zeros((S, Z, 2, NK)) for k in ("w", "a", "b", "c")}
+    out = {k: np.zeros((S, Z, 3 if SCATTER_REDIRECT else 2, NK)) for k in ("w", "a", "b", "c")}
+    if SCATTER_REDIRECT:  # term 2's scattering points: the centres of a grid over the guide
+        nx, ny = max(1, round(lx / SCATTER_GRID_M)), max(1, round(ly / SCATTER_GRID_M))
+        gx, gy = np.meshgrid((np.arange(nx) + 0.5) * lx / nx, (np.arange(ny) + 0.5) * ly / ny, indexing="ij")
+        Q, dA = np.stack([gx.ravel(), gy.ravel()], -1), lx * ly / (nx * ny)
     zone_power = np.asarray(dphi, float) * A / fov  # (Z,) the beam's share on each zone's walls
     for s in range(S):
         s0 = np.asarray(xy[s], float)
@@ -1296,6 +1317,28 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
                         / (np.pi * thickness * np.maximum(L_s, 1e-9)) * (L_s > 0), axis=1)  # (Z,)
         _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
                   np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
+        if SCATTER_REDIRECT:
+            # term 2: element (source, every ray: its beam power, Lambertian in the plane, cos / 2 per radian) ->
+            # grid point q (``cos / (2 rho1)`` per unit area of the in-plane flux it scatters) -> element (target,
+            # every ray: ``l cos / (2 pi rho2)`` of q's in-plane isotropic light), binned by the target's zone
+            Ls_e = np.broadcast_to(L_s[..., None], t.shape).ravel()  # each element's ray length
+            d1 = Q[None] - Wf[:, None]  # (elements, points)
+            rho1 = np.sqrt(np.sum(d1 * d1, -1) + thickness**2)
+            emit = src[:, None] * np.clip(np.sum(d1 * nf[:, None], -1) / rho1, 0.0, None) / (2.0 * rho1) * dA
+            d2 = Wf[None] - Q[:, None]  # (points, elements)
+            rho2 = np.sqrt(np.sum(d2 * d2, -1) + thickness**2)
+            land = (ell.ravel() * live.ravel())[None] * np.clip(-np.sum(d2 * nf[None], -1) / rho2, 0.0, None) / (2.0 * np.pi * rho2)
+            for i in range(Wf.shape[0]):  # one source element at a time: (points, elements)
+                w2 = emit[i][:, None] * land
+                if not w2.any():
+                    continue
+                A2 = np.broadcast_to((Ls_e[i] - Ls_e)[None], w2.shape)
+                B2 = np.broadcast_to(rho1[i][:, None], w2.shape)
+                _bin_into(out, s, 2, np.broadcast_to(zone_e[None], w2.shape), A2 / c_out + g_wall * B2 + g_iso * rho2,
+                          w2, A2, B2, rho2, zone_power[zone_e][None])
+    w = out["w"]
+    for key in ("a", "b", "c"):  # the bins' mean lengths
+        out[key] = np.where(w > 0, out[key] / np.where(w > 0, w, 1.0), 0.0)
     return out
 
 
@@ -1307,7 +1350,7 @@ def _scatter_tables_cached(lx, ly, thickness, xy, ang, L, cos_wall, cos_sensor, 
     """:func:`_scatter_tables`, remembered by its inputs and the module's ``SCATTER_*`` settings (copies out)."""
     arrays = [np.ascontiguousarray(a, float) for a in (xy, ang, L, cos_wall, cos_sensor, dphi)]
     key = (float(lx), float(ly), float(thickness), float(fov), float(n1), SCATTER_BINS, SCATTER_BIN_M, SCATTER_MIN_M,
-           SCATTER_SOURCES, SCATTER_ELEMENTS) + tuple((a.shape, a.tobytes()) for a in arrays)
+           SCATTER_SOURCES, SCATTER_ELEMENTS, SCATTER_REDIRECT, SCATTER_GRID_M) + tuple((a.shape, a.tobytes()) for a in arrays)
     if key not in _SCATTER_CACHE:
         if len(_SCATTER_CACHE) >= 16:
             _SCATTER_CACHE.pop(next(iter(_SCATTER_CACHE)))
@@ -1317,18 +1360,17 @@ def _scatter_tables_cached(lx, ly, thickness, xy, ang, L, cos_wall, cos_sensor, 
 
 def _bin_into(out, s, term, zone, delta, w, A, B, C, norm):
     """Add weights ``w`` at path differences ``delta`` into ``out``'s bins of sensor ``s`` and ``term`` (per zone),
-    normalised by ``norm``; the bins' mean lengths ``A``, ``B``, ``C`` weighted by ``w``."""
+    normalised by ``norm``, and the lengths ``A``, ``B``, ``C`` times ``w`` into ``out``'s ``a``, ``b``, ``c`` (the
+    caller divides them by the weights once every call is in)."""
     NK = out["w"].shape[-1]
     k = np.floor((delta - SCATTER_MIN_M) / SCATTER_BIN_M).astype(np.int64)
     w = np.where((k >= 0) & (k < NK), w / np.maximum(norm, 1e-300), 0.0)
     k = np.clip(k, 0, NK - 1)
     Z = out["w"].shape[1]
     flat = (np.asarray(zone) * NK + k).ravel()
-    sw = np.bincount(flat, weights=w.ravel(), minlength=Z * NK).reshape(Z, NK)
-    out["w"][s, :, term] += sw
-    for key, v in (("a", A), ("b", B), ("c", C)):
-        m = np.bincount(flat, weights=(w * v).ravel(), minlength=Z * NK).reshape(Z, NK)
-        out[key][s, :, term] += np.where(sw > 0, m / np.where(sw > 0, sw, 1.0), 0.0)
+    out["w"][s, :, term] += np.bincount(flat, weights=w.ravel(), minlength=Z * NK).reshape(Z, NK)
+    for key, v in (("a", A), ("b", B), ("c", C)):  # weighted sums here, means at the end (:func:`_scatter_tables`)
+        out[key][s, :, term] += np.bincount(flat, weights=(w * v).ravel(), minlength=Z * NK).reshape(Z, NK)
 
 
 def _near_field(gg: "GuidedGeometry", r_edges):
