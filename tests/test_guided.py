@@ -1128,3 +1128,33 @@ def test_mc_nee_quadrature_refuses_bad_input(tmp_path, capsys):
         assert e.value.code == 2
         assert capsys.readouterr().err.startswith("error: ")
     assert out.read_text() == "keep" and not (tmp_path / "n.json").exists()
+
+
+def test_wall_light_orders_separates_the_orders_and_refuses_bad_input(tmp_path, capsys):
+    """experiments/wall_light_orders.py: from excesses (per unit of wall light) ``mu u + R mu v + f(R)`` its orders
+    give ``R mu_s = mu (u + R_lo v)`` and ``R^2 mu_s = R_hi mu v`` (the mu_s-free part cancels), and the plot is
+    drawn; bad options end in one line and exit 2 before any Monte Carlo, an existing file kept."""
+    from test_studies import load
+
+    mod = load("wall_light_orders")
+    rng = np.random.default_rng(0)
+    u, v, f = rng.normal(size=(3, 39))
+    mus, rs = [0.0, 0.6, 1.2], [0.1, 0.5]
+    cells = {(m, r): {"mu_s_per_m": m, "end_reflectance": r,
+                      "profile": {"bins": list(range(-8, 31)), "excess": (m * u + r * m * v + r * r * f).tolist()}}
+             for m in mus for r in rs}
+    out = mod.orders(cells, mus, rs)
+    for m in (0.6, 1.2):
+        np.testing.assert_allclose(out[f"mu_s_{m:g}"]["R_mu_s"], m * (u + 0.1 * v), atol=1e-4)
+        np.testing.assert_allclose(out[f"mu_s_{m:g}"]["R2_mu_s"], 0.5 * m * v, atol=1e-4)
+    assert "note" in mod.orders(cells, [0.6, 1.2], rs)
+    mod.plot({"cells": list(cells.values()), "orders": out}, tmp_path / "o.png")
+    assert (tmp_path / "o.png").stat().st_size > 1000
+    keep = tmp_path / "k.json"
+    keep.write_text("keep")
+    for argv in (["--out", str(keep)], ["--out", str(tmp_path / "n.json"), "--mu-s", "0,x"],
+                 ["--out", str(tmp_path / "n.json"), "--reflectance", "0.1,1.5"],
+                 ["--out", str(tmp_path / "n.json"), "--mu-s", "-1"], ["--out", str(tmp_path / "n.json"), "--seeds", "1"]):
+        assert mod.main(argv) == 2
+        assert capsys.readouterr().err.startswith("error: ")
+    assert keep.read_text() == "keep" and not (tmp_path / "n.json").exists()
