@@ -92,32 +92,34 @@ def test_walls_light_reaches_an_oblique_zone_before_its_own_first_return(monkeyp
     assert max(early) >= 3, early  # bins of 50 ps: the neighbours' walls are centimetres nearer
 
 
-def _redirect(monkeypatch, sc, **replace):
-    """The third kernel alone (guided.SCATTER_REDIRECT: the lit walls' light scattered on to the walls in view) and the
-    first return; (S, Z, B) each, the field and the second bounce off."""
+def _kernel(monkeypatch, switch, sc, **replace):
+    """An optional kernel alone (``switch`` of guided, e.g. SCATTER_REDIRECT) and the first return;
+    (S, Z, B) each, the field and the second bounce off."""
     out = {}
     for on in (True, False):
-        monkeypatch.setattr(guided, "SCATTER_REDIRECT", on)
+        monkeypatch.setattr(guided, switch, on)
         out[on] = _term(monkeypatch, sc, **replace)
     return out[True][0] - out[False][0], out[False][1]
 
 
 def test_redirected_wall_light_is_one_scattering_and_one_more_bounce(monkeypatch):
-    """The third kernel is light that scattered once and met the walls twice: none in a clear guide, proportional to
-    mu_s and (against the first return) to the walls' reflectance while both are small, never negative, later than
-    the first return; its grid of scattering points is converged (half the spacing moves it by under 5%). The term is
-    off by default (the Monte Carlo study: docs/results/scatter_redirect.json)."""
+    """The third kernel (SCATTER_REDIRECT: the lit walls' light scattered once on to the walls in view) is light that
+    scattered once and met the walls twice: none in a clear guide, proportional to mu_s and (against the first return)
+    to the walls' reflectance while both are small, never negative, later than the first return; its grid of
+    scattering points is converged (half the spacing moves it by under 5%). Off by default (the Monte Carlo study:
+    docs/results/scatter_redirect.json)."""
+    switch, grid = "SCATTER_REDIRECT", "SCATTER_GRID_M"
     sc = _scene(position=(0.0, 0.03), direction=35.0)
-    none, first = _redirect(monkeypatch, sc, mu_s_per_m=0.0)
+    none, first = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.0)
     assert np.abs(none).max() <= 1e-12 * first.max()
-    a, first_a = _redirect(monkeypatch, sc, mu_s_per_m=0.01, end_reflectance=0.3)
-    b, _ = _redirect(monkeypatch, sc, mu_s_per_m=0.02, end_reflectance=0.3)
-    c, first_c = _redirect(monkeypatch, sc, mu_s_per_m=0.01, end_reflectance=0.6)
+    a, first_a = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.01, end_reflectance=0.3)
+    b, _ = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.02, end_reflectance=0.3)
+    c, first_c = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.01, end_reflectance=0.6)
     assert a.min() >= -1e-9 * a.max() and a.sum() > 1e-6 * first_a.sum()
     assert b.sum() / a.sum() == pytest.approx(2.0, rel=0.02)
     assert (c.sum() / first_c.sum()) / (a.sum() / first_a.sum()) == pytest.approx(2.0, rel=1e-6)
     t = np.arange(a.shape[-1])
     assert (a * t).sum() / a.sum() > (first_a * t).sum() / first_a.sum()
-    monkeypatch.setattr(guided, "SCATTER_GRID_M", guided.SCATTER_GRID_M / 2)
-    fine, _ = _redirect(monkeypatch, sc, mu_s_per_m=0.01, end_reflectance=0.3)
+    monkeypatch.setattr(guided, grid, getattr(guided, grid) / 2)
+    fine, _ = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.01, end_reflectance=0.3)
     assert np.linalg.norm(fine - a) < 0.05 * np.linalg.norm(fine)

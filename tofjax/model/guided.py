@@ -353,6 +353,7 @@ class GuidedGeometry(eqx.Module):
     sc_b: jax.Array = None  # the diffuse leg
     sc_c: jax.Array = None  # the view's leg less the direct return's
     ms_c2d: jax.Array = None  # (S, Z) multiple scattering's in-plane coupling (:func:`double_scatter_coupling`)
+    sc_terms: tuple = eqx.field(static=True, default=())  # the kernels' names, in order (:func:`_scatter_terms`)
     sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
     sc_nodes: int = eqx.field(static=True, default=0)  # and in all
 
@@ -395,7 +396,7 @@ class GuidedGeometry(eqx.Module):
             h = float(node_width_s) if node_width_s else 0.1 * float(scene.sensor.bin_width_s)
             per_m = SCATTER_MAX_N1 / (SPEED_OF_LIGHT_M_PER_S * h)  # time nodes per metre of path at the slowest light
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
-            scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()}
+            scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()} | {"sc_terms": _scatter_terms()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
         return cls(
             cos_sensor=jnp.asarray(cos_sensor, dtype),
@@ -705,13 +706,11 @@ def _edge_scatter(ctx, gg, el, first):
     cbar = _mean_cos(el)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
-    legs = [g_iso, g_wall]  # per term: the diffuse leg's 1 / cos, what the last leg loses, and the prefactor
-    last = [mu_t, mu_t]
-    pref = [p.mu_s_per_m * cg / c_out, p.mu_s_per_m * G / cbar**2]
-    if gg.sc_w.shape[2] > 2:  # the lit walls' light scattered on to the walls in view (a diffuse last leg)
-        legs.append(g_wall)
-        last.append(mu_eff)
-        pref.append(p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)
+    # per term: the diffuse leg's 1 / cos, what the last leg loses, and the prefactor
+    terms = {"beam_to_walls": (g_iso, mu_t, p.mu_s_per_m * cg / c_out),
+             "walls_back": (g_wall, mu_t, p.mu_s_per_m * G / cbar**2),
+             "redirect": (g_wall, mu_eff, p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)}  # a diffuse last leg
+    legs, last, pref = zip(*(terms[k] for k in gg.sc_terms))
     leg, last, pref = (jnp.stack(v)[:, None] for v in (legs, last, pref))  # (T, 1)
     path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, T, NK)
     att = jnp.exp(-mu_t * gg.sc_a / c_out - last * g_iso * gg.sc_c - mu_eff * leg * gg.sc_b)
@@ -1266,7 +1265,8 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     g_iso = float(_band_inv_cos(cg))
     g_wall = cg / (0.5 * (math.asin(cg) + cg * math.sqrt(1.0 - cg * cg)))  # a Lambertian wall's flux-weighted 1 / cos
     NK, NS, NE = int(SCATTER_BINS), int(SCATTER_SOURCES), int(SCATTER_ELEMENTS)
-    out = {k: np.zeros((S, Z, 3 if SCATTER_REDIRECT else 2, NK)) for k in ("w", "a", "b", "c")}
+    names = _scatter_terms()
+    out = {k: np.zeros((S, Z, len(names), NK)) for k in ("w", "a", "b", "c")}
     if SCATTER_REDIRECT:  # term 2's scattering points: the centres of a grid over the guide
         nx, ny = max(1, round(lx / SCATTER_GRID_M)), max(1, round(ly / SCATTER_GRID_M))
         gx, gy = np.meshgrid((np.arange(nx) + 0.5) * lx / nx, (np.arange(ny) + 0.5) * ly / ny, indexing="ij")
@@ -1334,12 +1334,17 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
                     continue
                 A2 = np.broadcast_to((Ls_e[i] - Ls_e)[None], w2.shape)
                 B2 = np.broadcast_to(rho1[i][:, None], w2.shape)
-                _bin_into(out, s, 2, np.broadcast_to(zone_e[None], w2.shape), A2 / c_out + g_wall * B2 + g_iso * rho2,
-                          w2, A2, B2, rho2, zone_power[zone_e][None])
+                _bin_into(out, s, names.index("redirect"), np.broadcast_to(zone_e[None], w2.shape),
+                          A2 / c_out + g_wall * B2 + g_iso * rho2, w2, A2, B2, rho2, zone_power[zone_e][None])
     w = out["w"]
     for key in ("a", "b", "c"):  # the bins' mean lengths
         out[key] = np.where(w > 0, out[key] / np.where(w > 0, w, 1.0), 0.0)
     return out
+
+
+def _scatter_terms() -> tuple:
+    """The names of :func:`_edge_scatter`'s kernels under the module's switches, in the tables' order."""
+    return ("beam_to_walls", "walls_back") + (("redirect",) if SCATTER_REDIRECT else ())
 
 
 #: :func:`_scatter_tables` of the last few geometries (a model is often built many times for one scene).
