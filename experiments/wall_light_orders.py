@@ -184,6 +184,9 @@ def main(argv=None) -> int:
     import tofjax.model.guided as guided
 
     t0 = time.perf_counter()
+    result = ev.study_header("where the guided model's wall light and the Monte Carlo's part, by reflectance and mu_s",
+                             "simulated (tofjax.mc Monte Carlo runs, diffuse minus absorbing edges, as "
+                             "experiments/eval_mc_data.py)")
     base = ev.guided_scene()
     cells = {}
     for m in mus:
@@ -191,9 +194,6 @@ def main(argv=None) -> int:
             cells[(m, r)] = c = cell(base, m, r, a.seeds, a.photons)
             print(f"mu_s {m:g} R {r:g}: MC over model, 2..8 bins after the peak "
                   f"{c['windows']['2..8']['mc_over_model']}, all {c['windows']['all']['mc_over_model']}", flush=True)
-    result = ev.study_header("where the guided model's wall light and the Monte Carlo's part, by reflectance and mu_s",
-                             "simulated (tofjax.mc Monte Carlo runs, diffuse minus absorbing edges, as "
-                             "experiments/eval_mc_data.py)")
     result |= {"seeds": a.seeds, "photons_per_sensor": a.photons,
                "switches": {k: getattr(guided, k) for k in ("EDGE_SCATTER", "SCATTER_REDIRECT", "EDGE_SECOND", "EDGE_REVERB")},
                "units": "profiles and orders: thousandths of the model's total wall light per aligned bin",
