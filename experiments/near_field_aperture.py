@@ -94,6 +94,15 @@ STUDIES = {
                          "couplings": {"without_redirect": (0.5,), "with_redirect": (0.5,)},
                          "title": "the lit walls' light scattered by the volume on to the walls in view (guided "
                                   "SCATTER_REDIRECT) against the Monte Carlo baseline"},
+    "scatter_share": {"switches": ("REVERB_SCATTER_SHARE",), "ratio": "forward_ratio_with_over_without",
+                      "variants": {"evenly": False, "by_geometry": True},
+                      "couplings": {"evenly": (0.5,), "by_geometry": (0.5,)},
+                      "title": "the beam's scattered light on the walls by the geometry, not evenly (guided "
+                               "REVERB_SCATTER_SHARE) against the Monte Carlo baseline"},
+    "share_and_redirect": {"switches": ("REVERB_SCATTER_SHARE", "SCATTER_REDIRECT"), "ratio": "forward_ratio_with_over_without",
+                           "variants": {"neither": False, "both": True},
+                           "couplings": {"neither": (0.5,), "both": (0.5,)},
+                           "title": "REVERB_SCATTER_SHARE and SCATTER_REDIRECT together against the Monte Carlo baseline"},
 }
 #: the absorbing-edge comparison's volume window (bins): from just after the light entry to before the far edge
 ABSORB_WINDOW = (16, 46)
