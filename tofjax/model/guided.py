@@ -223,11 +223,13 @@ SCATTER_MAX_N1 = 2.5
 #: the walls in view, which return it as their first bounce (light of two bounces and one scattering, ``R^2 mu_s``:
 #: :func:`_edge_second` sees the second bounce's direct light only, the field's legs move scattered light on to where
 #: they were going, and the field is seen from the third bounce on). The scattering points on a grid of
-#: ``SCATTER_GRID_M`` (1 cm: 3.3% from 5 mm in a 20 cm guide, 2 cm 9%). **Off**: against the Monte Carlo baseline it
-#: takes the 64x chi-square only from 3.268 to 3.241 (16x 1.555 -> 1.549) and moves the fit's mu_s + mu_a error from
-#: +5.6% to +8.2% (+5.4% -> +8.1%): the Monte Carlo's two-bounce scattered light comes sooner than this term brings
-#: it, and is spent by 14 bins after each far edge's peak, where the term still adds (experiments/near_field_aperture.py
-#: --study scatter_redirect, docs/results/scatter_redirect.json; experiments/wall_light_orders.py).
+#: ``SCATTER_GRID_M`` (1 cm: 3.3% from 5 mm in a 20 cm guide, 2 cm 9%). **Off**: against the Monte Carlo baseline
+#: (before :data:`REVERB_SCATTER_SHARE`) it takes the 64x chi-square only from 3.268 to 3.245 (16x 1.555 -> 1.551)
+#: and moves the fit's mu_s + mu_a error from +5.6% to +8.1% (+5.4% -> +8.0%); with REVERB_SCATTER_SHARE 2.955 ->
+#: 2.933 and +2.5% -> +5.0% (one calibration, scratch). The Monte Carlo's two-bounce scattered light comes sooner than
+#: this term brings it, and is spent by 14 bins after each far edge's peak, where the term still adds
+#: (experiments/near_field_aperture.py --study scatter_redirect, docs/results/scatter_redirect.json;
+#: experiments/wall_light_orders.py).
 SCATTER_REDIRECT = False
 SCATTER_GRID_M = 0.01
 #: Multiple scattering's coupling derived from the geometry (:func:`double_scatter_coupling`): the light scattered
@@ -358,7 +360,7 @@ class GuidedGeometry(eqx.Module):
     nf_tab: jax.Array = None  # (N - 1, S, Z, 2) its integral from 0 less the far field's (value, slope per interval)
     nf_phi0: jax.Array = None  # (S, Z) its integral from 0 to the grid's first range
     edge_mix: jax.Array = None  # (S, Z, A, Z * A) the far edge's first returns shared among the zones (_edge_mixing)
-    sc_w: jax.Array = None  # (S, Z, 2, SCATTER_BINS) :func:`_edge_scatter`'s kernels (:func:`_scatter_tables`): weights
+    sc_w: jax.Array = None  # (S, Z, T, SCATTER_BINS) :func:`_edge_scatter`'s T kernels (:func:`_scatter_tables`): weights
     sc_a: jax.Array = None  # their bins' mean lengths: the beam's leg less the direct one's
     sc_b: jax.Array = None  # the diffuse leg
     sc_c: jax.Array = None  # the view's leg less the direct return's
@@ -944,13 +946,13 @@ def _reverb(ctx, gg, el, ret, frus):
     scat = gg.dphi[None, :, None] / gg.fov * cg * p.mu_s_per_m * path * share
     # transforms: the beam's arrival at each ray's wall (t_out) and each leg's delay, spread like a deposit
     pr, pi_ = _shifts(t_out / nodes.h - 0.5, n)  # (S, Z, A, F)
-    sw = jnp.where(L > 0, scat, 0.0)[..., None]
     if REVERB_SCATTER_SHARE and gg.hs_share is not None:  # where and when the geometry sends it
         pw = jnp.einsum("sza,szam->sm", jnp.where(L > 0, scat, 0.0), gg.hs_share)[..., None]  # (S, M, 1)
         t_hit = p.emission_time_s + (gg.hs_x / el.c_out + gg.hs_r * _band_inv_cos(cg)) / nodes.c1
         qr, qi = _shifts(t_hit / nodes.h - 0.5, n)  # (S, M, F)
         hsr, hsi = qr * pw, qi * pw
     else:
+        sw = jnp.where(L > 0, scat, 0.0)[..., None]
         frac = (gg.seg_len / gg.perimeter_m)[None, :, None]
         hsr = jnp.sum(pr * sw, axis=(1, 2))[:, None, :] * frac  # (S, M, F): evenly on the walls
         hsi = jnp.sum(pi_ * sw, axis=(1, 2))[:, None, :] * frac
