@@ -1,7 +1,8 @@
 """Switches of the guided optics against the Monte Carlo (issue 14): the near field from the aperture's geometry
 (default), the light exchanged around the lit walls (``--study edge_scatter``), the reverberant field's exchange
 between wall segments (``--study reverb_strings``), multiple scattering's derived coupling (``--study ms_derived``),
-or the lit walls' light scattered on to the walls in view (``--study scatter_redirect``).
+the lit walls' light scattered on to the walls in view (``--study scatter_redirect``), or the beam's scattered light
+on the walls by the geometry (``--study scatter_share``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -40,7 +41,9 @@ scattering (:func:`absorbing_edges`).
 
 ``--study scatter_redirect`` compares ``tofjax.model.guided.SCATTER_REDIRECT`` off (the default) and on: a third
 kernel of :func:`tofjax.model.guided._edge_scatter`, the lit walls' diffuse light scattered once by the volume on to
-the walls in view (two bounces and one scattering), at the scene's held coupling only.
+the walls in view (two bounces and one scattering), at the scene's held coupling only. ``--study scatter_share``
+the same for ``REVERB_SCATTER_SHARE`` (the beam's scattered light on the walls where the geometry sends it, against
+evenly), and ``--study share_and_redirect`` both switches off and on together.
 
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 

@@ -1173,11 +1173,11 @@ def test_first_hit_shares_against_sampled_directions():
     ang = np.array([[[0.2, 0.3]], [[-2.5, 1.0]]])  # (S, Z, A); the second sensor's second ray points out of the guide
     L = np.minimum(*guided._to_walls(lx, ly, xy[:, None, None, 0], xy[:, None, None, 1], np.cos(ang), np.sin(ang)))
     L = np.where(ang == 1.0, 0.0, np.clip(L, 0.0, None))
-    d = guided._first_hit_shares(lx, ly, xy, ang, L)
+    segs = guided._wall_segments(lx, ly, np.zeros(1), np.zeros(1), 1e-3)
+    d = guided._first_hit_shares(segs, xy, ang, L)
     share = d["hs_share"]
     assert np.allclose(share[0].sum(-1), 1.0, atol=1e-9) and share[1, 0, 0].sum() == pytest.approx(1.0, abs=1e-9)
     assert np.all(share[1, 0, 1] == 0) and np.all(share >= 0)
-    segs = guided._wall_segments(lx, ly, np.zeros(1), np.zeros(1), 1e-3)
     rng = np.random.default_rng(1)
     n = guided.SCATTER_SHARE_POINTS
     for s, a in ((0, 0), (1, 0)):

@@ -413,6 +413,8 @@ class GuidedGeometry(eqx.Module):
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
             scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()} | {"sc_terms": _scatter_terms()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
+        segs = _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
+                              float(scene.waveguide.thickness_m))
         return cls(
             cos_sensor=jnp.asarray(cos_sensor, dtype),
             cos_wall=jnp.asarray(cos_wall, dtype),
@@ -432,12 +434,10 @@ class GuidedGeometry(eqx.Module):
             **{k: jnp.asarray(v, dtype) for k, v in nf.items()},
             edge_mix=jnp.asarray(_edge_mixing(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), cos_sensor,
                                               float(aperture_m), ray_length), dtype),
-            **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v)
-               for k, v in _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
-                                          float(scene.waveguide.thickness_m)).items()},
+            **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v) for k, v in segs.items()},
             ms_c2d=jnp.asarray(double_scatter_coupling(ang, width / A, ray_length > 0), dtype),
             **scatter,
-            **({k: jnp.asarray(v, dtype) for k, v in _first_hit_shares(lx, ly, xy[:, 0, 0, :], ang, ray_length).items()}
+            **({k: jnp.asarray(v, dtype) for k, v in _first_hit_shares(segs, xy[:, 0, 0, :], ang, ray_length).items()}
                if REVERB_SCATTER_SHARE else {}),
         )
 
@@ -476,14 +476,14 @@ def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
             "seg_tan": tangents}
 
 
-def _first_hit_shares(lx: float, ly: float, xy, ang, L) -> dict:
+def _first_hit_shares(segs: dict, xy, ang, L) -> dict:
     """Where the beam's light scattered into the guided band first meets the walls (NumPy; :data:`REVERB_SCATTER_SHARE`):
     each wall segment's share ``hs_share`` (S, Z, A, M) of each ray's scattered light (its points, ``SCATTER_SHARE_POINTS``
     evenly along the ray, send ``theta_m / (2 pi)`` of their in-plane isotropic light to segment ``m``, the angle it
     subtends; the shares of a point sum to 1), and per sensor and segment the mean range ``hs_x`` where that light
     scattered and its mean in-plane distance ``hs_r`` to the segment's centre (weighted by the shares and each ray's
-    length, as its scattered light is). The attenuation along the ray is left out of the weights."""
-    segs = _wall_segments(lx, ly, np.zeros(1), np.zeros(1), 1e-3)
+    length, as its scattered light is). The attenuation along the ray is left out of the weights. ``segs``: the
+    field's wall segments (:func:`_wall_segments`)."""
     c, t, h = segs["seg_xy"], segs["seg_tan"], 0.5 * segs["seg_len"][:, None]
     a1, a2 = c - h * t, c + h * t  # (M, 2) the segments' ends
     S, Z, A = L.shape
@@ -946,13 +946,14 @@ def _reverb(ctx, gg, el, ret, frus):
     scat = gg.dphi[None, :, None] / gg.fov * cg * p.mu_s_per_m * path * share
     # transforms: the beam's arrival at each ray's wall (t_out) and each leg's delay, spread like a deposit
     pr, pi_ = _shifts(t_out / nodes.h - 0.5, n)  # (S, Z, A, F)
+    scat = jnp.where(L > 0, scat, 0.0)  # (S, Z, A): none from a ray that leaves the guide at once
     if REVERB_SCATTER_SHARE and gg.hs_share is not None:  # where and when the geometry sends it
-        pw = jnp.einsum("sza,szam->sm", jnp.where(L > 0, scat, 0.0), gg.hs_share)[..., None]  # (S, M, 1)
+        pw = jnp.einsum("sza,szam->sm", scat, gg.hs_share)[..., None]  # (S, M, 1)
         t_hit = p.emission_time_s + (gg.hs_x / el.c_out + gg.hs_r * _band_inv_cos(cg)) / nodes.c1
         qr, qi = _shifts(t_hit / nodes.h - 0.5, n)  # (S, M, F)
         hsr, hsi = qr * pw, qi * pw
     else:
-        sw = jnp.where(L > 0, scat, 0.0)[..., None]
+        sw = scat[..., None]
         frac = (gg.seg_len / gg.perimeter_m)[None, :, None]
         hsr = jnp.sum(pr * sw, axis=(1, 2))[:, None, :] * frac  # (S, M, F): evenly on the walls
         hsi = jnp.sum(pi_ * sw, axis=(1, 2))[:, None, :] * frac
