@@ -106,6 +106,11 @@ STUDIES = {
                            "variants": {"neither": False, "both": True},
                            "couplings": {"neither": (0.5,), "both": (0.5,)},
                            "title": "REVERB_SCATTER_SHARE and SCATTER_REDIRECT together against the Monte Carlo baseline"},
+    "own_return": {"switches": ("SCATTER_OWN_RETURN",), "ratio": "forward_ratio_with_over_without",
+                   "variants": {"zone_mean": False, "own_return": True},
+                   "couplings": {"zone_mean": (0.5,), "own_return": (0.5,)},
+                   "title": "the scattered light's kernels timed from each ray's own return, not the zone's (guided "
+                            "SCATTER_OWN_RETURN) against the Monte Carlo baseline"},
 }
 #: the absorbing-edge comparison's volume window (bins): from just after the light entry to before the far edge
 ABSORB_WINDOW = (16, 46)

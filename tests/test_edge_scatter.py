@@ -123,3 +123,26 @@ def test_redirected_wall_light_is_one_scattering_and_one_more_bounce(monkeypatch
     monkeypatch.setattr(guided, grid, getattr(guided, grid) / 2)
     fine, _ = _kernel(monkeypatch, switch, sc, mu_s_per_m=0.01, end_reflectance=0.3)
     assert np.linalg.norm(fine - a) < 0.05 * np.linalg.norm(fine)
+
+
+def test_kernels_are_timed_from_each_rays_own_return(monkeypatch):
+    """One wide zone against the same field of view split into 16 narrow ones (whose footprints each span little
+    distance, so their kernels need no timing from the zone's mean): a wide zone's kernels are applied to its whole
+    first return, weighted to its near rays, while the scattered light is weighted to its far ones. Timed from each
+    ray's own return (SCATTER_OWN_RETURN), the wide zone's kernel light agrees with the narrow zones' sum in amount
+    (within 1.5%) and mean arrival (within 0.35 of a 50 ps bin); timed from the zone's first return it came almost a
+    bin early and 3.5% too strong."""
+    monkeypatch.setattr(guided, "EDGE_APERTURE", False)  # no spill between neighbouring zones
+
+    def light(zones):
+        sc = _scene(position=(0.0, 0.03), direction=35.0, zones=zones, fov=60.0)
+        return _term(monkeypatch, sc)[0].sum(1)[0]  # the zones' sum
+
+    t = np.arange(_scene().sensor.n_bins)
+    errors = {}
+    for own in (True, False):
+        monkeypatch.setattr(guided, "SCATTER_OWN_RETURN", own)
+        wide, narrow = light(1), light(16)
+        errors[own] = (wide.sum() / narrow.sum() - 1.0, (wide * t).sum() / wide.sum() - (narrow * t).sum() / narrow.sum())
+    assert abs(errors[True][0]) < 0.015 and abs(errors[True][1]) < 0.35, errors
+    assert errors[False][1] < -0.6 and errors[False][0] > 0.025, errors  # what the switch mends
