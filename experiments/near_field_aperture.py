@@ -2,7 +2,8 @@
 (default), the light exchanged around the lit walls (``--study edge_scatter``), the reverberant field's exchange
 between wall segments (``--study reverb_strings``), multiple scattering's derived coupling (``--study ms_derived``),
 the lit walls' light scattered on to the walls in view (``--study scatter_redirect``), or the beam's scattered light
-on the walls by the geometry (``--study scatter_share``).
+on the walls by the geometry (``--study scatter_share``), the edge-scatter kernels timed from each ray's own return
+(``--study own_return``), or the second bounce from one source per zone and wall (``--study edge_groups``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -43,7 +44,10 @@ scattering (:func:`absorbing_edges`).
 kernel of :func:`tofjax.model.guided._edge_scatter`, the lit walls' diffuse light scattered once by the volume on to
 the walls in view (two bounces and one scattering), at the scene's held coupling only. ``--study scatter_share``
 the same for ``REVERB_SCATTER_SHARE`` (the beam's scattered light on the walls where the geometry sends it, against
-evenly), and ``--study share_and_redirect`` both switches off and on together.
+evenly), and ``--study share_and_redirect`` both switches off and on together. ``--study own_return`` the same for
+``SCATTER_OWN_RETURN`` (each kernel entry timed from its own ray's return, against the zone's mean first return), and
+``--study edge_groups`` for ``EDGE_SECOND_GROUPS`` (the far edge's second bounce from one source per zone and wall
+the zone sees, against each zone's middle ray).
 
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
@@ -106,6 +110,11 @@ STUDIES = {
                            "variants": {"neither": False, "both": True},
                            "couplings": {"neither": (0.5,), "both": (0.5,)},
                            "title": "REVERB_SCATTER_SHARE and SCATTER_REDIRECT together against the Monte Carlo baseline"},
+    "edge_groups": {"switches": ("EDGE_SECOND_GROUPS",), "ratio": "forward_ratio_with_over_without",
+                    "variants": {"middle_rays": False, "per_zone_and_wall": True},
+                    "couplings": {"middle_rays": (0.5,), "per_zone_and_wall": (0.5,)},
+                    "title": "the far edge's second bounce from one source per zone and wall, not each zone's middle "
+                             "ray (guided EDGE_SECOND_GROUPS) against the Monte Carlo baseline"},
     "own_return": {"switches": ("SCATTER_OWN_RETURN",), "ratio": "forward_ratio_with_over_without",
                    "variants": {"zone_mean": False, "own_return": True},
                    "couplings": {"zone_mean": (0.5,), "own_return": (0.5,)},

@@ -113,6 +113,14 @@ SECOND_ORDER_RECIPROCAL = False
 #: the default 8 rays per zone (as close to the Monte Carlo as 4 and 2 in a 30 cm square seen towards a corner).
 EDGE_SECOND = True
 EDGE_SECOND_STRIDE = 8
+#: The second bounce's sources: one per zone and wall it sees, at its rays' power-weighted centre and with their
+#: power (:func:`_wall_groups`), instead of ``EDGE_SECOND_STRIDE``'s middle rays. A zone whose footprint spans a corner
+#: then lights each wall's part from the other's; with its middle ray alone, the part on the middle ray's own wall
+#: received nothing. On OptoSkin the zones that see a corner carried the far edge's worst misfit. Against the Monte
+#: Carlo baseline: reduced chi-square 64x 2.920 -> 2.686, 16x 1.472 -> 1.409; the fit's mu_s + mu_a error +3.8% ->
+#: +4.9% (+3.7% -> +4.8%); every ray a source (stride 1) gives 2.691 at 1.75x the guided model's time, this 1.01-1.06x
+#: (experiments/near_field_aperture.py --study edge_groups, docs/results/edge_groups.json).
+EDGE_SECOND_GROUPS = True
 #: The second bounce's return leg spread in time as the first bounce's: its return elevations cut into this many
 #: groups of neighbours, each at its own amplitude-weighted delay (0: all at the band's mean ``1 / cos``). 5 (3 before
 #: the nineteenth session): the 64x calibration of the Monte Carlo baseline's reduced chi-square 3.95 -> 3.48 with
@@ -378,6 +386,7 @@ class GuidedGeometry(eqx.Module):
     hs_share: jax.Array = None  # (S, Z, A, M) each wall segment's share of each ray's scattered light (_first_hit_shares)
     hs_x: jax.Array = None  # (S, M) its mean range along the rays where it scattered
     hs_r: jax.Array = None  # (S, M) and its mean in-plane distance from there to the segment
+    es_groups: jax.Array = None  # (S, I, Z, A) the second bounce's sources: each zone's rays by the wall they end on
     sc_terms: tuple = eqx.field(static=True, default=())  # the kernels' names, in order (:func:`_scatter_terms`)
     sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
     sc_nodes: int = eqx.field(static=True, default=0)  # and in all
@@ -423,6 +432,8 @@ class GuidedGeometry(eqx.Module):
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
             scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()} | {"sc_terms": _scatter_terms()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
+        groups = {"es_groups": jnp.asarray(_wall_groups(np.asarray(wall_normal, float), ray_length), dtype)} \
+            if EDGE_SECOND_GROUPS else {}
         segs = _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                               float(scene.waveguide.thickness_m))
         return cls(
@@ -447,9 +458,26 @@ class GuidedGeometry(eqx.Module):
             **{k: jnp.asarray(v, dtype) if k != "ray_seg" else jnp.asarray(v) for k, v in segs.items()},
             ms_c2d=jnp.asarray(double_scatter_coupling(ang, width / A, ray_length > 0), dtype),
             **scatter,
+            **groups,
             **({k: jnp.asarray(v, dtype) for k, v in _first_hit_shares(segs, xy[:, 0, 0, :], ang, ray_length).items()}
                if REVERB_SCATTER_SHARE else {}),
         )
+
+
+def _wall_groups(normals, L) -> np.ndarray:
+    """The second bounce's sources (:func:`_edge_second`): each zone's live rays grouped by the wall they end on
+    (``normals`` (S, Z, A, 2) their walls' inward normals, ``L`` (S, Z, A) their lengths, 0 for a dead ray), as
+    (S, I, Z, A) memberships, 0 or 1: per sensor its zones' groups in order (a zone's middle ray's wall first), ``I``
+    the most any sensor has (the others' last ones empty)."""
+    S, Z, A = L.shape
+    wid = np.round(normals[..., 0] * 2 + normals[..., 1] * 3).astype(int)  # one integer per wall
+    groups = [[(z, w) for z in range(Z) for w in dict.fromkeys([wid[s, z, A // 2]] + list(wid[s, z][L[s, z] > 0]))
+               if ((wid[s, z] == w) & (L[s, z] > 0)).any()] for s in range(S)]
+    out = np.zeros((S, max(1, max(len(g) for g in groups)), Z, A))
+    for s in range(S):
+        for i, (z, w) in enumerate(groups[s]):
+            out[s, i, z] = (wid[s, z] == w) & (L[s, z] > 0)
+    return out
 
 
 def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
@@ -789,7 +817,8 @@ def _edge_second(ctx, gg, el, amp1, frus):
     so segment ``j`` receives ``R P_i G cos_i cos_j len_j / (2 r_ij)`` (attenuated over ``r_ij`` at
     the band's mean ``1 / cos``) and returns it like its first bounce: the first-bounce amplitude
     ``amp1_j`` times ``P2_j / P_j``, delayed by the middle leg. The same wall exchanges nothing
-    (``cos = 0``); near a corner it is the main part. Sources: the middle ray of every ``EDGE_SECOND_STRIDE``.
+    (``cos = 0``); near a corner it is the main part. Sources: one per zone and wall (:data:`EDGE_SECOND_GROUPS`), or
+    the middle ray of every ``EDGE_SECOND_STRIDE``.
     The return leg travels at each return elevation's speed (``EDGE_SECOND_SPREAD`` groups of them, weighted as
     the first bounce's return), so it spreads in time as the first bounce does."""
     p, geom, nodes = ctx.params, ctx.geom, ctx.nodes
@@ -798,14 +827,23 @@ def _edge_second(ctx, gg, el, amp1, frus):
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     u = jnp.stack([jnp.cos(geom.ray_angle), jnp.sin(geom.ray_angle)], -1)
     W = geom.sensor_xy[:, None, None, :] + L[..., None] * u  # (S, Z, A, 2) wall points
-    k = max(1, min(int(EDGE_SECOND_STRIDE), A))
-    sel = slice(k // 2, None, k)  # the middle ray of every k (a zone's middle one at k = A)
-    Ws, ns, Ls = W[:, :, sel].reshape(S, -1, 2), gg.wall_normal[:, :, sel].reshape(S, -1, 2), L[:, :, sel].reshape(S, -1)
     beam = _beam_at_wall(gg, el, L, mu_t)  # (S, Z, A)
-    Ps = (A / len(range(A)[sel]) * beam)[:, :, sel]  # (S, Z, A/k): each source stands for its k rays
-    if frus is not None:
-        Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, sel]
-    Ps = Ps.reshape(S, -1)
+    if EDGE_SECOND_GROUPS and gg.es_groups is not None:  # a source per zone and wall: its rays' power-weighted centre
+        m = gg.es_groups  # (S, I, Z, A)
+        Pg = jnp.einsum("siza,sza->si", m, beam)
+        wts = m * beam[:, None] / jnp.where(Pg > 0, Pg, 1.0)[..., None, None]
+        Ws = jnp.einsum("siza,szac->sic", wts, W)
+        Ls = jnp.einsum("siza,sza->si", wts, L)
+        ns = jnp.einsum("siza,szac->sic", m, gg.wall_normal) / jnp.maximum(jnp.sum(m, (2, 3)), 1.0)[..., None]
+        Ps = Pg if frus is None else jnp.einsum("siza,sza->si", m, beam * jnp.prod(1.0 - frus[0], axis=-1))
+    else:
+        k = max(1, min(int(EDGE_SECOND_STRIDE), A))
+        sel = slice(k // 2, None, k)  # the middle ray of every k (a zone's middle one at k = A)
+        Ws, ns, Ls = W[:, :, sel].reshape(S, -1, 2), gg.wall_normal[:, :, sel].reshape(S, -1, 2), L[:, :, sel].reshape(S, -1)
+        Ps = (A / len(range(A)[sel]) * beam)[:, :, sel]  # (S, Z, A/k): each source stands for its k rays
+        if frus is not None:
+            Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, sel]
+        Ps = Ps.reshape(S, -1)
     d = W[:, :, :, None, :] - Ws[:, None, None, :, :]  # (S, Z, A, I, 2): from source i to receiver j
     r2 = jnp.sum(d**2, -1) + gg.thickness_m**2
     r = jnp.sqrt(r2)
