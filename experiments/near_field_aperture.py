@@ -3,7 +3,8 @@
 between wall segments (``--study reverb_strings``), multiple scattering's derived coupling (``--study ms_derived``),
 the lit walls' light scattered on to the walls in view (``--study scatter_redirect``), or the beam's scattered light
 on the walls by the geometry (``--study scatter_share``), the edge-scatter kernels timed from each ray's own return
-(``--study own_return``), or the second bounce from one source per zone and wall (``--study edge_groups``).
+(``--study own_return``), the second bounce from one source per zone and wall (``--study edge_groups``), or the
+reverberant field on finer wall segments (``--study reverb_segments``).
 
 A zone of the TMF8828 is a condition on the angle of arrival, and the Monte Carlo scores each event's light at the
 aperture (1 mm along the edge) piece by piece, each piece in the zone its own arrival angle falls in. Near the
@@ -47,7 +48,8 @@ the same for ``REVERB_SCATTER_SHARE`` (the beam's scattered light on the walls w
 evenly), and ``--study share_and_redirect`` both switches off and on together. ``--study own_return`` the same for
 ``SCATTER_OWN_RETURN`` (each kernel entry timed from its own ray's return, against the zone's mean first return), and
 ``--study edge_groups`` for ``EDGE_SECOND_GROUPS`` (the far edge's second bounce from one source per zone and wall
-the zone sees, against each zone's middle ray).
+the zone sees, against each zone's middle ray). ``--study reverb_segments`` compares the reverberant field on 4 and
+on 6 segments per wall (``REVERB_SEGMENTS_PER_WALL``).
 
 All data **simulated** (tofjax's Monte Carlo). About 3 minutes per exposure on the 2-core VM.
 
@@ -115,6 +117,12 @@ STUDIES = {
                     "couplings": {"middle_rays": (0.5,), "per_zone_and_wall": (0.5,)},
                     "title": "the far edge's second bounce from one source per zone and wall, not each zone's middle "
                              "ray (guided EDGE_SECOND_GROUPS) against the Monte Carlo baseline"},
+    "reverb_segments": {"switches": ("REVERB_SEGMENTS_PER_WALL",), "values": {False: 4, True: 6},
+                        "ratio": "forward_ratio_with_over_without",
+                        "variants": {"four_per_wall": False, "six_per_wall": True},
+                        "couplings": {"four_per_wall": (0.5,), "six_per_wall": (0.5,)},
+                        "title": "the reverberant field on 6 segments per wall, not 4 (guided REVERB_SEGMENTS_PER_WALL) "
+                                 "against the Monte Carlo baseline"},
     "own_return": {"switches": ("SCATTER_OWN_RETURN",), "ratio": "forward_ratio_with_over_without",
                    "variants": {"zone_mean": False, "own_return": True},
                    "couplings": {"zone_mean": (0.5,), "own_return": (0.5,)},
@@ -126,8 +134,9 @@ ABSORB_WINDOW = (16, 46)
 
 
 def _switch(guided, on: bool, study: str = "aperture") -> None:
+    """Set the ``study``'s switches off or on (a study with ``values`` maps off and on to a setting: a count)."""
     for name in STUDIES[study]["switches"]:
-        setattr(guided, name, on)
+        setattr(guided, name, STUDIES[study].get("values", {}).get(on, on))
 
 
 def absorbing_edges(study: str, seeds: int = 32, photons: int = 25_000) -> dict:

@@ -142,9 +142,12 @@ EDGE_SECOND_SHADOW = False
 #: bench's baseline / touch scene (1.3x without it; 3.5-3.8x with the term's first form, which summed 64 orders by
 #: doubling and took each delay's phases by complex exponentials; `tofjax bench tradeoff`, docs/tradeoff.md).
 EDGE_REVERB = True
-#: The radiosity's wall segments per wall (4: the same light as 8 and 16 within 0.002 relative L2 at the scene's
-#: optics, where 8 and 16 cost 1.28x and 2.47x the guided model's time; :data:`REVERB_STRINGS` for what finer
-#: segments do to a 64x fit), the most time nodes it is solved on (a coarser grid than the model's where that has more: the
+#: The radiosity's wall segments per wall (6 since the twenty-third session, 4 before: at the scene's optics 4 gives
+#: the same light as 8 and 16 within 0.002 relative L2, but a 64x calibration of the Monte Carlo baseline sees the
+#: difference: reduced chi-square 2.686 / 2.565 / 2.465 / 2.432 / 2.402 at 4 / 5 / 6 / 7 / 8 segments per wall, which
+#: cost 1 / 1.05 / 1.09 / - / 1.33x the guided model's time; experiments/near_field_aperture.py --study
+#: reverb_segments, docs/results/reverb_segments.json; :data:`REVERB_STRINGS` for the same at its session), the most
+#: time nodes it is solved on (a coarser grid than the model's where that has more: the
 #: field is smooth in time: on OptoSkin's baseline the model at 64 and 128 nodes agrees within 5e-4 of its peak, the
 #: field itself within 0.099 / 0.029 relative L2 of its 256-node form with :data:`REVERB_SPREAD`, 0.225 / 0.090 without,
 #: its light within 0.02% and its mean delay within 0.006 bins at 64 nodes (both converge at second order since the
@@ -153,7 +156,7 @@ EDGE_REVERB = True
 #: docs/results/reverb_spread_grid_second_order.json), and how its orders after the
 #: fifth bounce are summed:
 #: 0, a geometric train (:func:`_geometric_tail`); N, N more orders one by one (a reference for the tests).
-REVERB_SEGMENTS_PER_WALL = 4
+REVERB_SEGMENTS_PER_WALL = 6
 REVERB_NODES = 64
 REVERB_EXACT_ORDERS = 0
 #: The field's exchange between two segments by Hottel's crossed strings (exact for straight segments of the guide's
