@@ -108,9 +108,9 @@ SECOND_ORDER = False
 #: alone; experiments/mc_contact_walls.py, docs/results/mc_contact_walls.json).
 SECOND_ORDER_RECIPROCAL = False
 #: Add the far edge's second diffuse bounce (:func:`_edge_second`: light the lit wall footprint sends to
-#: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE``: one ray in
-#: every this many of a zone is a source (the middle one; its power times the stride). 8: one per zone at
-#: the default 8 rays per zone (as close to the Monte Carlo as 4 and 2 in a 30 cm square seen towards a corner).
+#: another part of it, e.g. across a corner, and that part returns). ``EDGE_SECOND_STRIDE`` (with
+#: :data:`EDGE_SECOND_GROUPS` off): one ray in every this many of a zone is a source (the middle one; its power times
+#: the stride). 8: one per zone at the default 8 rays per zone.
 EDGE_SECOND = True
 EDGE_SECOND_STRIDE = 8
 #: The second bounce's sources: one per zone and wall it sees, at its rays' power-weighted centre and with their
