@@ -195,8 +195,7 @@ def main(argv=None) -> int:
             print(f"mu_s {m:g} R {r:g}: MC over model, 2..8 bins after the peak "
                   f"{c['windows']['2..8']['mc_over_model']}, all {c['windows']['all']['mc_over_model']}", flush=True)
     result |= {"seeds": a.seeds, "photons_per_sensor": a.photons,
-               "switches": {k: getattr(guided, k) for k in ("EDGE_SCATTER", "SCATTER_REDIRECT", "EDGE_SECOND", "EDGE_REVERB",
-                                                             "REVERB_SCATTER_SHARE")},
+               "switches": {k: getattr(guided, k) for k in guided.SWITCH_NAMES},
                "units": "profiles and orders: thousandths of the model's total wall light per aligned bin",
                "cells": list(cells.values()), "orders": orders(cells, mus, rs)}
     for k, v in result["orders"].items():

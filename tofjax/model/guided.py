@@ -390,6 +390,7 @@ class GuidedGeometry(eqx.Module):
     hs_x: jax.Array = None  # (S, M) its mean range along the rays where it scattered
     hs_r: jax.Array = None  # (S, M) and its mean in-plane distance from there to the segment
     es_groups: jax.Array = None  # (S, I, Z, A) the second bounce's sources: each zone's rays by the wall they end on
+    es_normal: jax.Array = None  # (S, I, 2) and that wall's inward normal
     sc_terms: tuple = eqx.field(static=True, default=())  # the kernels' names, in order (:func:`_scatter_terms`)
     sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
     sc_nodes: int = eqx.field(static=True, default=0)  # and in all
@@ -435,8 +436,8 @@ class GuidedGeometry(eqx.Module):
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
             scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()} | {"sc_terms": _scatter_terms()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
-        groups = {"es_groups": jnp.asarray(_wall_groups(np.asarray(wall_normal, float), ray_length), dtype)} \
-            if EDGE_SECOND_GROUPS else {}
+        groups = dict(zip(("es_groups", "es_normal"), (jnp.asarray(v, dtype) for v in _wall_groups(
+            np.asarray(wall_normal, float), ray_length)))) if EDGE_SECOND_GROUPS else {}
         segs = _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                               float(scene.waveguide.thickness_m))
         return cls(
@@ -471,16 +472,19 @@ def _wall_groups(normals, L) -> np.ndarray:
     """The second bounce's sources (:func:`_edge_second`): each zone's live rays grouped by the wall they end on
     (``normals`` (S, Z, A, 2) their walls' inward normals, ``L`` (S, Z, A) their lengths, 0 for a dead ray), as
     (S, I, Z, A) memberships, 0 or 1: per sensor its zones' groups in order (a zone's middle ray's wall first), ``I``
-    the most any sensor has (the others' last ones empty)."""
+    the most any sensor has (the others' last ones empty); and each group's wall's inward normal (S, I, 2; 0 for an
+    empty one)."""
     S, Z, A = L.shape
     wid = np.round(normals[..., 0] * 2 + normals[..., 1] * 3).astype(int)  # one integer per wall
     groups = [[(z, w) for z in range(Z) for w in dict.fromkeys([wid[s, z, A // 2]] + list(wid[s, z][L[s, z] > 0]))
                if ((wid[s, z] == w) & (L[s, z] > 0)).any()] for s in range(S)]
     out = np.zeros((S, max(1, max(len(g) for g in groups)), Z, A))
+    normal = np.zeros(out.shape[:2] + (2,))
     for s in range(S):
         for i, (z, w) in enumerate(groups[s]):
             out[s, i, z] = (wid[s, z] == w) & (L[s, z] > 0)
-    return out
+            normal[s, i] = normals[s, z][wid[s, z] == w][0]
+    return out, normal
 
 
 def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
@@ -837,7 +841,7 @@ def _edge_second(ctx, gg, el, amp1, frus):
         wts = m * beam[:, None] / jnp.where(Pg > 0, Pg, 1.0)[..., None, None]
         Ws = jnp.einsum("siza,szac->sic", wts, W)
         Ls = jnp.einsum("siza,sza->si", wts, L)
-        ns = jnp.einsum("siza,szac->sic", m, gg.wall_normal) / jnp.maximum(jnp.sum(m, (2, 3)), 1.0)[..., None]
+        ns = gg.es_normal
         Ps = Pg if frus is None else jnp.einsum("siza,sza->si", m, beam * jnp.prod(1.0 - frus[0], axis=-1))
     else:
         k = max(1, min(int(EDGE_SECOND_STRIDE), A))
@@ -1431,14 +1435,14 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         w1 = src[:, None] * cos_b / (2.0 * np.pi * rho) * view[None]
         Lp = np.broadcast_to(L_s[..., None], x.shape).ravel()  # the target ray's wall distance
         A1 = np.broadcast_to(L_s[..., None], t.shape).ravel()[:, None] - Lp[None]
+        # each ray's first return per unit reflectance (Z, A), and the zone's
+        rr = np.asarray(dphi, float)[:, None] / fov * np.asarray(cos_wall[s], float) * np.asarray(cos_sensor[s], float) \
+            / (np.pi * thickness * np.maximum(L_s, 1e-9)) * (L_s > 0)
+        direct = rr.sum(1)  # (Z,)
         if SCATTER_OWN_RETURN:  # from the zone's mean first return, not the target ray's
-            rr = np.asarray(dphi, float)[:, None] * np.asarray(cos_wall[s], float) * np.asarray(cos_sensor[s], float) \
-                / np.maximum(L_s, 1e-9) * (L_s > 0)  # (Z, A)
-            L_z = (rr * L_s).sum(1) / np.maximum(rr.sum(1), 1e-300)
+            L_z = (rr * L_s).sum(1) / np.maximum(direct, 1e-300)
             A1 = A1 + ((Lp - L_z[zone_p]) * (1.0 + g_wall * c_out))[None]
         C1 = (x.ravel() - Lp)[None]
-        direct = np.sum(np.asarray(dphi, float)[:, None] / fov * np.asarray(cos_wall[s], float) * np.asarray(cos_sensor[s], float)
-                        / (np.pi * thickness * np.maximum(L_s, 1e-9)) * (L_s > 0), axis=1)  # (Z,)
         _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
                   np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
         if SCATTER_REDIRECT:
