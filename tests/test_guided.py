@@ -998,6 +998,35 @@ def test_aperture_near_field_matches_the_exact_geometry():
     assert ff[0] * 0.97 < far[0] < ff[0] and ff[6] * 0.97 < far[6] < ff[6]
 
 
+def test_build_time_tables_are_remembered_by_inputs_and_settings(monkeypatch):
+    """guided._memo (the near field's and the edge scatter's tables, kept across builds of one geometry): a second
+    call gives the table the function computes, in copies a caller cannot change the kept one through; other inputs
+    or another setting the function reads (NF_POINTS) compute afresh."""
+    import tofjax.model.guided as guided
+    from tofjax.model.geometry import zone_edges
+
+    monkeypatch.setattr(guided, "_TABLE_CACHE", {})
+    Z, A = 3, 2
+    edges = zone_edges(29.0, Z)
+    rel = edges[:, :1] + (edges[:, 1:] - edges[:, :1]) * ((np.arange(A) + 0.5) / A)[None, :]
+    psi = rel[None] + 0.3
+    args = (rel, edges[:, 0], edges[:, 1], psi, np.full((1, Z, A), 1.0 / A), 1e-3)
+    calls = []
+    real = guided._near_field_table
+    monkeypatch.setattr(guided, "_near_field_table", lambda *a: calls.append(1) or real(*a))
+    first = guided._near_field_table_cached(*args)
+    first["nf_tab"][:] = 0.0  # the caller's copy
+    again = guided._near_field_table_cached(*args)
+    assert len(calls) == 1
+    want = real(*args)
+    for k in want:
+        np.testing.assert_array_equal(again[k], want[k])
+    guided._near_field_table_cached(*args[:-1], 2e-3)  # another aperture
+    monkeypatch.setattr(guided, "NF_POINTS", 64)  # another grid: a table of another shape
+    small = guided._near_field_table_cached(*args)
+    assert len(calls) == 3 and small["nf_tab"].shape[0] == 63
+
+
 def test_aperture_near_field_in_the_model(monkeypatch):
     """With the aperture's near field (guided.NEAR_FIELD_APERTURE, the default) OptoSkin's volume light in the first
     4 bins after the emission is lower in each sensor's two outer zones, against its middle one, than with the
