@@ -55,8 +55,14 @@ def test_noise_is_the_reconstructors(small, baseline, inverter, sens):
     from tofjax.invert.reconstruct import response_matrix
 
     pts = np.array([WELL_SEEN, (0.04, 0.11)])
-    R = response_matrix(small, OpticalParams.from_scene(small), sens.grid.centres()[
-        (pts[:, 1] / sens.grid.dy).astype(int), (pts[:, 0] / sens.grid.dx).astype(int)], 0.006)
+    cells = sens.grid.centres()[(pts[:, 1] / sens.grid.dy).astype(int), (pts[:, 0] / sens.grid.dx).astype(int)]
+    R = response_matrix(small, OpticalParams.from_scene(small), cells, 0.006)
+    # in chunks of one size (5 centres in chunks of 2: three of 2, the last padded): the same rows, the padding dropped
+    more = np.concatenate([cells, [[0.03, 0.03], [0.12, 0.05], [0.07, 0.13]]])
+    R5 = response_matrix(small, OpticalParams.from_scene(small), more, 0.006, chunk=2)
+    assert R5.shape == (5, *small.shape)
+    np.testing.assert_allclose(R5[:2], R, rtol=1e-12, atol=1e-12 * np.abs(R).max())
+    assert np.all(R5[2:].sum(axis=(1, 2, 3)) > 0) and not np.allclose(R5[3], R5[4])
     var = np.maximum(baseline, 1.0) * (1 + 1 / N_BASE)
     mf = 1 / np.sqrt(np.sum(R**2 / var[None], axis=(1, 2, 3)))
     np.testing.assert_allclose(sens.at(pts)["cell_noise"], mf, rtol=1e-9)

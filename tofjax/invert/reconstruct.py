@@ -247,8 +247,16 @@ def response_matrix(
                 _params_with_optics(base, optical, opts.jnp_dtype)
             )
         )
-    out = np.concatenate([np.asarray(_unit_responses(model, p0, jnp.asarray(centres[i : i + chunk]), _trace_switches()))
-                          for i in range(0, len(centres), chunk)])
+    # chunks of one size (the last padded with copies of its last centre): one program for all of them, where
+    # chunks of ``chunk`` and a shorter rest compiled the model twice
+    K = len(centres)
+    if K == 0:
+        return np.zeros((0, *scene.shape))
+    n = -(-K // chunk)
+    size = -(-K // n)
+    padded = np.concatenate([centres, np.repeat(centres[-1:], n * size - K, axis=0)])
+    out = np.concatenate([np.asarray(_unit_responses(model, p0, jnp.asarray(padded[i : i + size]), _trace_switches()))
+                          for i in range(0, n * size, size)])[:K]
     if signed:
         return out - ref[None]
     return np.minimum(out - ref[None], 0.0) if shadow else out
