@@ -239,18 +239,19 @@ def test_posterior_short_run_resume_and_guard(fitted, tmp_path, small):
 
     cal, res, cap = fitted
     chain = tmp_path / "chain.h5"
-    opts = PosteriorOptions(max_steps=150, check_every=50, progress=False, chain=str(chain))
+    opts = PosteriorOptions(max_steps=60, check_every=20, progress=False, chain=str(chain))
     post = sample_posterior(cal, cap, res, opts)
-    assert post.steps == 150 and np.isfinite(post.samples).all()
+    assert post.steps == 60 and np.isfinite(post.samples).all()
     s = post.summary()
     n1 = s["parameters"]["n1"]
     assert n1["interval95"][0] < n1["median"] < n1["interval95"][1]
     assert abs(n1["median"] - small.waveguide.n1) < 0.005
     assert 0.05 < s["acceptance_fraction"] < 0.9
     assert np.asarray(s["correlation"]["matrix"]).shape == (len(post.names), len(post.names))
-    # resume: the same chain file continues to 200 steps instead of starting again
-    more = sample_posterior(cal, cap, res, PosteriorOptions(max_steps=200, check_every=50, progress=False, chain=str(chain)))
-    assert more.steps == 200
+    # resume: the same chain file continues to 80 steps instead of starting again
+    more = sample_posterior(cal, cap, res, PosteriorOptions(max_steps=80, check_every=20, progress=False, chain=str(chain)))
+    assert more.steps == 80 and more.chain.shape[0] == 80
+    np.testing.assert_array_equal(more.chain[:60], post.chain)  # continued, not drawn again
     # reproducible: emcee's own generator is seeded from the options (it drew from the OS before)
     a, b = (sample_posterior(cal, cap, res, PosteriorOptions(max_steps=10, check_every=10, progress=False, seed=3))
             for _ in range(2))
