@@ -284,3 +284,51 @@ def test_near_field_aperture_fast(tmp_path):
     with pytest.raises(SystemExit) as e:
         nfa.main(["--out", str(out)])
     assert e.value.code == 2 and out.read_text() == "{}"
+
+
+def test_calib_mc_seeds_fast(tmp_path, monkeypatch):
+    """experiments/calib_mc_seeds.py: one row per baseline size with the calibration's figures, the Monte Carlo's own
+    variance shrinking as its runs grow (the baseline and the fit stood in for by a small fake: the real study
+    calibrates OptoSkin, minutes per row); bad arguments exit 2 before anything runs."""
+    import dataclasses
+    import json
+    import types
+
+    import pytest
+
+    study = load("calib_mc_seeds")
+    ev = load("eval_mc_data")
+    rng = np.random.default_rng(0)
+
+    @dataclasses.dataclass(frozen=True)
+    class Guide:
+        multiple_scattering: float = 0.0
+
+    def baseline(exposure, seeds=64):
+        runs = 100.0 + rng.normal(0.0, 10.0, (seeds, 2, 3, 8))
+        mean, var = ev.mc_mean_and_variance(runs)
+        return types.SimpleNamespace(replace=lambda **k: k, waveguide=Guide()), mean * exposure, var * exposure**2
+
+    def calibrate(scene, cap, mc_var, optics):
+        assert scene["waveguide"].multiple_scattering == 0.5 and optics == "guided"  # the held coupling, as the studies
+        fig = {"result": "successful", "converged": True, "reduced_chi2_photon_noise": 1.0 + float(np.mean(mc_var)) / 1e4,
+               "reduced_chi2_with_mc_variance": 1.0, "mc_variance_over_photon_variance_median": float(np.median(mc_var)),
+               "mc_variance_share_of_photon_weighted_chi2": 0.0, "n1_rel_error": 0.0, "mu_t_rel_error": 0.0, "steps": 1,
+               "seconds": 0.0}
+        return fig, types.SimpleNamespace(params=types.SimpleNamespace(mu_s_per_m=0.6, mu_a_per_m=0.14))
+
+    monkeypatch.setattr(ev, "calibration_baseline", baseline)
+    monkeypatch.setattr(ev, "_capture", lambda scene, expected, frames, seed, source: expected)
+    monkeypatch.setattr(ev, "calibrate_capture", calibrate)
+    out = tmp_path / "s.json"
+    assert study.main(["--seeds", "4,64", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["mc_runs"] for r in rows] == [4, 64] and rows[0]["result"] == "successful"
+    assert rows[1]["mc_variance_over_photon_variance_median"] < 0.2 * rows[0]["mc_variance_over_photon_variance_median"]
+    for bad in (["--seeds", "1"], ["--seeds", "x"], ["--exposure", "0"], ["--guided-switch", "NOPE=1"]):
+        with pytest.raises(SystemExit) as e:
+            study.main(["--out", str(tmp_path / "b.json"), *bad])
+        assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:  # an existing output needs --overwrite
+        study.main(["--out", str(out)])
+    assert e.value.code == 2
