@@ -421,7 +421,7 @@ class GuidedGeometry(eqx.Module):
         w_ray = (width / A / (math.radians(scene.sensor.fov_deg) * float(scene.waveguide.thickness_m)))[None, :, None]
         w_ray = np.where(ray_length > 0, w_ray, 0.0)  # (S, Z, A): a ray out of the guide carries none
         nf = _near_field_table_cached(rel, np.asarray(zone_lo, float), np.asarray(zone_hi, float), psi, w_ray,
-                               float(aperture_m))
+                                      float(aperture_m))
         x, w = np.polynomial.legendre.leggauss(int(elevations))
         x, w = 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
         xd, wd = np.polynomial.legendre.leggauss(max(1, int(elevations) // DIST_DIVISOR))
