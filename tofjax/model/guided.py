@@ -192,6 +192,20 @@ REVERB_LEGS = False
 #: 5.54 and +10 / +6% at 64 / 128 (experiments/reverb_spread_grid.py --calibrate). With the grid's first-order errors
 #: mended (:data:`REVERB_NODES`): 5.59 / 5.68 and +8 / +4% with it, 6.50 / 5.94 / 8.05 and +14 / +2 / -15% without.
 REVERB_SPREAD = True
+#: With :data:`REVERB_SPREAD`, the field's grid takes its own spread back out of those Gaussians: each delay laid on
+#: the coarse grid (:func:`_shifts`: a quadratic B-spline, variance a quarter of a node squared, whatever the delay)
+#: and the box back onto the model's nodes (:func:`_reverb`) spread the field by the grid's spacing, not by the light's
+#: physics; each leg's Gaussian takes a spline's variance less, each view's the view's and the light's arrival's, the
+#: volume view's its arrival's and its lead's, and the box's (less the one fine spline every other term's deposit has)
+#: comes off before the field goes back in time (a Gaussian of negative variance: the splines' transforms fall faster
+#: at high frequencies than it rises). On OptoSkin's baseline the field's end term at 64 nodes moves from its
+#: 256-node form by relative L2 0.00034 instead of 0.0024 (128 nodes without it: 0.00075), for 1.02x the guided model's
+#: time side by side; the 64x calibration of the Monte Carlo baseline's reduced chi-square 2.465 -> 2.406 (64 runs),
+#: 2.281 -> 2.207 (256 runs) (docs/tradeoff.md "The field's grid takes its own spread back out"). **Off**: where the
+#: field is sharp on its grid the deconvolved field rings, and the clip at 0 turns the negative lobes into light: 0.2%
+#: more light in experiments/reverb_spread_grid.py's fast case and up to 51% in the last lit bins of
+#: test_guided_edge_attenuates_in_time_like_beer_lambert (tests/test_guided.py), against 13% allowed.
+REVERB_DECONVOLVE = False
 #: The beam's light scattered into the guided band meets the walls where the geometry sends it (each wall segment's
 #: share of every point along each ray's in-plane isotropic light, ``SCATTER_SHARE_POINTS`` points per ray) and at
 #: its mean first-hit delay per segment, instead of evenly along the perimeter when the beam reaches its wall
@@ -878,6 +892,11 @@ def _edge_second(ctx, gg, el, amp1, frus):
     return t.reshape(S, Z, -1), amp.reshape(S, Z, -1)
 
 
+#: the variance of :func:`_shifts`'s (and :func:`deposit`'s) quadratic B-spline, in nodes squared, wherever the mass sits
+#: (lower case: a constant, not one of the module's switches)
+_spline_var = 0.25
+
+
 def _shifts(u, n: int):
     """The discrete transform of a unit mass at position ``u`` (in nodes) on a periodic grid of ``n`` nodes, spread
     with :func:`deposit`'s quadratic B-spline weights (mass and mean time kept, differentiable in ``u``), at the
@@ -1020,8 +1039,9 @@ def _reverb(ctx, gg, el, ret, frus):
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
     F = G * gg.seg_view * jnp.exp(-mu_eff * gg.seg_r * inv_c)  # (M, M) k -> l
     dr, di = _shifts(gg.seg_r * inv_c / (nodes.c1 * nodes.h), n)  # (k, l, F)
-    if REVERB_SPREAD:  # each leg's delay spread over the band's elevations
-        b = _blur(_wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2, n)
+    dec = bool(REVERB_SPREAD and REVERB_DECONVOLVE)  # the grid's own spread taken back out (nodes squared)
+    if REVERB_SPREAD:  # each leg's delay spread over the band's elevations (less its own spline's spread)
+        b = _blur(_wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2 - (_spline_var if dec else 0.0), n)
         dr, di = dr * b, di * b
     if REVERB_LEGS and frus is not None:
         F = F * _field_leg_transmission(ctx, gg, el)
@@ -1054,9 +1074,9 @@ def _reverb(ctx, gg, el, ret, frus):
     w_safe = jnp.where(w > 0, w, 1.0)
     lag = L / nodes.c1 * jnp.sum(ret / el.c, axis=-1) / w_safe
     kr, ki = _shifts(lag / nodes.h, n)  # (S, Z, A, F)
-    if REVERB_SPREAD:  # the view's delay spread over the return elevations (their weights in ret)
-        m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / w_safe
-        b = _blur(jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2, n)
+    if REVERB_SPREAD:  # the view's delay spread over the return elevations (their weights in ret), less the view's
+        m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / w_safe  # and the light's arrival's splines
+        b = _blur(jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2 - (2.0 * _spline_var if dec else 0.0), n)
         kr, ki = kr * b, ki * b
     ws = (w * seg)[..., None]
     sidx = np.arange(S)[:, None, None]
@@ -1074,10 +1094,15 @@ def _reverb(ctx, gg, el, ret, frus):
     if REVERB_VOLUME_LEAD:  # the light inside reaches the walls a mean forward distance later
         lr, li = _shifts(-gg.forward_m / (_mean_cos(el) * nodes.c1 * nodes.h), n)
         vf = vf * (lr + 1j * li)
+    if dec:  # the light's arrival's spline and the lead's
+        vf = vf * _blur(jnp.asarray(-(2.0 if REVERB_VOLUME_LEAD else 1.0) * _spline_var, vol.dtype), n)
     out = out + vf * jnp.moveaxis(qbar, 0, -1)[:, None, :]
     # back in time (clipped at 0 against rounding), each coarse node's mass shared by the fine nodes it spans and
     # then a box as wide, centred (linear between the coarse nodes: mass and mean delay kept, never negative; a box
     # of an even width is the mean of two, half a node either side: one alone moved the field half a fine node early)
+    if dec:  # the box below spreads by (1 - 1 / step^2) / 6 coarse nodes squared beyond one fine spline (step 1:
+        # no box; the fine spline every deposit of the model has, put back)
+        out = out * _blur(jnp.asarray(-(1.0 - 1.0 / step**2) / 6.0 if step > 1 else _spline_var, vol.dtype), n)
     coarse = jnp.maximum(jnp.fft.irfft(out, n)[..., :K], 0.0)
     rep = jnp.repeat(coarse / step, step, axis=-1)
     if step == 1:
