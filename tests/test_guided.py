@@ -654,8 +654,8 @@ def test_reverberant_field_spreads_as_its_elevations_do(monkeypatch):
     at second order in the grid's spacing: the volume view's first node holds half a node's lags, and the coarse
     grid's box back onto the model's nodes is centred (before, 64 nodes had 1.4% more light than 256, arriving 0.52
     bins earlier; now -0.015% and 0.0006 bins). With guided.REVERB_DECONVOLVE (the grid's own spread taken back out)
-    the field on 64 nodes is nearer its 256-node form than the field on 128 nodes without it, moves no light, and stays
-    non-negative."""
+    the field on 64 nodes is nearer its 256-node form than the field on 128 nodes without it, keeps its light within
+    0.2% in this scene (the clip at 0 adds some where it rings: why the switch is off) and stays non-negative."""
     import tofjax.model.guided as guided
 
     n1 = 1.4
@@ -698,7 +698,7 @@ def test_reverberant_field_spreads_as_its_elevations_do(monkeypatch):
     dev_dec = rel(("dec", 64), ("dec", 256))
     assert dev_dec < rel((True, 128), (True, 256)) and dev_dec < 0.3 * dev[True], (dev_dec, dev)
     assert rel(("dec", 128), ("dec", 256)) < 0.3 * dev_dec
-    assert field["dec", 64].sum() == pytest.approx(field[True, 256].sum(), rel=2e-3)  # it moves no light either
+    assert field["dec", 64].sum() == pytest.approx(field[True, 256].sum(), rel=2e-3)  # within 0.2% here
     assert field["dec", 64].min() >= -1e-9 * field["dec", 64].max()  # the clip at 0 after the deconvolution
     bins = np.arange(first.shape[-1])
     for nodes in (32, 64):  # measured -0.06% / -0.002 bins at 32, -0.015% / -0.0006 at 64
