@@ -142,6 +142,16 @@ def calibration_baseline(exposure: float = 64.0, photons: int = 25_000, seeds: i
     return scene, mean * exposure, var * exposure**2
 
 
+def calibrate_baseline(baseline: tuple, coupling: float = 0.5):
+    """The studies' calibration of a :func:`calibration_baseline` (its ``(scene, expected, mc_var)``): 10 frames of
+    capture seed 0, guided optics, the multiple-scattering coupling held at ``coupling`` (``near_field_aperture.py``,
+    ``calib_mc_seeds.py``). Returns :func:`calibrate_capture`'s figures and result."""
+    scene, expected, mc_var = baseline
+    cap = _capture(scene, expected, 10, 0, "simulated (monte_carlo)")
+    fit_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, multiple_scattering=coupling))
+    return calibrate_capture(fit_scene, cap, mc_var, "guided")
+
+
 def study_header(study: str, data: str) -> dict:
     """The head of a JSON of a study of this evaluation's baseline (``reverb_spread_grid.py``,
     ``guided_fidelity_calibration.py``): what, on which data, machine and load, and the scene."""

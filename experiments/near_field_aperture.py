@@ -240,18 +240,13 @@ def light_comparison(repeats: int, study: str = "aperture") -> dict:
 def calibrate_one(aperture: bool, coupling: float, exposure: float = 64.0, study: str = "aperture") -> dict:
     """Part 2, in this process: the eval's calibration at ``exposure`` with the ``study``'s switches ``aperture`` (on
     or off) and the held coupling."""
-    import dataclasses
-
     import tofjax.model.guided as guided
 
     sys.path.insert(0, str(HERE))
     import eval_mc_data as ev
 
     _switch(guided, aperture, study)
-    scene, expected, mc_var = ev.calibration_baseline(exposure)  # its runs cached by eval_mc_data.py
-    cap = ev._capture(scene, expected, 10, 0, "simulated (monte_carlo)")
-    fit_scene = scene.replace(waveguide=dataclasses.replace(scene.waveguide, multiple_scattering=coupling))
-    fig, res = ev.calibrate_capture(fit_scene, cap, mc_var, "guided")
+    fig, res = ev.calibrate_baseline(ev.calibration_baseline(exposure), coupling)  # its runs cached by eval_mc_data.py
     out = {k: fig[k] for k in ("result", "converged", "reduced_chi2_photon_noise", "reduced_chi2_with_mc_variance",
                                "n1_rel_error", "mu_t_rel_error", "steps")}
     p = res.params

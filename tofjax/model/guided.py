@@ -482,7 +482,7 @@ class GuidedGeometry(eqx.Module):
         )
 
 
-def _wall_groups(normals, L) -> np.ndarray:
+def _wall_groups(normals, L) -> tuple[np.ndarray, np.ndarray]:
     """The second bounce's sources (:func:`_edge_second`): each zone's live rays grouped by the wall they end on
     (``normals`` (S, Z, A, 2) their walls' inward normals, ``L`` (S, Z, A) their lengths, 0 for a dead ray), as
     (S, I, Z, A) memberships, 0 or 1: per sensor its zones' groups in order (a zone's middle ray's wall first), ``I``
