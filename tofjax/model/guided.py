@@ -195,17 +195,19 @@ REVERB_SPREAD = True
 #: With :data:`REVERB_SPREAD`, the field's grid takes its own spread back out of those Gaussians: each delay laid on
 #: the coarse grid (:func:`_shifts`: a quadratic B-spline, variance a quarter of a node squared, whatever the delay)
 #: and the box back onto the model's nodes (:func:`_reverb`) spread the field by the grid's spacing, not by the light's
-#: physics; each leg's Gaussian takes a spline's variance less, each view's the view's and the light's arrival's, the
-#: volume view's its arrival's and its lead's, and the box's (less the one fine spline every other term's deposit has)
-#: comes off before the field goes back in time (a Gaussian of negative variance: the splines' transforms fall faster
-#: at high frequencies than it rises). On OptoSkin's baseline the field's end term at 64 nodes moves from its
-#: 256-node form by relative L2 0.00034 instead of 0.0024 (128 nodes without it: 0.00075), for 1.02x the guided model's
-#: time side by side; the 64x calibration of the Monte Carlo baseline's reduced chi-square 2.465 -> 2.406 (64 runs),
-#: 2.281 -> 2.207 (256 runs) (docs/tradeoff.md "The field's grid takes its own spread back out"). **Off**: where the
-#: field is sharp on its grid the deconvolved field rings, and the clip at 0 turns the negative lobes into light: 0.2%
-#: more light in experiments/reverb_spread_grid.py's fast case and up to 51% in the last lit bins of
-#: test_guided_edge_attenuates_in_time_like_beer_lambert (tests/test_guided.py), against 13% allowed.
-REVERB_DECONVOLVE = False
+#: physics. Each leg's Gaussian takes a spline's variance less and each view's two (its own and the light's
+#: arrival's), **each only down to zero**: a leg or view sharper than the grid keeps its spline, so no term is ever
+#: sharpened below its own delay and the field does not ring. The volume view's arrival and lead, and the box (less
+#: the one fine spline every other term's deposit has), come off the whole field before it goes back in time (a
+#: Gaussian of negative variance: the splines' transforms fall faster at high frequencies than it rises). On
+#: OptoSkin's baseline the far edge's term at 64 nodes moves from its 256-node form by relative L2 0.00083 instead of
+#: 0.0023 (128 nodes without it: 0.00062), for the same time side by side (0.99x); the 64x calibration of the Monte
+#: Carlo baseline's reduced chi-square 2.465 -> 2.410 (64 runs), 2.281 -> 2.216 (256 runs), 16x 1.354 -> 1.331 /
+#: 1.335 -> 1.312 (docs/tradeoff.md "The deconvolution that keeps its light"). The first form (twenty-fourth session)
+#: let a leg's or view's variance go negative: where the field is sharp on its grid it rang, and the clip at 0 turned
+#: the negative lobes into light (up to 51% in the last lit bins of test_guided_edge_attenuates_in_time_like_beer_lambert,
+#: 13% allowed; this form: 11.5%, 12.4% without the switch).
+REVERB_DECONVOLVE = True
 #: The beam's light scattered into the guided band meets the walls where the geometry sends it (each wall segment's
 #: share of every point along each ray's in-plane isotropic light, ``SCATTER_SHARE_POINTS`` points per ray) and at
 #: its mean first-hit delay per segment, instead of evenly along the perimeter when the beam reaches its wall
@@ -1041,7 +1043,8 @@ def _reverb(ctx, gg, el, ret, frus):
     dr, di = _shifts(gg.seg_r * inv_c / (nodes.c1 * nodes.h), n)  # (k, l, F)
     dec = bool(REVERB_SPREAD and REVERB_DECONVOLVE)  # the grid's own spread taken back out (nodes squared)
     if REVERB_SPREAD:  # each leg's delay spread over the band's elevations (less its own spline's spread)
-        b = _blur(_wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2 - (_spline_var if dec else 0.0), n)
+        v = _wall_band_var(el) * (gg.seg_r / (nodes.c1 * nodes.h)) ** 2
+        b = _blur(jnp.maximum(v - _spline_var, 0.0) if dec else v, n)  # never sharper than its delay: no ringing
         dr, di = dr * b, di * b
     if REVERB_LEGS and frus is not None:
         F = F * _field_leg_transmission(ctx, gg, el)
@@ -1076,7 +1079,8 @@ def _reverb(ctx, gg, el, ret, frus):
     kr, ki = _shifts(lag / nodes.h, n)  # (S, Z, A, F)
     if REVERB_SPREAD:  # the view's delay spread over the return elevations (their weights in ret), less the view's
         m2 = (L / nodes.c1) ** 2 * jnp.sum(ret / el.c**2, axis=-1) / w_safe  # and the light's arrival's splines
-        b = _blur(jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2 - (2.0 * _spline_var if dec else 0.0), n)
+        v = jnp.maximum(m2 - lag**2, 0.0) / nodes.h**2
+        b = _blur(jnp.maximum(v - 2.0 * _spline_var, 0.0) if dec else v, n)
         kr, ki = kr * b, ki * b
     ws = (w * seg)[..., None]
     sidx = np.arange(S)[:, None, None]
