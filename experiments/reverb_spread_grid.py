@@ -6,7 +6,8 @@ The guided model's reverberant field (``guided._reverb``) is solved per frequenc
 so the only spread in time was the grid's: the field's shape, and the 64x calibration of the Monte Carlo baseline
 that leans on it, moved with ``REVERB_NODES``. With it each leg's delay spreads as the guided elevations do (the
 variance of ``1 / cos`` over a Lambertian wall's guided emission times ``(r / c1)^2``) and each view's as its return
-elevations do.
+elevations do. The spread variant includes ``guided.REVERB_DECONVOLVE`` (the grid's own spread taken back out) when
+that is on, as it is by default since the twenty-fifth session; this script's JSONs before it are without.
 
 Two parts, both on **simulated** data:
 
