@@ -1393,7 +1393,9 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     scene's); the model takes each bin's delay and attenuation from its mean lengths at the fitted ``n1``. With
     :data:`SCATTER_OWN_RETURN` each entry's delay is counted from its own element's (term 0) or ray's (term 1) return
     less the zone's mean first return (``A`` carries the difference), and term 0's weights are relative to the zone's
-    first return, each element's light returned with its own ``cos cos / L``.
+    first return, each element's light returned with its own ``cos cos / L``. Term 1's view leg travels at the band's
+    ``1 / cos`` and the direct return at a Lambertian wall's: ``A`` also carries that difference's ``(g_iso - g_wall)
+    L``.
 
     Term 0: the beam (share ``dphi / fov`` per ray) at ``SCATTER_SOURCES`` points along each ray; a wall element
     ``l`` at distance ``rho`` takes ``l cos / (2 pi rho)`` of a point's in-plane isotropic light; the zone's rays'
@@ -1473,6 +1475,10 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         if SCATTER_OWN_RETURN:  # from the zone's mean first return, not the target ray's
             L_z = (rr * L_s).sum(1) / np.maximum(direct, 1e-300)
             A1 = A1 + ((Lp - L_z[zone_p]) * (1.0 + g_wall * c_out))[None]
+        # the view's leg travels at the band's 1/cos (isotropic scattering), the direct return it is counted from at
+        # a Lambertian wall's: ``C`` carries the difference of lengths at ``g_iso``, ``A`` the rest, ``(g_iso - g_wall)
+        # Lp`` (about 3 mm at 30 cm, n1 = 1.4; at the scene's n1, as ``own``)
+        A1 = A1 + (Lp * (g_iso - g_wall) * c_out)[None]
         C1 = (x.ravel() - Lp)[None]
         _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
                   np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
