@@ -146,3 +146,35 @@ def test_kernels_are_timed_from_each_rays_own_return(monkeypatch):
         errors[own] = (wide.sum() / narrow.sum() - 1.0, (wide * t).sum() / wide.sum() - (narrow * t).sum() / narrow.sum())
     assert abs(errors[True][0]) < 0.015 and abs(errors[True][1]) < 0.35, errors
     assert errors[False][1] < -0.6 and errors[False][0] > 0.025, errors  # what the switch mends
+
+
+def test_each_kernels_delay_is_its_paths_legs_at_their_own_speeds(monkeypatch):
+    """One ray square on to its wall, one scattering point half way and one wall element: the tables' mean lengths
+    give each kernel's delay from the first return as the physical path difference, each leg at its own band's mean
+    ``1 / cos`` (the beam at ``1 / c_out``, light scattered by the volume at the isotropic band's ``g_iso``, light
+    leaving a wall at a Lambertian wall's ``g_wall``). Term 1's view leg leaves the volume (``g_iso``) where the
+    direct return it is counted from leaves the wall (``g_wall``): before the fix its light came ``(g_iso - g_wall)
+    L`` early (3 mm at 20 cm)."""
+    monkeypatch.setattr(guided, "SCATTER_SOURCES", 1)
+    monkeypatch.setattr(guided, "SCATTER_ELEMENTS", 1)
+    monkeypatch.setattr(guided, "SCATTER_REDIRECT", False)
+    n1, fov, h, L = 1.45, 0.4, 0.004, 0.2
+    one = np.ones((1, 1, 1))
+    tab = guided._scatter_tables(0.2, 0.1, h, np.array([[0.0, 0.05]]), 0.0 * one, L * one, one, one,
+                                 np.array([fov]), fov, n1)
+    cg, _, c_out = guided.launch_band(n1, fov)
+    g_iso = guided._band_inv_cos(cg)
+    g_wall = cg / (0.5 * (np.arcsin(cg) + cg * np.sqrt(1.0 - cg * cg)))
+    x, rho = 0.5 * L, np.hypot(0.5 * L, h)  # the point, and its distance to the wall element
+    want = {  # scattered path less the first return (outbound L / c_out, back L g_wall)
+        0: (x / c_out + g_iso * rho + L * g_wall) - (L / c_out + L * g_wall),  # beam -> point -> wall -> sensor
+        1: (L / c_out + g_wall * rho + g_iso * x) - (L / c_out + L * g_wall),  # beam -> wall -> point -> sensor
+    }
+    legs = {0: g_iso, 1: g_wall}
+    for term, path in want.items():
+        w = tab["w"][0, 0, term]
+        assert np.count_nonzero(w) == 1
+        k = int(np.flatnonzero(w)[0])
+        a, b, c = (tab[key][0, 0, term, k] for key in ("a", "b", "c"))
+        got = a / c_out + legs[term] * b + g_iso * c  # what _edge_scatter computes from the tables
+        assert got == pytest.approx(path, abs=1e-12), (term, got, path)
