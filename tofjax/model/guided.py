@@ -126,7 +126,9 @@ EDGE_SECOND_GROUPS = True
 #: the nineteenth session): the 64x calibration of the Monte Carlo baseline's reduced chi-square 3.95 -> 3.48 with
 #: :data:`EDGE_SCATTER` (7 groups: 3.41), 16x 1.72 -> 1.61 (experiments/near_field_aperture.py --study edge_scatter).
 #: At the twenty-fifth session's model, 7 groups: 64x on 256 Monte Carlo runs 2.216 -> 2.146 (11 groups: the same) at
-#: 1.07x the guided model's time (docs/tradeoff.md "The deconvolution that keeps its light"); left at 5 for the cost.
+#: 1.07x the guided model's time (docs/tradeoff.md "The deconvolution that keeps its light"); with term 1's return-leg
+#: fix (twenty-sixth) 2.168 -> 2.097 (docs/tradeoff.md "Term 1's return leg against the direct return's"). Left at 5
+#: for the cost.
 EDGE_SECOND_SPREAD = 5
 #: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
 #: its first leg and its return (a contact in a corner sits on the legs across it). Off: against the
