@@ -127,9 +127,12 @@ EDGE_SECOND_GROUPS = True
 #: :data:`EDGE_SCATTER` (7 groups: 3.41), 16x 1.72 -> 1.61 (experiments/near_field_aperture.py --study edge_scatter).
 #: At the twenty-fifth session's model, 7 groups: 64x on 256 Monte Carlo runs 2.216 -> 2.146 (11 groups: the same) at
 #: 1.07x the guided model's time (docs/tradeoff.md "The deconvolution that keeps its light"); with term 1's return-leg
-#: fix (twenty-sixth) 2.168 -> 2.097 (docs/tradeoff.md "Term 1's return leg against the direct return's"). Left at 5
-#: for the cost.
-EDGE_SECOND_SPREAD = 5
+#: fix (twenty-sixth) 2.168 -> 2.097 (docs/tradeoff.md "Term 1's return leg against the direct return's"). 8 (every
+#: return elevation its own group at the default 8 elevations) since the twenty-seventh session: with
+#: :data:`SCATTER_FLUENCE` and :data:`SCATTER_SECOND`, 64x 2.305 -> 2.233 (64 runs), 2.117 -> 2.042 (256; 7 groups the
+#: same to 4 digits), at 1.008x the guided model's time on the bench's touch scene
+#: (experiments/bench_guided_switch.py --switch EDGE_SECOND_SPREAD --values 5,8).
+EDGE_SECOND_SPREAD = 8
 #: Contacts frustrate the second bounce's wall-to-wall legs too (:func:`_leg_transmission`), not only
 #: its first leg and its return (a contact in a corner sits on the legs across it). Off: against the
 #: Monte Carlo it brings one contact's signal 2 cm from a corner closer (relative L2 0.235 -> 0.188,
@@ -273,6 +276,31 @@ SCATTER_GRID_M = 0.01
 #: 1.472; the fit's mu_s + mu_a error +2.5% -> +3.8% (+3.7% -> +3.7%); 1.006x the guided model's time
 #: (experiments/near_field_aperture.py --study own_return, docs/results/own_return.json).
 SCATTER_OWN_RETURN = True
+#: The diffuse legs' own spread in time: light scattered into the guided band travels its in-plane length ``rho`` at
+#: ``1 / cos`` of its elevation, from 1 to ``n1`` (1.4 at n1 = 1.4), not at the band's mean alone. With ``n > 0``
+#: each table entry is binned at ``n`` Gauss-Legendre elevations of its diffuse leg (uniform in ``mu``, the guided
+#: share of isotropic light), each with its own length ``rho / cos`` (the bins' mean lengths carry it, so the fitted
+#: n1 still sets each bin's delay and attenuation); 0: every entry at the band's mean ``1 / cos``. Build time only.
+#: **Off**: against the Monte Carlo baseline at 64x (256 runs) 4 nodes take the reduced chi-square from 2.168 to
+#: 2.196 and the fit's mu_s + mu_a error from +4.2% to +5.9%; at the true optics the kernels' light moves earlier, to
+#: the bins before each far-edge peak where the model is already too bright (twenty-seventh session,
+#: docs/tradeoff.md "The kernels' legs as the volume receives them").
+SCATTER_SPREAD = 0
+#: Term 1's kernel (the lit walls' light scattered back by the volume) applied to the far edge's second bounce too
+#: (:func:`_edge_second`'s return): the footprint's walls, lit a second time by the first bounce's diffuse light,
+#: re-emit it into the same volume in front of them, which scatters it back as it does the first bounce's (light of
+#: two bounces and one scattering, ``R^2 mu_s``, which the field's volume view counts from the third bounce on only).
+#: Against the Monte Carlo baseline at 64x: reduced chi-square 2.358 -> 2.322 (64 runs), 2.168 -> 2.133 (256); at
+#: the true optics the Monte Carlo's excess of ``R^2 mu_s`` light falls from 7.18 to 6.32 thousandths of the wall
+#: light, evenly over the bins after each peak (experiments/wall_light_orders.py); 1.02x the guided model's time.
+SCATTER_SECOND = True
+#: The volume's legs weighted as a volume point receives light: the fluence a Lambertian wall gives a point is uniform
+#: in ``mu`` (constant radiance over the mirror images' strip, whose solid angle is ``dphi dmu``), so term 1's wall-to-
+#: volume leg (and term 2's) travels at the isotropic band's mean ``1 / cos`` (``g_iso``, 1.108 at n1 = 1.4), not at
+#: the flux-weighted ``g_wall`` (1.098) of what a sensor's aperture receives from a wall. Off: ``g_wall``. Against the
+#: Monte Carlo baseline at 64x: 2.358 -> 2.342 (64 runs), 2.168 -> 2.153 (256), mu_s + mu_a +4.2% -> +4.0%; with
+#: :data:`SCATTER_SECOND` 2.305 / 2.117 (twenty-seventh session).
+SCATTER_FLUENCE = True
 #: Multiple scattering's coupling derived from the geometry (:func:`double_scatter_coupling`): the light scattered
 #: twice, once out of the beam and once back into a zone's view, over what the zone's single backscatter brings,
 #: per unit of ``mu_s`` times the path, is ``arccos(1/n1)`` (the guided share of isotropic scattering, with its
@@ -793,7 +821,8 @@ def _edge(ctx, gg, el, frus):
     if scatter:
         both = deposit(t, amp, nodes._replace(t=jnp.zeros((2 * K + 2,), nodes.t.dtype)))
         first = both[..., :K]
-        out = first + both[..., K + 2:] + _edge_scatter(ctx, gg, el, first)
+        second = both[..., K + 2:]
+        out = first + second + _edge_scatter(ctx, gg, el, first, second if SCATTER_SECOND else None)
     else:
         out = deposit(t, amp, nodes)
     if EDGE_REVERB:
@@ -801,7 +830,7 @@ def _edge(ctx, gg, el, frus):
     return p.gain[:, None, None] * out
 
 
-def _edge_scatter(ctx, gg, el, first):
+def _edge_scatter(ctx, gg, el, first, second=None):
     """The light the walls and the volume exchange around each zone's lit wall (before the gain; :data:`EDGE_SCATTER`):
     the zone's first return ``first`` (S, Z, K) convolved with its two kernels of :func:`_scatter_tables`. The beam's
     scattered light on the walls: ``mu_s cg / c_out`` per unit of the tables' weight (the guided share of isotropic
@@ -819,8 +848,9 @@ def _edge_scatter(ctx, gg, el, first):
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
     # per term: the diffuse leg's 1 / cos, what the last leg loses, and the prefactor
     terms = {"beam_to_walls": (g_iso, mu_t, p.mu_s_per_m * cg / c_out),
-             "walls_back": (g_wall, mu_t, p.mu_s_per_m * G / cbar**2),
-             "redirect": (g_wall, mu_eff, p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)}  # a diffuse last leg
+             "walls_back": (g_iso if SCATTER_FLUENCE else g_wall, mu_t, p.mu_s_per_m * G / cbar**2),
+             "redirect": (g_iso if SCATTER_FLUENCE else g_wall, mu_eff,
+                          p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)}  # a diffuse last leg
     legs, last, pref = zip(*(terms[k] for k in gg.sc_terms))
     leg, last, pref = (jnp.stack(v)[:, None] for v in (legs, last, pref))  # (T, 1)
     path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, T, NK)
@@ -829,9 +859,18 @@ def _edge_scatter(ctx, gg, el, first):
     amp = (pref * gg.sc_w * att).reshape(S, Z, -1)
     n_k = gg.sc_nodes
     grid = Nodes(t=jnp.zeros((n_k,), first.dtype), h=nodes.h, r=None, dr=None, c1=nodes.c1)
-    kern = deposit((path / nodes.c1).reshape(S, Z, -1) + (gg.sc_off + 0.5) * nodes.h, amp, grid)  # (S, Z, n_k)
     n = 1 << (K + n_k - 1).bit_length()  # zero-padded (no wrap), a power of two
-    y = jnp.fft.irfft(jnp.fft.rfft(first, n) * jnp.fft.rfft(kern, n), n)
+    if second is None:
+        kern = deposit((path / nodes.c1).reshape(S, Z, -1) + (gg.sc_off + 0.5) * nodes.h, amp, grid)  # (S, Z, n_k)
+        y = jnp.fft.irfft(jnp.fft.rfft(first, n) * jnp.fft.rfft(kern, n), n)
+    else:  # each term's kernel on its own: term 1's sees the second bounce too
+        T = path.shape[2]
+        kern = deposit((path / nodes.c1 + (gg.sc_off + 0.5) * nodes.h).reshape(S, Z * T, -1),
+                       (pref * gg.sc_w * att).reshape(S, Z * T, -1), grid).reshape(S, Z, T, n_k)
+        kf = jnp.fft.rfft(kern, n)
+        back = gg.sc_terms.index("walls_back")
+        yf = jnp.fft.rfft(first, n) * jnp.sum(kf, 2) + jnp.fft.rfft(second, n) * kf[:, :, back]
+        y = jnp.fft.irfft(yf, n)
     return y[..., gg.sc_off:gg.sc_off + K]
 
 
@@ -1414,6 +1453,8 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     NK, NS, NE = int(SCATTER_BINS), int(SCATTER_SOURCES), int(SCATTER_ELEMENTS)
     names = _scatter_terms()
     out = {k: np.zeros((S, Z, len(names), NK)) for k in ("w", "a", "b", "c")}
+    u_leg, p_leg = _leg_spread(cg, int(SCATTER_SPREAD))  # the diffuse legs' 1 / cos over the band, relative to its mean
+    g_back = g_iso if SCATTER_FLUENCE else g_wall  # term 1's wall-to-volume leg
     if SCATTER_REDIRECT:  # term 2's scattering points: the centres of a grid over the guide
         nx, ny = max(1, round(lx / SCATTER_GRID_M)), max(1, round(ly / SCATTER_GRID_M))
         gx, gy = np.meshgrid((np.arange(nx) + 0.5) * lx / nx, (np.arange(ny) + 0.5) * ly / ny, indexing="ij")
@@ -1459,8 +1500,9 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         A0 = x.ravel()[:, None] - t.ravel()[None] + own.ravel()[None]
         B0 = np.broadcast_to(rho, w0.shape)
         norm0 = ret_z if SCATTER_OWN_RETURN else zone_power  # the zone's first return, or its power on the walls
-        _bin_into(out, s, 0, np.broadcast_to(zone_e[None], w0.shape), A0 / c_out + g_iso * B0, w0, A0, B0, 0.0 * B0,
-                  norm0[zone_e][None])
+        for u, pq in zip(u_leg, p_leg):
+            _bin_into(out, s, 0, np.broadcast_to(zone_e[None], w0.shape), A0 / c_out + g_iso * u * B0, w0 * pq, A0,
+                      B0 * u, 0.0 * B0, norm0[zone_e][None])
         # term 1: element (sources: every ray) -> volume point on a zone's ray (targets), binned by the point's zone
         rho = rho.T  # (elements, points): from each element to each point
         cos_b = np.clip(-(ex.T * nf[:, None, 0] + ey.T * nf[:, None, 1]) / rho, 0.0, 1.0)
@@ -1482,8 +1524,9 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
         # Lp`` (about 3 mm at 30 cm, n1 = 1.4; at the scene's n1, as ``own``)
         A1 = A1 + (Lp * (g_iso - g_wall) * c_out)[None]
         C1 = (x.ravel() - Lp)[None]
-        _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_wall * rho + g_iso * C1, w1,
-                  np.broadcast_to(A1, w1.shape), rho, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
+        for u, pq in zip(u_leg, p_leg):
+            _bin_into(out, s, 1, np.broadcast_to(zone_p[None], w1.shape), A1 / c_out + g_back * u * rho + g_iso * C1,
+                      w1 * pq, np.broadcast_to(A1, w1.shape), rho * u, np.broadcast_to(C1, w1.shape), direct[zone_p][None])
         if SCATTER_REDIRECT:
             # term 2: element (source, every ray: its beam power, Lambertian in the plane, cos / 2 per radian) ->
             # grid point q (``cos / (2 rho1)`` per unit area of the in-plane flux it scatters) -> element (target,
@@ -1502,11 +1545,23 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
                 A2 = np.broadcast_to((Ls_e[i] - Ls_e + own.ravel())[None], w2.shape)
                 B2 = np.broadcast_to(rho1[i][:, None], w2.shape)
                 _bin_into(out, s, names.index("redirect"), np.broadcast_to(zone_e[None], w2.shape),
-                          A2 / c_out + g_wall * B2 + g_iso * rho2, w2, A2, B2, rho2, norm0[zone_e][None])
+                          A2 / c_out + g_back * B2 + g_iso * rho2, w2, A2, B2, rho2, norm0[zone_e][None])
     w = out["w"]
     for key in ("a", "b", "c"):  # the bins' mean lengths
         out[key] = np.where(w > 0, out[key] / np.where(w > 0, w, 1.0), 0.0)
     return out
+
+
+def _leg_spread(cg: float, n: int) -> tuple:
+    """A diffuse leg's ``1 / cos`` over the guided band (uniform in ``mu`` on ``|mu| < cg``) relative to its mean,
+    and the weights: ``n`` Gauss-Legendre nodes, scaled so that their weighted mean is 1 (the band's mean ``1 / cos``
+    stays the closed form's); ``n = 0``: the mean alone, ``((1.0,), (1.0,))``."""
+    if n <= 0:
+        return (1.0,), (1.0,)
+    x, w = np.polynomial.legendre.leggauss(n)
+    x, w = 0.5 * (x + 1.0), 0.5 * w
+    u = 1.0 / np.sqrt(1.0 - (cg * x) ** 2)
+    return tuple(u / np.sum(w * u)), tuple(w)
 
 
 def _scatter_terms() -> tuple:
@@ -1536,7 +1591,7 @@ def _scatter_tables_cached(lx, ly, thickness, xy, ang, L, cos_wall, cos_sensor, 
     """:func:`_scatter_tables`, remembered by its inputs and the module's ``SCATTER_*`` settings (:func:`_memo`)."""
     arrays = [np.ascontiguousarray(a, float) for a in (xy, ang, L, cos_wall, cos_sensor, dphi)]
     settings = (SCATTER_BINS, SCATTER_BIN_M, SCATTER_MIN_M, SCATTER_SOURCES, SCATTER_ELEMENTS, SCATTER_REDIRECT,
-                SCATTER_GRID_M, SCATTER_OWN_RETURN)
+                SCATTER_GRID_M, SCATTER_OWN_RETURN, SCATTER_SPREAD, SCATTER_FLUENCE)
     return _memo(_scatter_tables, settings, float(lx), float(ly), float(thickness), *arrays, float(fov), float(n1))
 
 
