@@ -838,7 +838,10 @@ def _edge_scatter(ctx, gg, el, first, second=None):
     of a Lambertian wall, the volume view's ``1 / cbar`` and its elevations' ``1 / cbar`` against the first return's).
     Each bin's delay and attenuation are its mean lengths' at the fitted optics: the beam's leg at ``1 / c_out``, the
     diffuse leg at the band's mean ``1 / cos`` losing ``mu_a + mu_s (1 - cg)`` (scattering inside the band only
-    redirects it), the view's leg at the band's mean ``1 / cos``. Contacts act through ``first`` alone."""
+    redirects it; a leg into the volume at the isotropic band's, :data:`SCATTER_FLUENCE`), the view's leg at the
+    band's mean ``1 / cos``. With ``second`` (the far edge's second bounce, (S, Z, K); :data:`SCATTER_SECOND`) term 1's
+    kernel is applied to it too: the walls in view re-emit the second bounce's light into the same volume. Contacts act
+    through ``first`` and ``second`` alone."""
     p, nodes = ctx.params, ctx.nodes
     cg, c_out = launch_band(p.n1, gg.fov)[0], el.c_out
     g_iso = _band_inv_cos(cg)
@@ -1436,7 +1439,9 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     less the zone's mean first return (``A`` carries the difference), and term 0's weights are relative to the zone's
     first return, each element's light returned with its own ``cos cos / L``. Term 1's view leg travels at the band's
     ``1 / cos`` and the direct return at a Lambertian wall's: ``A`` also carries that difference's ``(g_iso - g_wall)
-    L``.
+    L``. Term 1's leg from the wall into the volume is binned at ``g_iso`` with :data:`SCATTER_FLUENCE` (``g_wall``
+    without); with :data:`SCATTER_SPREAD` each entry is binned at that many elevations of its diffuse leg, ``B``
+    carrying each one's ``1 / cos`` relative to the band's mean.
 
     Term 0: the beam (share ``dphi / fov`` per ray) at ``SCATTER_SOURCES`` points along each ray; a wall element
     ``l`` at distance ``rho`` takes ``l cos / (2 pi rho)`` of a point's in-plane isotropic light; the zone's rays'
