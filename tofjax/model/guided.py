@@ -859,21 +859,20 @@ def _edge_scatter(ctx, gg, el, first, second=None):
     path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, T, NK)
     att = jnp.exp(-mu_t * gg.sc_a / c_out - last * g_iso * gg.sc_c - mu_eff * leg * gg.sc_b)
     S, Z, K = first.shape
-    amp = (pref * gg.sc_w * att).reshape(S, Z, -1)
+    T = path.shape[2]
+    times = path / nodes.c1 + (gg.sc_off + 0.5) * nodes.h  # (S, Z, T, NK) on the kernels' grid
+    amp = pref * gg.sc_w * att
     n_k = gg.sc_nodes
     grid = Nodes(t=jnp.zeros((n_k,), first.dtype), h=nodes.h, r=None, dr=None, c1=nodes.c1)
     n = 1 << (K + n_k - 1).bit_length()  # zero-padded (no wrap), a power of two
-    if second is None:
-        kern = deposit((path / nodes.c1).reshape(S, Z, -1) + (gg.sc_off + 0.5) * nodes.h, amp, grid)  # (S, Z, n_k)
+    if second is None:  # one kernel for the terms together
+        kern = deposit(times.reshape(S, Z, -1), amp.reshape(S, Z, -1), grid)  # (S, Z, n_k)
         y = jnp.fft.irfft(jnp.fft.rfft(first, n) * jnp.fft.rfft(kern, n), n)
     else:  # each term's kernel on its own: term 1's sees the second bounce too
-        T = path.shape[2]
-        kern = deposit((path / nodes.c1 + (gg.sc_off + 0.5) * nodes.h).reshape(S, Z * T, -1),
-                       (pref * gg.sc_w * att).reshape(S, Z * T, -1), grid).reshape(S, Z, T, n_k)
+        kern = deposit(times.reshape(S, Z * T, -1), amp.reshape(S, Z * T, -1), grid).reshape(S, Z, T, n_k)
         kf = jnp.fft.rfft(kern, n)
         back = gg.sc_terms.index("walls_back")
-        yf = jnp.fft.rfft(first, n) * jnp.sum(kf, 2) + jnp.fft.rfft(second, n) * kf[:, :, back]
-        y = jnp.fft.irfft(yf, n)
+        y = jnp.fft.irfft(jnp.fft.rfft(first, n) * jnp.sum(kf, 2) + jnp.fft.rfft(second, n) * kf[:, :, back], n)
     return y[..., gg.sc_off:gg.sc_off + K]
 
 
