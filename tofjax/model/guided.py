@@ -849,11 +849,11 @@ def _edge_scatter(ctx, gg, el, first, second=None):
     cbar = _mean_cos(el)
     mu_t = p.mu_s_per_m + p.mu_a_per_m
     mu_eff = p.mu_a_per_m + p.mu_s_per_m * (1.0 - cg)
+    g_back = g_iso if SCATTER_FLUENCE else g_wall  # a wall-to-volume leg (as the tables bin it)
     # per term: the diffuse leg's 1 / cos, what the last leg loses, and the prefactor
     terms = {"beam_to_walls": (g_iso, mu_t, p.mu_s_per_m * cg / c_out),
-             "walls_back": (g_iso if SCATTER_FLUENCE else g_wall, mu_t, p.mu_s_per_m * G / cbar**2),
-             "redirect": (g_iso if SCATTER_FLUENCE else g_wall, mu_eff,
-                          p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)}  # a diffuse last leg
+             "walls_back": (g_back, mu_t, p.mu_s_per_m * G / cbar**2),
+             "redirect": (g_back, mu_eff, p.mu_s_per_m * cg * g_wall * p.end_reflectance * G)}  # a diffuse last leg
     legs, last, pref = zip(*(terms[k] for k in gg.sc_terms))
     leg, last, pref = (jnp.stack(v)[:, None] for v in (legs, last, pref))  # (T, 1)
     path = gg.sc_a / c_out + leg * gg.sc_b + g_iso * gg.sc_c  # (S, Z, T, NK)
@@ -1458,7 +1458,7 @@ def _scatter_tables(lx: float, ly: float, thickness: float, xy, ang, L, cos_wall
     names = _scatter_terms()
     out = {k: np.zeros((S, Z, len(names), NK)) for k in ("w", "a", "b", "c")}
     u_leg, p_leg = _leg_spread(cg, int(SCATTER_SPREAD))  # the diffuse legs' 1 / cos over the band, relative to its mean
-    g_back = g_iso if SCATTER_FLUENCE else g_wall  # term 1's wall-to-volume leg
+    g_back = g_iso if SCATTER_FLUENCE else g_wall  # a wall-to-volume leg (terms 1 and 2), as _edge_scatter times it
     if SCATTER_REDIRECT:  # term 2's scattering points: the centres of a grid over the guide
         nx, ny = max(1, round(lx / SCATTER_GRID_M)), max(1, round(ly / SCATTER_GRID_M))
         gx, gy = np.meshgrid((np.arange(nx) + 0.5) * lx / nx, (np.arange(ny) + 0.5) * ly / ny, indexing="ij")
