@@ -289,7 +289,7 @@ def test_fusion_jit_is_jit_with_the_fusion_emitters_on_a_cpu():
     import jax.numpy as jnp
     import numpy as np
 
-    from tofjax.compile_cache import FUSION_EMITTERS, fusion_jit
+    from tofjax.compile_cache import _FUSION_ON, fusion_jit
 
     def f(x, y):
         return jnp.sin(x) * y + jnp.exp(-x * x)
@@ -297,10 +297,28 @@ def test_fusion_jit_is_jit_with_the_fusion_emitters_on_a_cpu():
     g = fusion_jit(f)
     x = jnp.linspace(-2.0, 2.0, 33)
     np.testing.assert_allclose(np.asarray(g(x, 3.0)), np.asarray(jax.jit(f)(x, 3.0)), rtol=1e-12, atol=1e-15)
-    assert g.__name__ == "f" and FUSION_EMITTERS == {"xla_cpu_use_fusion_emitters": True}
+    assert g.__name__ == "f"
     if jax.default_backend() == "cpu":
-        lowered = jax.jit(f, compiler_options=FUSION_EMITTERS).lower(x, 3.0)
+        lowered = jax.jit(f, compiler_options=dict(_FUSION_ON)).lower(x, 3.0)
         assert lowered.compile().as_text()  # the option is one this XLA accepts on its CPU backend
+
+
+def test_fusion_emitters_only_where_the_backend_optimises(monkeypatch):
+    """FUSION_EMITTERS (what fusion_jit and the Monte Carlo's transport pass) is read when a program compiles: the
+    fusion emitters' option, except where $XLA_FLAGS turns the backend's optimisation off (level 0, the test
+    suite's default selection), where they only make the compile slower (experiments/emitters_unoptimised.py)."""
+    from tofjax.compile_cache import _FUSION_ON, FUSION_EMITTERS
+
+    on = {"xla_cpu_use_fusion_emitters": True}
+    assert _FUSION_ON == on
+    for flags, want in [("", on), ("--xla_cpu_use_fusion_emitters=false", on),
+                        ("--xla_backend_optimization_level=2", on), ("--xla_backend_optimization_level=01", on),
+                        ("--xla_backend_optimization_level=0", {}),
+                        ("--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 --xla_foo=1", {})]:
+        monkeypatch.setenv("XLA_FLAGS", flags)
+        assert dict(FUSION_EMITTERS) == want and FUSION_EMITTERS == want and len(FUSION_EMITTERS) == len(want), flags
+    monkeypatch.delenv("XLA_FLAGS")
+    assert dict(FUSION_EMITTERS) == on
 
 
 def test_the_default_selection_alone_compiles_unoptimised():

@@ -414,12 +414,16 @@ def test_prune_compiles_once_per_model_structure(monkeypatch):
     assert second.effects == first.effects and second.kept == first.kept
 
 
-def test_transport_asks_for_the_fusion_emitters_on_a_cpu():
+def test_transport_asks_for_the_fusion_emitters_on_a_cpu(monkeypatch):
     """The CLI compiles with XLA's elemental CPU emitters (faster to compile); the transport loop
     runs 2.2x faster with the fusion emitters (experiments/cpu_emitters.py), so its program asks
-    for them itself on a CPU mesh, and for nothing on an accelerator."""
+    for them itself on a CPU mesh, and for nothing on an accelerator; nor where the backend does not
+    optimise (level 0: experiments/emitters_unoptimised.py)."""
     from tofjax.mc.transport import _compiler_options, photon_mesh
 
     mesh = photon_mesh(1)
     assert mesh.devices.flat[0].platform == "cpu"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
     assert _compiler_options(mesh) == {"xla_cpu_use_fusion_emitters": True}
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0")
+    assert _compiler_options(mesh) == {}

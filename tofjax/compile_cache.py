@@ -45,6 +45,7 @@ import hashlib
 import os
 import pickle
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Callable
 
@@ -153,8 +154,40 @@ def use_fast_cpu_compiler(environ: dict[str, str] | None = None) -> bool:
     return True
 
 
-#: XLA's compile option that :func:`fusion_jit` sets for CPU programs
-FUSION_EMITTERS = {"xla_cpu_use_fusion_emitters": True}
+_FUSION_ON = {"xla_cpu_use_fusion_emitters": True}
+_UNOPTIMISED = re.compile(r"--xla_backend_optimization_level=0(\s|$)")
+
+
+def _backend_unoptimised(environ=None) -> bool:
+    """Whether ``$XLA_FLAGS`` compiles without the backend's optimisation (``--xla_backend_optimization_level=0``)."""
+    return bool(_UNOPTIMISED.search((os.environ if environ is None else environ).get("XLA_FLAGS", "")))
+
+
+class _FusionEmitters(Mapping):
+    """``{"xla_cpu_use_fusion_emitters": True}``, read when a program is compiled, or empty where ``$XLA_FLAGS``
+    compiles without the backend's optimisation (``--xla_backend_optimization_level=0``, as the test suite's default
+    selection does): there the fusion emitters make no program faster, only its compile slower (the Monte Carlo's
+    transport: 2x the compile time for the same run time, ``experiments/emitters_unoptimised.py``)."""
+
+    def _options(self) -> dict:
+        return {} if _backend_unoptimised() else _FUSION_ON
+
+    def __getitem__(self, key):
+        return self._options()[key]
+
+    def __iter__(self):
+        return iter(self._options())
+
+    def __len__(self) -> int:
+        return len(self._options())
+
+    def __repr__(self) -> str:
+        return repr(self._options())
+
+
+#: XLA's compile option that :func:`fusion_jit` (and the Monte Carlo's transport) set for CPU programs; empty when
+#: ``$XLA_FLAGS`` turns the backend's optimisation off (see :class:`_FusionEmitters`)
+FUSION_EMITTERS: Mapping = _FusionEmitters()
 
 
 def fusion_jit(fn: Callable) -> Callable:
@@ -162,7 +195,8 @@ def fusion_jit(fn: Callable) -> Callable:
     (:func:`use_fast_cpu_compiler` turns them off for the rest): for the loops that run far
     more often than they compile and run faster with them (the inversion's gather-heavy maps:
     2x the frames per second in a batch, ``experiments/bench_invert.py``). The compile option
-    is passed on a CPU backend only; one jitted function per backend, made on first use."""
+    is passed on a CPU backend only, and not where ``$XLA_FLAGS`` turns the backend's optimisation off
+    (:data:`FUSION_EMITTERS`); one jitted function per backend, made on first use."""
     import jax
 
     jitted: dict[str, Callable] = {}
@@ -172,7 +206,8 @@ def fusion_jit(fn: Callable) -> Callable:
         backend = jax.default_backend()
         f = jitted.get(backend)
         if f is None:
-            f = jitted[backend] = jax.jit(fn, compiler_options=FUSION_EMITTERS if backend == "cpu" else None)
+            options = dict(FUSION_EMITTERS) if backend == "cpu" else None
+            f = jitted[backend] = jax.jit(fn, compiler_options=options or None)
         return f(*args, **kwargs)
 
     return call
