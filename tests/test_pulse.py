@@ -95,24 +95,30 @@ def test_written_derivatives_match_finite_differences(sigma, ratio, u):
     differences, not the rule, lose the digits; test_no_nan_at_extremes covers the extremes.)"""
     tau = ratio * sigma
     x = u * (sigma + tau)
-    args = np.array([x, sigma, tau])
-    scale = np.array([sigma + tau, sigma, tau])
-
-    def f(v):
-        y = v * scale
-        return jnp.stack([emg_cdf(y[0], y[1], y[2]), emg_pdf(y[0], y[1], y[2]) * (sigma + tau)])
-
-    v0 = jnp.asarray(args / scale)
-    jac = np.asarray(jax.jacfwd(f)(v0))
-    hess = np.asarray(jax.jacfwd(jax.jacfwd(f))(v0))
+    scale = jnp.asarray([sigma + tau, sigma, tau])
+    v0 = jnp.asarray([x, sigma, tau]) / scale
+    jac = np.asarray(_scaled_jac(v0, scale))
+    hess = np.asarray(_scaled_hess(v0, scale))
     eps = 1e-5
     for k in range(3):
         e = np.zeros(3)
         e[k] = eps
-        fd = (np.asarray(f(v0 + e)) - np.asarray(f(v0 - e))) / (2 * eps)
+        fd = (np.asarray(_scaled_f(v0 + e, scale)) - np.asarray(_scaled_f(v0 - e, scale))) / (2 * eps)
         np.testing.assert_allclose(jac[:, k], fd, atol=2e-7, rtol=1e-5)
-        fd2 = (np.asarray(jax.jacfwd(f)(v0 + e)) - np.asarray(jax.jacfwd(f)(v0 - e))) / (2 * eps)
+        fd2 = (np.asarray(_scaled_jac(v0 + e, scale)) - np.asarray(_scaled_jac(v0 - e, scale))) / (2 * eps)
         np.testing.assert_allclose(hess[:, :, k], fd2, atol=2e-6, rtol=1e-4)
+
+
+def _scaled(v, scale):
+    """CDF and density (times sigma + tau) at ``v * scale`` = (x, sigma, tau): derivatives in units of the scales."""
+    y = v * scale
+    return jnp.stack([emg_cdf(y[0], y[1], y[2]), emg_pdf(y[0], y[1], y[2]) * (scale[1] + scale[2])])
+
+
+# compiled once for every example (eagerly, each example dispatched thousands of small operations)
+_scaled_f = jax.jit(_scaled)
+_scaled_jac = jax.jit(jax.jacfwd(_scaled))
+_scaled_hess = jax.jit(jax.jacfwd(jax.jacfwd(_scaled)))
 
 
 def test_written_derivatives_equal_traced_ones():
