@@ -912,6 +912,7 @@ def test_envelope_grid_rows_and_columns_are_the_grid_points(small):
     single points, to rounding."""
     import importlib
 
+    import equinox as eqx
     import jax.numpy as jnp
 
     S = importlib.import_module("tofjax.fit._start")
@@ -922,8 +923,9 @@ def test_envelope_grid_rows_and_columns_are_the_grid_points(small):
     grid = np.asarray(S.envelope_grid(problem, start, data, sigma, n1, mu_t))
     assert grid.shape == (3, 4) and np.all(np.isfinite(grid))
     albedo = float(start.mu_s_per_m) / float(start.mu_s_per_m + start.mu_a_per_m)
+    profile = eqx.filter_jit(problem.profile)  # compiled once for the four points (eagerly, op by op)
     for j, i in [(0, 0), (1, 2), (2, 3), (2, 1)]:
         p = start.replace(n1=n1[j], mu_s_per_m=mu_t[i] * albedo, mu_a_per_m=mu_t[i] * (1 - albedo))
-        _, m, _, _ = problem.profile(p, data, sigma)
+        _, m, _, _ = profile(p, data, sigma)
         np.testing.assert_allclose(grid[j, i], float(np.sum(((np.asarray(m) - np.asarray(data)) / np.asarray(sigma)) ** 2)),
                                    rtol=1e-9)

@@ -155,7 +155,9 @@ def test_sharded_over_two_devices_matches_one():
     import tempfile
 
     cache = os.path.join(tempfile.gettempdir(), f"tofjax-test-jax-cache-{os.getuid()}")
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu",
+    # the suite's own XLA flags too (conftest.py: level 0 where the selection is the default one), plus two devices
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu",
                JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(scene=sc.to_json())], env=env,
