@@ -166,8 +166,9 @@ def _backend_unoptimised(environ=None) -> bool:
 class _FusionEmitters(Mapping):
     """``{"xla_cpu_use_fusion_emitters": True}``, read when a program is compiled, or empty where ``$XLA_FLAGS``
     compiles without the backend's optimisation (``--xla_backend_optimization_level=0``, as the test suite's default
-    selection does): there the fusion emitters make no program faster, only its compile slower (the Monte Carlo's
-    transport: 2x the compile time for the same run time, ``experiments/emitters_unoptimised.py``)."""
+    selection does): there the Monte Carlo's transport compiled 1.8x slower with them and ran no faster
+    (``experiments/emitters_unoptimised.py``). XLA reads ``$XLA_FLAGS`` once, when JAX's backend starts; this reads
+    it at each compile, so set it before the backend starts (as :func:`use_fast_cpu_compiler` asks)."""
 
     def _options(self) -> dict:
         return {} if _backend_unoptimised() else _FUSION_ON
