@@ -158,9 +158,9 @@ _FUSION_ON = {"xla_cpu_use_fusion_emitters": True}
 _UNOPTIMISED = re.compile(r"--xla_backend_optimization_level=0(\s|$)")
 
 
-def _backend_unoptimised(environ=None) -> bool:
+def _backend_unoptimised() -> bool:
     """Whether ``$XLA_FLAGS`` compiles without the backend's optimisation (``--xla_backend_optimization_level=0``)."""
-    return bool(_UNOPTIMISED.search((os.environ if environ is None else environ).get("XLA_FLAGS", "")))
+    return bool(_UNOPTIMISED.search(os.environ.get("XLA_FLAGS", "")))
 
 
 class _FusionEmitters(Mapping):
