@@ -181,16 +181,20 @@ def test_cli_writes_json_and_png(files, small, capsys):
 
 def test_cli_fit_position_map(files, small, capsys):
     """``--method fit --position`` with a guided calibration: the position maps in the JSON (a standard deviation
-    where the map senses a contact, a share in [0, 1]), position.png, and the printed placement shares."""
+    where the map senses a contact, a share in [0, 1]), position.png, and the printed placement shares; on the 1 cm
+    grid ``--cell-m`` asks for (a quarter of the default grid's cells and time)."""
     cal = json.loads((files / "refused.json").read_text())
     cal.update(converged=True, result="successful", optics="guided")
     (files / "guided.json").write_text(json.dumps(cal))
     out = files / "pos"
     rc = main(["sensitivity", str(files / "small.toml"), "--baseline", str(files / "base.h5"), "--calibration",
-               str(files / "guided.json"), "--method", "fit", "--position", "--strength", "0.5", "--out", str(out)])
+               str(files / "guided.json"), "--method", "fit", "--position", "--strength", "0.5", "--cell-m", "0.01",
+               "--out", str(out)])
     assert rc == 0
     data = json.loads((out / "sensitivity.json").read_text())
     assert data["options"]["position"] is True and data["options"]["match_radius_m"] == 0.02
+    w = small.waveguide.size_m
+    assert data["grid"]["dx_m"] == pytest.approx(0.01, rel=0.1) and data["grid"]["nx"] == pytest.approx(w[0] / 0.01, abs=1)
     sd = np.array([[np.inf if v is None else v for v in row] for row in data["maps"]["position_sd_m"]])
     share = np.array(data["maps"]["match_share"], float)
     assert np.isfinite(sd).any() and np.all((share >= 0) & (share <= 1))
@@ -207,6 +211,9 @@ def test_cli_fit_position_map(files, small, capsys):
     (["--baseline", "missing.h5"], "missing.h5"),
     (["--position"], "add --method fit"),
     (["--method", "fit", "--position", "--match-radius-m", "0"], "--match-radius-m"),
+    (["--cell-m", "0.01"], "add --method fit"),
+    (["--method", "fit", "--cell-m", "0"], "--cell-m"),
+    (["--method", "fit", "--cell-m", "nan"], "--cell-m"),
 ])
 def test_cli_bad_input_is_one_line(files, extra, message, capsys):
     args = ["sensitivity", str(files / "small.toml"), "--baseline", str(files / "base.h5"), "--out", str(files / "bad")]
