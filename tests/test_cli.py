@@ -43,11 +43,16 @@ def test_simulate_then_plot(tmp_path, capsys):
     main(["simulate", "touch-single", "--frames", "3", "--seed", "4", "--out", str(again)])
     np.testing.assert_array_equal(read_capture(again).histograms, cap.histograms)
     out_dir = tmp_path / "plots"
-    assert main(["plot", str(cap_path), "--baseline", str(base_path), "--out", str(out_dir)]) == 0
+    assert main(["plot", str(cap_path), "--baseline", str(base_path), "--out", str(out_dir), "--sensors", "5,0,5"]) == 0
     pngs = sorted(p.name for p in out_dir.glob("*.png"))
-    assert pngs == ["histograms_sensor0.png", "histograms_sensor1.png", "histograms_sensor2.png",
-                    "histograms_sensor3.png", "histograms_sensor4.png", "histograms_sensor5.png", "scene.png"]
+    assert pngs == ["histograms_sensor0.png", "histograms_sensor5.png", "scene.png"]
     assert all((out_dir / p).stat().st_size > 10_000 for p in pngs)
+    for bad in ("6", "-1", "x", ""):
+        assert main(["plot", str(cap_path), "--out", str(tmp_path / "bad"), f"--sensors={bad}"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--sensors" in err and "\n" not in err and "Traceback" not in err
+    assert not (tmp_path / "bad").exists()
+
 
 
 @pytest.mark.parametrize(
@@ -101,7 +106,8 @@ def test_demo_writes_plots_summary_and_captures(tmp_path, optoskin):
     assert "touch 0" in text and "touch 2" in text and "us per evaluation" in text
     assert "calibration: converged" in text and "95% interval" in text
     assert "force estimation (seed 001)" in text and "test MAE mlp_rf" in text
-    for name in ("scene.png", "components.png", "histograms_sensor0.png", "baseline.h5", "touch.h5", "calibration.json"):
+    for name in ("scene.png", "components.png", "histograms_sensor0.png", "histograms_sensor1.png",
+                 "histograms_sensor2.png", "baseline.h5", "touch.h5", "calibration.json"):  # every sensor by default
         assert (tmp_path / "demo" / name).exists(), name
     touch = read_capture(tmp_path / "demo" / "touch.h5")
     assert touch.truth_touches.shape == (1, 3, 3)

@@ -49,7 +49,16 @@ def _cmd_plot(a) -> int:
         raise CaptureError(
             f"{a.baseline}: baseline shape {base.scene.shape} does not match the capture's {cap.scene.shape}"
         )
-    paths = plot_capture(cap, a.out, baseline=base, log=not a.linear)
+    sensors = None
+    if a.sensors is not None:
+        S = cap.scene.shape[0]
+        try:
+            sensors = [int(v) for v in a.sensors.split(",")]
+        except ValueError:
+            raise ConfigError(f"--sensors: expected comma-separated sensor indices, got {a.sensors!r}") from None
+        if not all(0 <= v < S for v in sensors):
+            raise ConfigError(f"--sensors: the capture has sensors 0-{S - 1}, got {a.sensors!r}")
+    paths = plot_capture(cap, a.out, baseline=base, log=not a.linear, sensors=sensors)
     if not cap.scene.free_space:  # a free-space capture has no waveguide to draw
         paths.append(plot_scene(cap.scene, Path(a.out) / "scene.png"))
     print(f"wrote {len(paths)} figures to {a.out}/")
@@ -378,6 +387,8 @@ def build_parser(extensions: bool = True) -> argparse.ArgumentParser:
     s.add_argument("--baseline", help="baseline capture to compare with (touch vs baseline)")
     s.add_argument("--out", required=True, help="output folder for PNGs")
     s.add_argument("--linear", action="store_true", help="linear count axis (default log)")
+    s.add_argument("--sensors", help="the sensors to draw, comma-separated indices (default all; each figure takes a "
+                   "second or two)")
     s.set_defaults(func=_cmd_plot)
 
     s = sub.add_parser("demo", help="the main job on the built-in default scene (what `make demo` runs)")

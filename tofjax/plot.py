@@ -7,6 +7,7 @@ PNG, so figures can be regenerated from saved files.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -67,10 +68,12 @@ def plot_capture(
     baseline: Capture | None = None,
     *,
     log: bool = True,
+    sensors: Sequence[int] | None = None,
 ) -> list[Path]:
     """One PNG per sensor with a panel per zone: mean histogram over frames (with the
     frame-to-frame spread), and the baseline where one is given (seed 000 Fig. 2b).
-    With a baseline, a second row shows touch minus baseline (Fig. 2c).
+    With a baseline, a second row shows touch minus baseline (Fig. 2c). ``sensors``: the
+    sensors' indices to draw (default all; a skin of many sensors takes about 2 s a figure).
     """
     scene = capture.scene
     out_dir = Path(out_dir)
@@ -79,9 +82,13 @@ def plot_capture(
     mean = capture.histograms.mean(0)
     lo, hi = np.percentile(capture.histograms, [16, 84], axis=0) if capture.n_frames > 1 else (mean, mean)
     base = baseline.histograms.mean(0) if baseline is not None else None
+    chosen = range(S) if sensors is None else sorted(dict.fromkeys(int(s) for s in sensors))
+    bad = [s for s in chosen if not 0 <= s < S]
+    if bad or not chosen:
+        raise ValueError(f"sensors: the capture has sensors 0-{S - 1}, got {list(sensors)!r}")
     paths = []
     rows = 2 if base is not None else 1
-    for s in range(S):
+    for s in chosen:
         fig, axes = plt.subplots(rows, Z, figsize=(2.3 * Z, 2.4 * rows + 0.5), sharex=True, squeeze=False)
         for z in range(Z):
             ax = axes[0, z]
