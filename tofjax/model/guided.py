@@ -140,6 +140,15 @@ EDGE_SECOND_SPREAD = 8
 #: recall 88.7 / 93.1% against 88.3 / 94.4% on the same data, experiments/eval_mc_data.py), and it
 #: costs the guided model 1.45x on touch-six and the detection 1.55x.
 EDGE_SECOND_SHADOW = False
+#: The second bounce's exchange from a source to a receiving wall segment, exact in the plane: with
+#: :data:`EDGE_SECOND_GROUPS` each source is its group's stretch of wall, lit evenly, and Hottel's crossed strings give
+#: the share of its in-plane diffuse emission each ray's segment receives (a table built once, :func:`_wall_group_views`);
+#: without, each source is a point and the share is its ``cos(psi) / 2`` per radian integrated over the angle the
+#: segment subtends, ``|sin(psi_2) - sin(psi_1)| / 2``. The delay and attenuation take the in-plane distance from the
+#: source's centre. Off: the segment's centre alone, ``cos_i cos_j len / (2 r)`` with ``r^2 = d^2 + thickness^2``,
+#: whose thickness term (5 mm on OptoSkin) took 40-80% of the exchange across a corner, where a zone's two walls'
+#: stretches are a few mm apart.
+EDGE_SECOND_EXACT_VIEW = True
 #: Add the walls' later diffuse bounces (:func:`_reverb`): a time-resolved radiosity of the walls from the third
 #: bounce on (the first two are :func:`_edge` and :func:`_edge_second`), with the beam's scattered light, seen by
 #: each zone through its rays' wall segments and the volume in front of them. Against the Monte Carlo in a clear
@@ -439,6 +448,7 @@ class GuidedGeometry(eqx.Module):
     hs_r: jax.Array = None  # (S, M) and its mean in-plane distance from there to the segment
     es_groups: jax.Array = None  # (S, I, Z, A) the second bounce's sources: each zone's rays by the wall they end on
     es_normal: jax.Array = None  # (S, I, 2) and that wall's inward normal
+    es_view: jax.Array = None  # (S, Z, A, I) the share of each group's diffuse in-plane emission each ray's segment gets
     sc_terms: tuple = eqx.field(static=True, default=())  # the kernels' names, in order (:func:`_scatter_terms`)
     sc_off: int = eqx.field(static=True, default=0)  # the kernels' time nodes before the first return's
     sc_nodes: int = eqx.field(static=True, default=0)  # and in all
@@ -484,8 +494,15 @@ class GuidedGeometry(eqx.Module):
             off = int(math.ceil(-min(SCATTER_MIN_M, 0.0) * per_m)) + 2
             scatter = {f"sc_{k}": jnp.asarray(v, dtype) for k, v in tab.items()} | {"sc_terms": _scatter_terms()}
             scatter |= {"sc_off": off, "sc_nodes": off + int(math.ceil((SCATTER_MIN_M + SCATTER_BINS * SCATTER_BIN_M) * per_m)) + 2}
-        groups = dict(zip(("es_groups", "es_normal"), (jnp.asarray(v, dtype) for v in _wall_groups(
-            np.asarray(wall_normal, float), ray_length)))) if EDGE_SECOND_GROUPS else {}
+        groups = {}
+        if EDGE_SECOND_GROUPS:
+            member, g_normal = _wall_groups(np.asarray(wall_normal, float), ray_length)
+            groups = {"es_groups": jnp.asarray(member, dtype), "es_normal": jnp.asarray(g_normal, dtype)}
+            if EDGE_SECOND_EXACT_VIEW:
+                hit = xy + ray_length[..., None] * np.stack([c, s], -1)  # (S, Z, A, 2) the rays' wall points
+                seg = ray_length * (width / A)[None, :, None] / np.maximum(cos_wall, 0.1)
+                groups["es_view"] = jnp.asarray(_wall_group_views(member, g_normal, hit, seg, np.asarray(wall_normal, float),
+                                                                  lx, ly), dtype)
         segs = _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
                               float(scene.waveguide.thickness_m))
         return cls(
@@ -533,6 +550,55 @@ def _wall_groups(normals, L) -> tuple[np.ndarray, np.ndarray]:
             out[s, i, z] = (wid[s, z] == w) & (L[s, z] > 0)
             normal[s, i] = normals[s, z][wid[s, z] == w][0]
     return out, normal
+
+
+def _wall_group_views(member, g_normal, hit, seg, normal, lx: float, ly: float) -> np.ndarray:
+    """The share of each second-bounce source's diffuse in-plane emission that each ray's wall segment receives
+    (:data:`EDGE_SECOND_EXACT_VIEW`), (S, Z, A, I): a source is its group's stretch of wall (``member`` (S, I, Z, A),
+    from :func:`_wall_groups`; ``g_normal`` (S, I, 2) its wall's inward normal), from the first to the last of its rays'
+    segments, lit evenly; a ray's segment is ``seg`` (S, Z, A) long about its wall point ``hit`` (S, Z, A, 2) on the
+    wall of inward normal ``normal``. Both are clipped to the guide's outline (a segment can reach past a corner). By
+    Hottel's crossed strings, exact in the plane for two straight stretches of a convex outline; one wall exchanges
+    nothing."""
+    def tangent(n):
+        return np.stack([n[..., 1], -n[..., 0]], -1)
+
+    def clip(p):
+        return np.stack([np.clip(p[..., 0], 0.0, lx), np.clip(p[..., 1], 0.0, ly)], -1)
+
+    S, I = member.shape[:2]
+    t_g = tangent(g_normal)  # (S, I, 2)
+    u = np.einsum("szac,sic->siza", hit, t_g)  # (S, I, Z, A) each ray's point along each group's wall
+    on = member > 0
+    lo = np.where(on, u - 0.5 * seg[:, None], np.inf).min(axis=(2, 3))  # (S, I)
+    hi = np.where(on, u + 0.5 * seg[:, None], -np.inf).max(axis=(2, 3))
+    ref = np.einsum("sizac,siza->sic", np.broadcast_to(hit[:, None], (S, I) + hit.shape[1:]), on / np.maximum(
+        on.sum(axis=(2, 3), keepdims=True), 1))  # (S, I, 2) a point on the group's wall (its rays' mean point)
+    u_ref = np.einsum("sic,sic->si", ref, t_g)
+    live = on.any(axis=(2, 3))
+    lo, hi = np.where(live, lo, u_ref), np.where(live, hi, u_ref)
+    a1 = clip(ref + (lo - u_ref)[..., None] * t_g)  # (S, I, 2)
+    a2 = clip(ref + (hi - u_ref)[..., None] * t_g)
+    t_r = tangent(normal)  # (S, Z, A, 2)
+    b1, b2 = clip(hit - 0.5 * seg[..., None] * t_r), clip(hit + 0.5 * seg[..., None] * t_r)
+
+    def dist(a, b):  # a (S, I, 2), b (S, Z, A, 2) -> (S, Z, A, I)
+        return np.sqrt(np.sum((b[:, :, :, None, :] - a[:, None, None, :, :]) ** 2, -1))
+
+    strings = np.abs(dist(a1, b2) + dist(a2, b1) - dist(a1, b1) - dist(a2, b2))
+    length = np.sqrt(np.sum((a2 - a1) ** 2, -1))[:, None, None, :]  # (S, 1, 1, I)
+
+    def sin_psi(b):  # a point source at the group's point (a stretch of no length): sin of the angle from its normal
+        v = b[:, :, :, None, :] - ref[:, None, None, :, :]
+        along = np.einsum("szaic,sic->szai", v, t_g)
+        ahead = np.einsum("szaic,sic->szai", v, g_normal)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(ahead > 0, along / np.hypot(along, ahead), np.sign(along))
+
+    point = 0.5 * np.abs(sin_psi(b2) - sin_psi(b1))
+    other = np.einsum("szac,sic->szai", normal, g_normal) < 0.5
+    share = np.where(length > 1e-9, 0.5 * strings / np.maximum(length, 1e-300), point)
+    return np.where(other & live[:, None, None, :], share, 0.0)
 
 
 def _wall_segments(lx: float, ly: float, wx, wy, thickness: float) -> dict:
@@ -913,14 +979,31 @@ def _edge_second(ctx, gg, el, amp1, frus):
             Ps = Ps * jnp.prod(1.0 - frus[0], axis=-1)[:, :, sel]
         Ps = Ps.reshape(S, -1)
     d = W[:, :, :, None, :] - Ws[:, None, None, :, :]  # (S, Z, A, I, 2): from source i to receiver j
-    r2 = jnp.sum(d**2, -1) + gg.thickness_m**2
-    r = jnp.sqrt(r2)
-    cos_i = jnp.clip(jnp.sum(d * ns[:, None, None], -1) / r, 0.0, 1.0)
-    cos_j = jnp.clip(-jnp.sum(d * gg.wall_normal[:, :, :, None, :], -1) / r, 0.0, 1.0)
     G, inv_c = _wall_band(el)  # guided share of a Lambertian wall's emission, its mean 1 / cos
     seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1)  # (S, Z, A) receiving segment length
     P1 = jnp.maximum(beam, 1e-300)
-    view = 0.5 * cos_i * cos_j * seg[..., None] / r  # (S, Z, A, I) the share a receiving segment gets of a source
+    if EDGE_SECOND_EXACT_VIEW and EDGE_SECOND_GROUPS and gg.es_view is not None:
+        view = gg.es_view  # (S, Z, A, I): the groups' stretches to the rays' segments, built once
+        r = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
+    elif EDGE_SECOND_EXACT_VIEW:
+        nj = gg.wall_normal[:, :, :, None, :]  # (S, Z, A, 1, 2)
+        half = 0.5 * seg[..., None, None] * jnp.stack([nj[..., 1], -nj[..., 0]], -1)  # half the segment along its wall
+        ni = ns[:, None, None]  # (S, 1, 1, I, 2)
+        ti = jnp.stack([ni[..., 1], -ni[..., 0]], -1)
+
+        def sin_psi(v):  # sin of the angle from the source's normal; an end behind the source's wall: +-1
+            along, ahead = jnp.sum(v * ti, -1), jnp.sum(v * ni, -1)
+            return jnp.where(ahead > 0, along / jnp.sqrt(along**2 + jnp.maximum(ahead, 0.0) ** 2 + 1e-30),
+                             jnp.sign(along))
+
+        other = jnp.sum(ni * nj, -1) < 0.5  # one wall exchanges nothing
+        view = jnp.where(other, 0.5 * jnp.abs(sin_psi(d + half) - sin_psi(d - half)), 0.0)  # (S, Z, A, I)
+        r = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
+    else:
+        r = jnp.sqrt(jnp.sum(d**2, -1) + gg.thickness_m**2)
+        cos_i = jnp.clip(jnp.sum(d * ns[:, None, None], -1) / r, 0.0, 1.0)
+        cos_j = jnp.clip(-jnp.sum(d * gg.wall_normal[:, :, :, None, :], -1) / r, 0.0, 1.0)
+        view = 0.5 * cos_i * cos_j * seg[..., None] / r  # (S, Z, A, I) the share a receiving segment gets of a source
     ratio = (p.end_reflectance * G * Ps[:, None, None, :] * view / P1[..., None]
              * jnp.exp(-mu_t * r * inv_c))  # (S, Z, A, I)
     if frus is not None and EDGE_SECOND_SHADOW:
