@@ -23,6 +23,9 @@ Then the orders, in the same thousandths: ``R mu_s`` (the lower reflectance's ex
 scaled by ``R_hi / (R_hi - R_lo)`` to the higher reflectance's share of two-bounce light). **Simulated** data only.
 
     python experiments/wall_light_orders.py --out docs/results/wall_light_orders.json --plot docs/results/wall_light_orders.png
+
+``--guided-switch NAME=VALUE`` sets a module switch of :mod:`tofjax.model.guided` for the run (repeatable), as
+``calib_mc_seeds.py`` does.
 """
 
 from __future__ import annotations
@@ -161,9 +164,14 @@ def main(argv=None) -> int:
     ap.add_argument("--reflectance", default="0.1,0.5", help="wall reflectances, comma-separated (two or more)")
     ap.add_argument("--seeds", type=int, default=8, help="Monte Carlo runs per cell and edge (cached)")
     ap.add_argument("--photons", type=int, default=25_000, help="photons per sensor per run")
+    ap.add_argument("--guided-switch", action="append", default=[], metavar="NAME=VALUE",
+                    help="set a module switch of tofjax.model.guided for this run (repeatable)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
     from tofjax.outputs import OutputError, check_output
+
+    sys.path.insert(0, str(HERE))
+    import eval_mc_data as ev
 
     try:
         mus, rs = _floats(a.mu_s, "--mu-s"), _floats(a.reflectance, "--reflectance")
@@ -173,14 +181,16 @@ def main(argv=None) -> int:
             raise ValueError("--seeds must be >= 2 (a standard error) and --photons >= 1")
         path = check_output(Path(a.out), overwrite=a.overwrite)
         png = check_output(Path(a.plot), overwrite=a.overwrite) if a.plot else None
+        try:
+            ev.set_guided_switches(a.guided_switch)
+        except ValueError as e:
+            raise ValueError(f"--guided-switch: {e}") from None
     except (ValueError, OutputError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     import tofjax
 
     tofjax.enable_x64()
-    sys.path.insert(0, str(HERE))
-    import eval_mc_data as ev
     import tofjax.model.guided as guided
 
     t0 = time.perf_counter()

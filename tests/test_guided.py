@@ -1322,7 +1322,8 @@ def test_wall_light_orders_separates_the_orders_and_refuses_bad_input(tmp_path, 
     keep.write_text("keep")
     for argv in (["--out", str(keep)], ["--out", str(tmp_path / "n.json"), "--mu-s", "0,x"],
                  ["--out", str(tmp_path / "n.json"), "--reflectance", "0.1,1.5"],
-                 ["--out", str(tmp_path / "n.json"), "--mu-s", "-1"], ["--out", str(tmp_path / "n.json"), "--seeds", "1"]):
+                 ["--out", str(tmp_path / "n.json"), "--mu-s", "-1"], ["--out", str(tmp_path / "n.json"), "--seeds", "1"],
+                 ["--out", str(tmp_path / "n.json"), "--guided-switch", "NO_SUCH_SWITCH=1"]):
         assert mod.main(argv) == 2
         assert capsys.readouterr().err.startswith("error: ")
     assert keep.read_text() == "keep" and not (tmp_path / "n.json").exists()
