@@ -41,7 +41,7 @@ def _cmd_simulate(a) -> int:
 
 def _cmd_plot(a) -> int:
     from .capture import read_capture
-    from .plot import plot_capture, plot_scene
+    from .plot import chosen_sensors, plot_capture, plot_scene
 
     cap = read_capture(a.capture)
     base = read_capture(a.baseline) if a.baseline else None
@@ -51,13 +51,11 @@ def _cmd_plot(a) -> int:
         )
     sensors = None
     if a.sensors is not None:
-        S = cap.scene.shape[0]
         try:
-            sensors = [int(v) for v in a.sensors.split(",")]
-        except ValueError:
-            raise ConfigError(f"--sensors: expected comma-separated sensor indices, got {a.sensors!r}") from None
-        if not all(0 <= v < S for v in sensors):
-            raise ConfigError(f"--sensors: the capture has sensors 0-{S - 1}, got {a.sensors!r}")
+            sensors = chosen_sensors(cap.scene.shape[0], [int(v) for v in a.sensors.split(",")])
+        except ValueError as e:
+            raise ConfigError(f"--sensors: expected comma-separated sensor indices of the capture, got {a.sensors!r} "
+                              f"({e})") from None
     paths = plot_capture(cap, a.out, baseline=base, log=not a.linear, sensors=sensors)
     if not cap.scene.free_space:  # a free-space capture has no waveguide to draw
         paths.append(plot_scene(cap.scene, Path(a.out) / "scene.png"))

@@ -62,6 +62,15 @@ def _bin_axis(scene: Scene) -> np.ndarray:
     return np.arange(scene.sensor.n_bins)
 
 
+def chosen_sensors(n_sensors: int, sensors: Sequence[int] | None) -> list[int]:
+    """The sensors' indices to draw, sorted, once each (``None``: all); ValueError for an empty list or an index out
+    of ``0 .. n_sensors - 1``."""
+    chosen = list(range(n_sensors)) if sensors is None else sorted(dict.fromkeys(int(s) for s in sensors))
+    if not chosen or not all(0 <= s < n_sensors for s in chosen):
+        raise ValueError(f"the capture has sensors 0-{n_sensors - 1}, got {list(sensors or [])!r}")
+    return chosen
+
+
 def plot_capture(
     capture: Capture,
     out_dir: str | Path,
@@ -82,10 +91,7 @@ def plot_capture(
     mean = capture.histograms.mean(0)
     lo, hi = np.percentile(capture.histograms, [16, 84], axis=0) if capture.n_frames > 1 else (mean, mean)
     base = baseline.histograms.mean(0) if baseline is not None else None
-    chosen = range(S) if sensors is None else sorted(dict.fromkeys(int(s) for s in sensors))
-    bad = [s for s in chosen if not 0 <= s < S]
-    if bad or not chosen:
-        raise ValueError(f"sensors: the capture has sensors 0-{S - 1}, got {list(sensors)!r}")
+    chosen = chosen_sensors(S, sensors)
     paths = []
     rows = 2 if base is not None else 1
     for s in chosen:

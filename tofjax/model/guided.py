@@ -503,7 +503,7 @@ class GuidedGeometry(eqx.Module):
             groups = {"es_groups": jnp.asarray(member, dtype), "es_normal": jnp.asarray(g_normal, dtype)}
             if EDGE_SECOND_EXACT_VIEW:
                 hit = xy + ray_length[..., None] * np.stack([c, s], -1)  # (S, Z, A, 2) the rays' wall points
-                seg = ray_length * (width / A)[None, :, None] / np.maximum(cos_wall, 0.1)
+                seg = _ray_segment(np, ray_length, width / A, cos_wall)
                 groups["es_view"] = jnp.asarray(_wall_group_views(member, g_normal, hit, seg, np.asarray(wall_normal, float),
                                                                   lx, ly), dtype)
         segs = _wall_segments(lx, ly, xy[..., 0] + np.minimum(tx, ty) * c, xy[..., 1] + np.minimum(tx, ty) * s,
@@ -555,6 +555,19 @@ def _wall_groups(normals, L) -> tuple[np.ndarray, np.ndarray]:
     return out, normal
 
 
+def _ray_segment(xp, L, dphi, cos_wall):
+    """Each ray's stretch of wall (S, Z, A): its length ``L`` times its zone's angle ``dphi`` (Z,) over the wall's
+    ``cos`` (floored at 0.1, a grazing ray). ``xp``: numpy at build, jax.numpy in a traced model."""
+    return L * dphi[None, :, None] / xp.maximum(cos_wall, 0.1)
+
+
+def _sin_from_normal(xp, v, t, n):
+    """``sin`` of the in-plane angle of ``v`` (..., 2) from a wall's inward normal ``n`` (``t`` its tangent), the
+    exact point-to-segment view's ingredient; a ``v`` behind the wall: +-1. ``xp``: numpy or jax.numpy."""
+    along, ahead = xp.sum(v * t, -1), xp.sum(v * n, -1)
+    return xp.where(ahead > 0, along / xp.sqrt(along**2 + xp.maximum(ahead, 0.0) ** 2 + 1e-30), xp.sign(along))
+
+
 def _wall_group_views(member, g_normal, hit, seg, normal, lx: float, ly: float) -> np.ndarray:
     """The share of each second-bounce source's diffuse in-plane emission that each ray's wall segment receives
     (:data:`EDGE_SECOND_EXACT_VIEW`), (S, Z, A, I): a source is its group's stretch of wall (``member`` (S, I, Z, A),
@@ -592,11 +605,7 @@ def _wall_group_views(member, g_normal, hit, seg, normal, lx: float, ly: float) 
     length = np.sqrt(np.sum((a2 - a1) ** 2, -1))[:, None, None, :]  # (S, 1, 1, I)
 
     def sin_psi(b):  # a point source at the group's point (a stretch of no length): sin of the angle from its normal
-        v = b[:, :, :, None, :] - ref[:, None, None, :, :]
-        along = np.einsum("szaic,sic->szai", v, t_g)
-        ahead = np.einsum("szaic,sic->szai", v, g_normal)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(ahead > 0, along / np.hypot(along, ahead), np.sign(along))
+        return _sin_from_normal(np, b[:, :, :, None, :] - ref[:, None, None, :, :], t_g[:, None, None], g_normal[:, None, None])
 
     point = 0.5 * np.abs(sin_psi(b2) - sin_psi(b1))
     other = np.einsum("szac,sic->szai", normal, g_normal) < 0.5
@@ -983,26 +992,22 @@ def _edge_second(ctx, gg, el, amp1, frus):
         Ps = Ps.reshape(S, -1)
     d = W[:, :, :, None, :] - Ws[:, None, None, :, :]  # (S, Z, A, I, 2): from source i to receiver j
     G, inv_c = _wall_band(el)  # guided share of a Lambertian wall's emission, its mean 1 / cos
-    seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1)  # (S, Z, A) receiving segment length
     P1 = jnp.maximum(beam, 1e-300)
     if EDGE_SECOND_EXACT_VIEW and EDGE_SECOND_GROUPS and gg.es_view is not None:
         view = gg.es_view  # (S, Z, A, I): the groups' stretches to the rays' segments, built once
         r = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
     elif EDGE_SECOND_EXACT_VIEW:
+        seg = _ray_segment(jnp, L, gg.dphi, gg.cos_wall)  # (S, Z, A) receiving segment length
         nj = gg.wall_normal[:, :, :, None, :]  # (S, Z, A, 1, 2)
         half = 0.5 * seg[..., None, None] * jnp.stack([nj[..., 1], -nj[..., 0]], -1)  # half the segment along its wall
         ni = ns[:, None, None]  # (S, 1, 1, I, 2)
         ti = jnp.stack([ni[..., 1], -ni[..., 0]], -1)
-
-        def sin_psi(v):  # sin of the angle from the source's normal; an end behind the source's wall: +-1
-            along, ahead = jnp.sum(v * ti, -1), jnp.sum(v * ni, -1)
-            return jnp.where(ahead > 0, along / jnp.sqrt(along**2 + jnp.maximum(ahead, 0.0) ** 2 + 1e-30),
-                             jnp.sign(along))
-
         other = jnp.sum(ni * nj, -1) < 0.5  # one wall exchanges nothing
-        view = jnp.where(other, 0.5 * jnp.abs(sin_psi(d + half) - sin_psi(d - half)), 0.0)  # (S, Z, A, I)
+        view = jnp.where(other, 0.5 * jnp.abs(_sin_from_normal(jnp, d + half, ti, ni) - _sin_from_normal(jnp, d - half, ti, ni)),
+                         0.0)  # (S, Z, A, I)
         r = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
     else:
+        seg = _ray_segment(jnp, L, gg.dphi, gg.cos_wall)  # (S, Z, A) receiving segment length
         r = jnp.sqrt(jnp.sum(d**2, -1) + gg.thickness_m**2)
         cos_i = jnp.clip(jnp.sum(d * ns[:, None, None], -1) / r, 0.0, 1.0)
         cos_j = jnp.clip(-jnp.sum(d * gg.wall_normal[:, :, :, None, :], -1) / r, 0.0, 1.0)
@@ -1202,7 +1207,7 @@ def _reverb(ctx, gg, el, ret, frus):
         br, bi = _geometric_tail(ar, ai, br, bi)
     xr, xi = xr + ar + br, xi + ai + bi
     # seen through each ray's first-bounce return, per metre of its segment
-    seg = L * gg.dphi[None, :, None] / jnp.maximum(gg.cos_wall, 0.1) / gg.seg_len[gg.ray_seg]  # (S, Z, A)
+    seg = _ray_segment(jnp, L, gg.dphi, gg.cos_wall) / gg.seg_len[gg.ray_seg]  # (S, Z, A)
     # one return per ray at its elevations' mean delay (the field is smooth on the band's spread of delays)
     w = jnp.sum(ret, axis=-1)
     w_safe = jnp.where(w > 0, w, 1.0)
