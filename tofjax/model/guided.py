@@ -1017,9 +1017,13 @@ def _edge_second(ctx, gg, el, amp1, frus):
     if frus is not None and EDGE_SECOND_SHADOW:
         ratio = ratio * _leg_transmission(ctx, gg, el, Ws, d)
     if EDGE_SECOND_SPREAD:
-        groups = np.array_split(np.arange(amp1.shape[-1]), min(int(EDGE_SECOND_SPREAD), amp1.shape[-1]))
-        ag = jnp.stack([jnp.sum(amp1[..., g], -1) for g in groups], -1)  # (S, Z, A, n)
-        lg = jnp.stack([jnp.sum(amp1[..., g] / el.c[g], -1) for g in groups], -1) / jnp.where(ag > 0, ag, 1.0)
+        E = amp1.shape[-1]
+        member = np.zeros((E, min(int(EDGE_SECOND_SPREAD), E)))  # return elevation -> its group: one product, not a sum each
+        for j, g in enumerate(np.array_split(np.arange(E), member.shape[1])):
+            member[g, j] = 1.0
+        member = jnp.asarray(member, amp1.dtype)
+        ag = amp1 @ member  # (S, Z, A, n)
+        lg = (amp1 / el.c) @ member / jnp.where(ag > 0, ag, 1.0)
         amp = ag[..., None, :] * ratio[..., None]  # (S, Z, A, I, n)
         t = p.emission_time_s + ((Ls[:, None, None, :] / el.c_out + r * inv_c)[..., None]
                                  + (L[..., None] * lg)[..., None, :]) / nodes.c1
