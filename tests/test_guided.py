@@ -132,14 +132,18 @@ def test_guided_model_is_linear_and_differentiable():
     opts = ModelOptions(optics="guided", skin=SkinContact())
     model = build_model(sc, opts)
     p = Params.from_scene(sc)
-    y = np.asarray(model(p))
-    R, P = eqx.filter_jit(model.linear_parts)(p)  # compiled, as a fit uses it (eagerly it ran op by op)
+
+    @eqx.filter_jit  # one compiled program for the four (each compiled alone cost a compile of the model)
+    def everything(q):
+        return model(q), model.linear_parts(q), model.breakdown(q), jax.grad(lambda r: jnp.sum(model(r) ** 0.5))(q)
+
+    y, (R, P), breakdown, grad = everything(p)
+    y = np.asarray(y)
     lin = p.gain[:, None, None] * R + p.crosstalk_counts[..., None] * P + p.ambient_counts[..., None]
     np.testing.assert_allclose(np.asarray(lin), y, rtol=1e-9, atol=1e-9 * y.max())
-    parts = sum(np.asarray(v) for v in model.breakdown(p).values())
+    parts = sum(np.asarray(v) for v in breakdown.values())
     np.testing.assert_allclose(parts, y, rtol=1e-9, atol=1e-9 * y.max())
-    assert set(model.breakdown(p)) == set(model.components) - {"shadowing"}  # shadowing multiplies the others
-    grad = jax.jit(jax.grad(lambda q: jnp.sum(model(q) ** 0.5)))(p)
+    assert set(breakdown) == set(model.components) - {"shadowing"}  # shadowing multiplies the others
     for name in ("n1", "mu_s_per_m", "touch_xy_m", "touch_radius_m", "end_reflectance"):
         gv = np.asarray(getattr(grad, name))
         assert np.isfinite(gv).all() and np.abs(gv).sum() > 0, name

@@ -178,11 +178,16 @@ def test_node_terms_derivative_as_a_matrix_product_equals_the_direct_one(optoski
             q = p.replace(**{k: x[i] for i, k in enumerate(node_scalars)}, end_reflectance=x[-1])
             return model.linear_masses(q, node_jvp=node_jvp)[0]
 
-        return [jax.jit(masses)(x0), jax.jit(jax.jacfwd(masses))(x0), jax.jit(jax.grad(lambda x: jnp.sum(masses(x) ** 2)))(x0),
-                jax.jit(lambda x: jax.jvp(lambda y: jax.jvp(masses, (y,), (v,))[1], (x,), (v,))[1])(x0)]
+        def all_four(x):  # one compiled program per variant (four cost four compiles of the OptoSkin model)
+            return [masses(x), jax.jacfwd(masses)(x), jax.grad(lambda y: jnp.sum(masses(y) ** 2))(x),
+                    jax.jvp(lambda y: jax.jvp(masses, (y,), (v,))[1], (x,), (v,))[1]]
+
+        return jax.jit(all_four)(x0)
 
     got, want = pieces(True), pieces(False)
-    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-13, atol=1e-300)  # the same ops, fused apart
+    # the same ops, fused apart (and, in one program with the derivatives, fused with them): to rounding of the
+    # largest mass (the spline's far tails, 1e-18 against exact zeros, are not the same ops' rounding)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-13, atol=1e-13 * float(np.max(np.abs(want[0]))))
     for i, (g, w) in enumerate(zip(got[1:], want[1:])):
         g, w = np.asarray(g), np.asarray(w)
         assert np.all(np.isfinite(g))
