@@ -155,3 +155,24 @@ def test_solver_secant_study_fast(tmp_path):
     with pytest.raises(SystemExit) as e:  # an existing record is not overwritten without --overwrite
         study.main(["--quick", "--out", str(out)])
     assert e.value.code == 2
+
+
+def test_model_compile_compare_fast(tmp_path):
+    """experiments/model_compile_compare.py on the default optics, one round, this tree against itself: its record
+    has every program's compile and call for both trees, their ratios, and the two outputs agree exactly (the
+    same code). Bad arguments exit 2."""
+    study = load("model_compile_compare")
+    out = tmp_path / "m.json"
+    assert study.main(["--base", str(ROOT), "--optics", "default", "--rounds", "1", "--calls", "2", "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert set(rec["median"]["after"]) == {"default/forward", "default/value_and_grad"}
+    for side in ("before", "after"):
+        for v in rec["median"][side].values():
+            assert v["compile_cpu_s"] > 0 and v["call_ms"] > 0 and v["instructions"] > 10
+    assert rec["forward_max_relative_difference"] == {"default": 0.0} and rec["simulated"] and rec["flags"] == "tests"
+    assert not (tmp_path / "m.tmp").exists()
+    for bad in (["--optics", "bulk"], ["--rounds", "0"], ["--base", str(tmp_path)]):
+        argv = ["--base", str(ROOT), "--out", str(tmp_path / "x.json"), *bad]
+        with pytest.raises(SystemExit) as e:
+            study.main(argv)
+        assert e.value.code == 2
