@@ -70,12 +70,16 @@ def worker(calls: int, out_file: str, optics=OPTICS) -> dict:
 
 
 def run_worker(tree: Path, flags: str, calls: int, out_file: Path, optics=OPTICS) -> dict:
-    env = dict(os.environ, XLA_FLAGS=flags, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0", JAX_PLATFORMS="cpu",
-               PYTHONPATH=str(tree))
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_", "TOFJAX_", "PYTHONPATH"))}  # nothing inherited
+    env.update(XLA_FLAGS=flags, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0", JAX_PLATFORMS="cpu", PYTHONPATH=str(tree))
     load = os.getloadavg()[0]
     code = (f"import sys, json; sys.path.insert(0, {str(ROOT / 'experiments')!r}); import model_compile_compare as m; "
             f"print(json.dumps(m.worker({calls}, {str(out_file)!r}, {tuple(optics)!r})))")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=False, cwd=str(tree))
+    try:
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=False, cwd=str(tree),
+                             timeout=1800)
+    except subprocess.TimeoutExpired:
+        raise SystemExit(f"worker ({tree}) did not finish in 30 minutes") from None
     if out.returncode != 0:
         print(out.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"worker ({tree}) failed with exit code {out.returncode}")

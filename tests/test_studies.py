@@ -158,19 +158,18 @@ def test_solver_secant_study_fast(tmp_path):
 
 
 def test_model_compile_compare_fast(tmp_path):
-    """experiments/model_compile_compare.py on the default optics, one round, this tree against itself: its record
-    has every program's compile and call for both trees, their ratios, and the two outputs agree exactly (the
-    same code). Bad arguments exit 2."""
+    """experiments/model_compile_compare.py's worker on the default optics, in this process: every program's compile,
+    call and instruction count, and the model's output saved for the comparison. Bad arguments exit 2 (the
+    side-by-side run itself starts fresh processes, too slow for the default run)."""
     study = load("model_compile_compare")
-    out = tmp_path / "m.json"
-    assert study.main(["--base", str(ROOT), "--optics", "default", "--rounds", "1", "--calls", "2", "--out", str(out)]) == 0
-    rec = json.loads(out.read_text())
-    assert set(rec["median"]["after"]) == {"default/forward", "default/value_and_grad"}
-    for side in ("before", "after"):
-        for v in rec["median"][side].values():
-            assert v["compile_cpu_s"] > 0 and v["call_ms"] > 0 and v["instructions"] > 10
-    assert rec["forward_max_relative_difference"] == {"default": 0.0} and rec["simulated"] and rec["flags"] == "tests"
-    assert not (tmp_path / "m.tmp").exists()
+    rec = study.worker(2, str(tmp_path / "y.npz"), ("default",))
+    assert set(rec) == {"default/forward", "default/value_and_grad"}
+    for v in rec.values():
+        assert v["compile_cpu_s"] > 0 and v["call_ms"] > 0 and v["instructions"] > 10
+    import numpy as np
+
+    y = np.load(tmp_path / "y.npz")["default"]
+    assert y.ndim == 3 and np.isfinite(y).all() and y.max() > 0
     for bad in (["--optics", "bulk"], ["--rounds", "0"], ["--base", str(tmp_path)]):
         argv = ["--base", str(ROOT), "--out", str(tmp_path / "x.json"), *bad]
         with pytest.raises(SystemExit) as e:
