@@ -110,7 +110,7 @@ def main(argv=None) -> int:
 
     trees = {"before": base, "after": ROOT}
     runs = {k: [] for k in trees}
-    tmp = Path(a.out).with_suffix(".tmp")
+    tmp = Path(a.out).resolve().with_suffix(".tmp")  # absolute: the workers run in their trees
     tmp.mkdir(parents=True, exist_ok=True)
     for r in range(a.rounds):
         for k in (("before", "after") if r % 2 == 0 else ("after", "before")):
