@@ -63,9 +63,19 @@ def run_worker(label: str, xla_flags: str, warm: int, tree: Path = ROOT) -> dict
     ``experiments/tree_compare.py`` runs it for two checkouts."""
     env = dict(os.environ, XLA_FLAGS=xla_flags, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0",
                JAX_PLATFORMS="cpu", PYTHONPATH=str(tree))
+    return fresh_record([str(tree / "experiments" / "cpu_opt_level.py"), "--worker", "--warm", str(warm)], env, tree, label)
+
+
+def fresh_record(args: list, env: dict, cwd: Path, label: str, timeout: float | None = None) -> dict:
+    """Run ``python args`` in a fresh process (``env``, in ``cwd``) and return the JSON record its last line of output
+    prints, with the 1-minute load at its start. A failure, or a run past ``timeout`` seconds, stops with a message
+    that names ``label``. ``experiments/model_compile_compare.py`` runs its workers through it too."""
     load = os.getloadavg()[0]
-    out = subprocess.run([sys.executable, str(tree / "experiments" / "cpu_opt_level.py"), "--worker", "--warm", str(warm)],
-                         env=env, capture_output=True, text=True, check=False, cwd=str(tree))
+    try:
+        out = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True, check=False, cwd=str(cwd),
+                             timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise SystemExit(f"worker ({label}) did not finish in {timeout:.0f} s") from None
     if out.returncode != 0:
         print(out.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"worker ({label}) failed with exit code {out.returncode}")

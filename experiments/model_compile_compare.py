@@ -21,12 +21,14 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+
+from cpu_opt_level import fresh_record  # noqa: E402  (a fresh process's JSON record, as tree_compare's workers)
 ELEMENTAL = "--xla_cpu_use_fusion_emitters=false"
 FLAGS = {"cli": ELEMENTAL,
          "tests": f"{ELEMENTAL} --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}
@@ -72,20 +74,9 @@ def worker(calls: int, out_file: str, optics=OPTICS) -> dict:
 def run_worker(tree: Path, flags: str, calls: int, out_file: Path, optics=OPTICS) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_", "TOFJAX_", "PYTHONPATH"))}  # nothing inherited
     env.update(XLA_FLAGS=flags, TOFJAX_PROGRAM_STORE="0", TOFJAX_COMPILATION_CACHE="0", JAX_PLATFORMS="cpu", PYTHONPATH=str(tree))
-    load = os.getloadavg()[0]
     code = (f"import sys, json; sys.path.insert(0, {str(ROOT / 'experiments')!r}); import model_compile_compare as m; "
             f"print(json.dumps(m.worker({calls}, {str(out_file)!r}, {tuple(optics)!r})))")
-    try:
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=False, cwd=str(tree),
-                             timeout=1800)
-    except subprocess.TimeoutExpired:
-        raise SystemExit(f"worker ({tree}) did not finish in 30 minutes") from None
-    if out.returncode != 0:
-        print(out.stderr[-3000:], file=sys.stderr)
-        raise SystemExit(f"worker ({tree}) failed with exit code {out.returncode}")
-    rec = json.loads(out.stdout.strip().splitlines()[-1])
-    rec["load_1min"] = load
-    return rec
+    return fresh_record(["-c", code], env, tree, str(tree), timeout=1800)
 
 
 def main(argv=None) -> int:
